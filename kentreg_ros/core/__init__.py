@@ -1,0 +1,22 @@
+"""Registration core of kentreg_ros: numpy/scipy only, never imports rclpy or rosbags."""
+
+from kentreg_ros.core.config import KentRegConfig, load_config
+from kentreg_ros.core.errors import (
+    ConfigError,
+    DegenerateSceneError,
+    InvalidPointCloudError,
+    KentRegError,
+)
+from kentreg_ros.core.preprocess import as_points, drop_nonfinite, voxel_downsample
+
+__all__ = [
+    'ConfigError',
+    'DegenerateSceneError',
+    'InvalidPointCloudError',
+    'KentRegConfig',
+    'KentRegError',
+    'as_points',
+    'drop_nonfinite',
+    'load_config',
+    'voxel_downsample',
+]

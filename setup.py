@@ -1,0 +1,46 @@
+"""ament_python / pip package definition for kentreg_ros."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'kentreg_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'benchmarks', 'benchmarks.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
+    ],
+    python_requires='>=3.11',
+    install_requires=['numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'setuptools'],
+    extras_require={
+        'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60'],
+        'test': [
+            'pytest>=7',
+            'ruff>=0.5',
+            'mypy>=1.8',
+            'rosbags>=0.11',
+            'mcap>=1.1',
+            'tqdm>=4.60',
+            'matplotlib>=3.7',
+            'types-PyYAML',
+        ],
+        'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
+        'bench': ['open3d-cpu', 'small-gicp', 'kiss-icp', 'matplotlib>=3.7'],
+    },
+    zip_safe=True,
+    maintainer='kentreg maintainers',
+    maintainer_email='kentreg@example.com',
+    description='LiDAR odometry with Kent (FB5) mixture registration for ROS 2 Jazzy.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'kentreg_register = kentreg_ros.cli_register:main',
+        ],
+    },
+)
