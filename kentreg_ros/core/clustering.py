@@ -1,0 +1,112 @@
+"""Spherical k-means over unit vectors (Hornik et al. 2012) with k-means++ seeding."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def _normalize_rows(x: FloatArray) -> FloatArray:
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def _rng(rng: np.random.Generator | int | None) -> np.random.Generator:
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def kmeanspp_sphere(x: FloatArray, k: int, rng: np.random.Generator | int | None = 0,
+                    weights: FloatArray | None = None) -> FloatArray:
+    """k-means++ seeding on the sphere with the cosine dissimilarity ``1 - x . c``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (N, 3)
+        Unit vectors.
+    k : int
+        Number of seeds (``1 <= k <= N``).
+    rng : Generator or int, optional
+    weights : ndarray, shape (N,), optional
+        Non-negative sample weights.
+
+    Returns
+    -------
+    ndarray, shape (k, 3)
+    """
+    gen = _rng(rng)
+    n = len(x)
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+    centers = np.empty((k, 3))
+    first = gen.choice(n, p=w / w.sum())
+    centers[0] = x[first]
+    dist = np.maximum(1.0 - x @ centers[0], 0.0)
+    for j in range(1, k):
+        p = dist * w
+        total = p.sum()
+        idx = gen.choice(n, p=p / total) if total > 0 else gen.integers(n)
+        centers[j] = x[idx]
+        dist = np.minimum(dist, np.maximum(1.0 - x @ centers[j], 0.0))
+    return centers
+
+
+def spherical_kmeans(x: ArrayLike, k: int, *, max_iterations: int = 50,
+                     rng: np.random.Generator | int | None = 0,
+                     weights: ArrayLike | None = None
+                     ) -> tuple[NDArray[np.intp], FloatArray]:
+    """Cluster unit vectors by spherical k-means.
+
+    Each centre is the normalised (weighted) mean of its members; members are assigned to the
+    centre of largest cosine. Empty clusters are re-seeded at the worst-fitting vector.
+
+    Parameters
+    ----------
+    x : array_like, shape (N, 3)
+        Unit vectors (re-normalised defensively).
+    k : int
+        Number of clusters; clipped to N.
+    max_iterations : int
+    rng : Generator or int, optional
+        Seed of the k-means++ initialisation.
+    weights : array_like, shape (N,), optional
+
+    Returns
+    -------
+    labels : ndarray of int, shape (N,)
+    centers : ndarray, shape (k, 3)
+    """
+    xs = np.asarray(x, dtype=np.float64)
+    if xs.ndim != 2 or xs.shape[1] != 3:
+        raise ValueError(f'Expected `x` to have shape (N, 3), got {xs.shape}.')
+    if len(xs) == 0:
+        raise ValueError('Expected at least one vector to cluster, got 0.')
+    if k < 1:
+        raise ValueError(f'Expected `k` >= 1, got {k}.')
+    xs = _normalize_rows(xs)
+    w = np.ones(len(xs)) if weights is None else np.asarray(weights, dtype=np.float64)
+    k = min(k, len(xs))
+    centers = kmeanspp_sphere(xs, k, rng, w)
+    labels = np.full(len(xs), -1, dtype=np.intp)
+    for _ in range(max_iterations):
+        sims = xs @ centers.T
+        new_labels = np.argmax(sims, axis=1)
+        sums = np.zeros((k, 3))
+        np.add.at(sums, new_labels, xs * w[:, None])
+        norms = np.linalg.norm(sums, axis=1)
+        empty = norms < 1e-12
+        if empty.any():
+            fit = sims[np.arange(len(xs)), new_labels]
+            worst = np.argsort(fit)[: int(empty.sum())]
+            sums[empty] = xs[worst]
+            new_labels[worst] = np.flatnonzero(empty)
+            norms = np.linalg.norm(sums, axis=1)
+        centers = sums / norms[:, None]
+        if np.array_equal(new_labels, labels):
+            break
+        labels = new_labels
+    return labels, centers
+
+
+def assign_to_centers(x: FloatArray, centers: FloatArray) -> NDArray[np.intp]:
+    """Index of the centre of largest cosine for every row of ``x``."""
+    return np.argmax(x @ centers.T, axis=1)

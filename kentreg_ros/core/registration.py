@@ -1,0 +1,554 @@
+"""The registration facade: ``register(source, target) -> RegistrationResult``.
+
+Pipeline (``mode='robust'``, the default)::
+
+    prepare_scan (crop, voxel downsample, PCA normals, cosine outlier removal, spherical
+    k-means)  ->  rotation: shared-rotation Kent EM over the model's clusters  ->  translation:
+    plane-offset cross-correlation start + robust 3-DOF point-to-plane  ->  joint 6-DOF
+    refinement on positions and Kent-weighted normals.
+
+``mode='paper'`` runs Algorithms 1 and 2 of Fahandezh-Saadi et al. as written: both clouds
+clustered separately and clusters paired, per-cluster EM with per-model-normal Kent components,
+rotation averaging (the paper's eq. rot_avg), and ``t = mu_y - R mu_x``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from kentreg_ros.core.clustering import spherical_kmeans
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.em import EMResult, ModelClusters, paper_cluster_em, shared_rotation_em
+from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
+from kentreg_ros.core.preprocess import as_points, crop_range, downsample
+from kentreg_ros.core.refine import refine_joint
+from kentreg_ros.core.rotations import average_rotations, make_transform, rotation_angle
+from kentreg_ros.core.translation import (
+    centroid_translation,
+    degenerate_directions,
+    plane_offset_translation,
+    point_to_plane_translation,
+)
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+MIN_POINTS = 20
+
+STATUS_CONVERGED = 'converged'
+STATUS_MAX_ITERATIONS = 'max_iterations'
+STATUS_DEGENERATE = 'degenerate'
+STATUS_FAILED = 'failed'
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedScan:
+    """A scan preprocessed once and reusable as source or target of many registrations.
+
+    Attributes
+    ----------
+    points : ndarray, shape (N, 3)
+        Downsampled points whose normals passed the outlier test.
+    normals : ndarray, shape (N, 3)
+        Unit normals oriented toward ``viewpoint``.
+    curvature : ndarray, shape (N,)
+    labels : ndarray of int, shape (N,)
+        Spherical k-means cluster of every normal.
+    centers : ndarray, shape (K, 3)
+        Cluster mean directions.
+    clusters : ModelClusters
+        Kent frames of the clusters (used when this scan is the model).
+    tree : cKDTree
+        Tree on ``points``.
+    voxel_size : float
+        Voxel edge used (0 if the input was used as is).
+    viewpoint : ndarray, shape (3,)
+    n_input : int
+        Points given.
+    n_normal_outliers : int
+        Points removed by the cosine-similarity normal test.
+    timings : dict
+        Milliseconds per preprocessing stage.
+    """
+
+    points: FloatArray
+    normals: FloatArray
+    curvature: FloatArray
+    labels: NDArray[np.intp]
+    centers: FloatArray
+    clusters: ModelClusters
+    tree: cKDTree
+    voxel_size: float
+    viewpoint: FloatArray
+    n_input: int
+    n_normal_outliers: int
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationResult:
+    """Outcome of :func:`register`.
+
+    Attributes
+    ----------
+    T_target_source : ndarray, shape (4, 4)
+        Maps source points into the target frame: ``p_target = R p_source + t``.
+    converged : bool
+    iterations : int
+        EM iterations plus translation and refinement iterations.
+    status : str
+        ``'converged'``, ``'max_iterations'``, ``'degenerate'`` or ``'failed'``.
+    message : str
+        Human-readable explanation of the status.
+    kappa, beta : ndarray, shape (K,)
+        Final Kent concentration and ovalness per cluster.
+    log_likelihood : tuple of float
+        EM log-likelihood history (concatenated over clusters in paper mode).
+    inlier_fraction : float
+        Fraction of source points kept as inliers by the last stage.
+    covariance : ndarray, shape (6, 6)
+        Covariance of the estimate in the order (x, y, z, roll, pitch, yaw) of
+        nav_msgs/Odometry, from the information matrix of the final fit.
+    degenerate : bool
+        True when some direction of motion is not constrained by the scene.
+    degenerate_directions : ndarray, shape (D, 3)
+        Translation directions (target frame) that are poorly constrained.
+    timings : dict
+        Milliseconds per stage.
+    stages : dict
+        ``T_target_source`` after each stage (rotation, translation, refine).
+    mode : str
+    n_source, n_target : int
+        Points used after preprocessing.
+    """
+
+    T_target_source: FloatArray
+    converged: bool
+    iterations: int
+    status: str
+    message: str
+    kappa: FloatArray
+    beta: FloatArray
+    log_likelihood: tuple[float, ...]
+    inlier_fraction: float
+    covariance: FloatArray
+    degenerate: bool
+    degenerate_directions: FloatArray
+    timings: dict[str, float]
+    stages: dict[str, FloatArray]
+    mode: str
+    n_source: int
+    n_target: int
+
+    @property
+    def ok(self) -> bool:
+        """True unless the status is ``'failed'``."""
+        return self.status != STATUS_FAILED
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def prepare_scan(
+    points: ArrayLike,
+    *,
+    config: KentRegConfig | None = None,
+    viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+    normals: ArrayLike | None = None,
+) -> PreparedScan:
+    """Preprocess a scan once: crop, downsample, normals, outlier removal, clustering.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        Finite points in the sensor frame (drop NaN/inf first).
+    config : KentRegConfig, optional
+    viewpoint : array_like, shape (3,)
+        Sensor origin in the points' frame; normals face it.
+    normals : array_like, shape (N, 3), optional
+        Precomputed normals for ``points``; then ``points`` are used as given (no cropping or
+        downsampling) and only the cosine outlier test and clustering run.
+
+    Raises
+    ------
+    InvalidPointCloudError
+        Wrong shape, NaN/inf, or too few points for the neighbourhood size.
+    """
+    cfg = config or KentRegConfig()
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    pts = as_points(points)
+    vp = np.asarray(viewpoint, dtype=np.float64).reshape(3)
+    if not np.isfinite(vp).all():
+        raise ValueError(f'Expected a finite `viewpoint`, got {vp}.')
+    n_input = len(pts)
+    k = cfg.normals.k_neighbors
+    voxel = 0.0
+    if normals is None:
+        t0 = time.perf_counter()
+        pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
+        pts, voxel = downsample(pts, voxel_size=cfg.preprocess.voxel_size,
+                                target_points=cfg.preprocess.target_points)
+        timings['downsample'] = _ms(t0)
+        if len(pts) < max(k, MIN_POINTS):
+            raise InvalidPointCloudError(
+                f'Expected at least {max(k, MIN_POINTS)} points after preprocessing '
+                f'(k_neighbors={k}), got {len(pts)} (from {n_input} input points).'
+            )
+        t0 = time.perf_counter()
+        tree = cKDTree(pts)
+        est = estimate_normals(pts, k, viewpoint=vp, tree=tree)
+        nrm, curv, nbrs = est.normals, est.curvature, est.neighbors
+        timings['normals'] = _ms(t0)
+    else:
+        nrm = as_points(normals, 'normals')
+        if nrm.shape != pts.shape:
+            raise InvalidPointCloudError(
+                f'Expected `normals` to have the shape of `points` {pts.shape}, got {nrm.shape}.'
+            )
+        lengths = np.linalg.norm(nrm, axis=1)
+        if np.any(lengths < 1e-9):
+            raise InvalidPointCloudError('`normals` contains zero-length vectors.')
+        nrm = nrm / lengths[:, None]
+        if len(pts) < max(k, MIN_POINTS):
+            raise InvalidPointCloudError(
+                f'Expected at least {max(k, MIN_POINTS)} points, got {len(pts)}.'
+            )
+        t0 = time.perf_counter()
+        tree = cKDTree(pts)
+        _, nbrs = tree.query(pts, k=k, workers=-1)
+        curv = np.zeros(len(pts))
+        timings['normals'] = _ms(t0)
+    t0 = time.perf_counter()
+    keep = normal_inlier_mask(nrm, np.asarray(nbrs, dtype=np.intp), cfg.normals.outlier_cosine)
+    n_out = int((~keep).sum())
+    if keep.sum() < MIN_POINTS:
+        raise InvalidPointCloudError(
+            f'Only {int(keep.sum())} of {len(pts)} normals passed the outlier test '
+            f'(normals.outlier_cosine={cfg.normals.outlier_cosine}); need {MIN_POINTS}.'
+        )
+    if n_out:
+        pts, nrm, curv = pts[keep], nrm[keep], curv[keep]
+        tree = cKDTree(pts)
+    timings['outliers'] = _ms(t0)
+    t0 = time.perf_counter()
+    labels, centers = spherical_kmeans(nrm, cfg.clustering.n_clusters,
+                                       max_iterations=cfg.clustering.max_iterations,
+                                       rng=cfg.clustering.seed)
+    clusters = ModelClusters.from_labels(nrm, labels, len(centers))
+    timings['clustering'] = _ms(t0)
+    timings['total'] = _ms(t_start)
+    return PreparedScan(points=pts, normals=nrm, curvature=curv, labels=labels, centers=centers,
+                        clusters=clusters, tree=tree, voxel_size=voxel, viewpoint=vp,
+                        n_input=n_input, n_normal_outliers=n_out, timings=timings)
+
+
+def _as_prepared(scan: ArrayLike | PreparedScan, normals: ArrayLike | None,
+                 cfg: KentRegConfig, viewpoint: ArrayLike, name: str) -> PreparedScan:
+    if isinstance(scan, PreparedScan):
+        if normals is not None:
+            raise ValueError(f'`{name}_normals` cannot be given with a PreparedScan `{name}`.')
+        return scan
+    try:
+        return prepare_scan(scan, config=cfg, viewpoint=viewpoint, normals=normals)
+    except InvalidPointCloudError as exc:
+        raise InvalidPointCloudError(f'{name}: {exc}') from exc
+
+
+def _check_init(init: ArrayLike | None) -> FloatArray:
+    if init is None:
+        return np.eye(4)
+    T = np.asarray(init, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f'Expected `init` to be a finite 4x4 transform, got shape {T.shape}.')
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise ValueError('Expected the rotation block of `init` to be a rotation matrix.')
+    return T
+
+
+def register(
+    source: ArrayLike | PreparedScan,
+    target: ArrayLike | PreparedScan,
+    *,
+    init: ArrayLike | None = None,
+    config: KentRegConfig | None = None,
+    source_normals: ArrayLike | None = None,
+    target_normals: ArrayLike | None = None,
+    viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+) -> RegistrationResult:
+    """Estimate ``T_target_source``, the rigid transform taking source points into the target.
+
+    In the paper's words the target is the *model* and the source the *observed* cloud.
+
+    Parameters
+    ----------
+    source, target : array_like, shape (N, 3), or PreparedScan
+        Point clouds (finite, same unit), or scans prepared by :func:`prepare_scan` (the
+        odometry prepares every scan once and reuses it as the next model).
+    init : array_like, shape (4, 4), optional
+        Initial guess of ``T_target_source`` (default identity).
+    config : KentRegConfig, optional
+        Default ``KentRegConfig()`` (robust mode).
+    source_normals, target_normals : array_like, shape (N, 3), optional
+        Precomputed normals (see :func:`prepare_scan`).
+    viewpoint : array_like, shape (3,)
+        Sensor origin in each cloud's own frame, used to orient normals.
+
+    Returns
+    -------
+    RegistrationResult
+        Not converging or a degenerate scene is a status, never an exception; a result is
+        never silently the identity.
+
+    Raises
+    ------
+    InvalidPointCloudError
+        Malformed clouds: wrong shape, NaN/inf, too few points.
+    ValueError
+        A malformed ``init``.
+    """
+    cfg = config or KentRegConfig()
+    if not isinstance(cfg, KentRegConfig):
+        raise TypeError(f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.')
+    t_start = time.perf_counter()
+    T_init = _check_init(init)
+    t0 = time.perf_counter()
+    src = _as_prepared(source, source_normals, cfg, viewpoint, 'source')
+    t_src = _ms(t0)
+    t0 = time.perf_counter()
+    tgt = _as_prepared(target, target_normals, cfg, viewpoint, 'target')
+    t_tgt = _ms(t0)
+    timings = {'prepare_source': t_src, 'prepare_target': t_tgt}
+    if cfg.mode == 'paper':
+        result = _register_paper(src, tgt, T_init, cfg, timings)
+    else:
+        result = _register_robust(src, tgt, T_init, cfg, timings)
+    timings['total'] = _ms(t_start)
+    return result
+
+
+def _translation_gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
+                       ) -> tuple[float, float]:
+    voxel = max(src.voxel_size, tgt.voxel_size)
+    if voxel <= 0.0:
+        d = tgt.tree.query(tgt.points[:: max(1, len(tgt) // 500)], k=2)[0][:, 1]
+        voxel = float(np.median(d))
+    min_gate = max(2.0 * voxel, 0.05)
+    return max(cfg.refine.max_correspondence_distance, min_gate), min_gate
+
+
+def _rotation_covariance(H: FloatArray) -> FloatArray:
+    Hs = 0.5 * (H + H.T)
+    evals, evecs = np.linalg.eigh(Hs)
+    inv = np.where(evals > 1e-9 * max(float(evals[-1]), 1e-300), 1.0 / np.maximum(evals, 1e-300),
+                   1e6)
+    return (evecs * inv) @ evecs.T
+
+
+def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
+                     cfg: KentRegConfig, timings: dict[str, float]) -> RegistrationResult:
+    em_cfg = cfg.em
+    stages: dict[str, FloatArray] = {}
+    t0 = time.perf_counter()
+    em = shared_rotation_em(
+        src.normals, tgt.clusters, T_init[:3, :3],
+        outlier_weight=em_cfg.outlier_weight, use_beta=em_cfg.kent_beta,
+        rotation=em_cfg.rotation, kappa_cap_start=em_cfg.kappa_cap_start,
+        kappa_cap_end=em_cfg.kappa_cap_end, kappa_cap_growth=em_cfg.kappa_cap_growth,
+        max_iterations=em_cfg.max_iterations, tolerance=em_cfg.tolerance,
+    )
+    R = em.R
+    timings['rotation'] = _ms(t0)
+    stages['rotation'] = make_transform(R, T_init[:3, 3])
+    iterations = em.iterations
+    max_gate, min_gate = _translation_gates(src, tgt, cfg)
+    t0 = time.perf_counter()
+    tr_cfg = cfg.translation
+    H_t: FloatArray | None = None
+    sigma2_t = 0.0
+    inlier = em.inlier_fraction
+    if tr_cfg.method == 'centroid':
+        t = centroid_translation(R, src.points, tgt.points)
+    else:
+        t = T_init[:3, 3].copy()
+        if tr_cfg.cross_correlation:
+            t, _ = plane_offset_translation(R, t, src.points, src.normals, tgt.points,
+                                            tgt.normals, tgt.centers,
+                                            bin_size=max(min_gate / 4.0, 0.02))
+            stages['cross_correlation'] = make_transform(R, t)
+        tres = point_to_plane_translation(
+            R, t, src.points, tgt.points, tgt.normals, tgt.tree,
+            max_iterations=tr_cfg.max_iterations,
+            max_distance=max(tr_cfg.max_correspondence_distance, min_gate),
+            min_distance=min_gate, degeneracy_ratio=tr_cfg.degeneracy_ratio,
+        )
+        t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
+        inlier = tres.inlier_fraction
+        iterations += tres.iterations
+    timings['translation'] = _ms(t0)
+    T = make_transform(R, t)
+    stages['translation'] = T
+    converged = em.converged
+    t0 = time.perf_counter()
+    if cfg.refine.method != 'none':
+        ref = refine_joint(
+            T, src.points, src.normals, tgt.points, tgt.normals, tgt.tree,
+            method=cfg.refine.method, normal_weight=cfg.refine.normal_weight,
+            max_iterations=cfg.refine.max_iterations, max_distance=max_gate,
+            min_distance=min_gate, tolerance=cfg.refine.tolerance,
+        )
+        T = ref.T
+        stages['refine'] = T
+        iterations += ref.iterations
+        converged = ref.converged
+        inlier = ref.inlier_fraction
+        H6 = ref.hessian
+        info = np.zeros((6, 6))
+        # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
+        perm = [3, 4, 5, 0, 1, 2]
+        info = H6[np.ix_(perm, perm)]
+        covariance = max(ref.sigma2, 1e-12) * _rotation_covariance(info)
+        H_trans = info[:3, :3]
+    else:
+        covariance = np.zeros((6, 6))
+        covariance[3:, 3:] = _rotation_covariance(em.hessian)
+        if H_t is not None:
+            covariance[:3, :3] = max(sigma2_t, 1e-12) * _rotation_covariance(H_t)
+        else:
+            covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
+        H_trans = H_t if H_t is not None else np.eye(3)
+    timings['refine'] = _ms(t0)
+    deg_dirs = degenerate_directions(H_trans, tr_cfg.degeneracy_ratio)
+    rot_evals = np.linalg.eigvalsh(0.5 * (em.hessian + em.hessian.T))
+    rot_degenerate = bool(rot_evals[0] < tr_cfg.degeneracy_ratio * max(rot_evals[-1], 1e-300))
+    degenerate = len(deg_dirs) > 0 or rot_degenerate
+    return _finish(T, converged, iterations, em, inlier, covariance, degenerate, deg_dirs,
+                   rot_degenerate, timings, stages, 'robust', src, tgt,
+                   list(em.log_likelihood))
+
+
+def _finish(T: FloatArray, converged: bool, iterations: int, em: EMResult, inlier: float,
+            covariance: FloatArray, degenerate: bool, deg_dirs: FloatArray,
+            rot_degenerate: bool, timings: dict[str, float], stages: dict[str, FloatArray],
+            mode: str, src: PreparedScan, tgt: PreparedScan, history: list[float]
+            ) -> RegistrationResult:
+    if not np.isfinite(T).all():
+        status, message = STATUS_FAILED, 'The estimate is not finite.'
+        T = np.full((4, 4), np.nan)
+    elif inlier < 0.05:
+        status = STATUS_FAILED
+        message = (f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
+                   'do not overlap at this pose.')
+    elif degenerate:
+        status = STATUS_DEGENERATE
+        parts = []
+        if len(deg_dirs):
+            dirs = ', '.join(np.array2string(d, precision=2) for d in deg_dirs)
+            parts.append(f'translation along {dirs} is poorly constrained')
+        if rot_degenerate:
+            parts.append('rotation about one axis is poorly constrained by the normals')
+        message = 'Degenerate scene: ' + '; '.join(parts) + '.'
+    elif converged:
+        status, message = STATUS_CONVERGED, 'Converged.'
+    else:
+        status = STATUS_MAX_ITERATIONS
+        message = 'Stopped at the iteration limit before meeting the tolerance.'
+    return RegistrationResult(
+        T_target_source=T, converged=bool(converged and status != STATUS_FAILED),
+        iterations=int(iterations), status=status, message=message, kappa=em.kappa,
+        beta=em.beta, log_likelihood=tuple(history), inlier_fraction=float(inlier),
+        covariance=covariance, degenerate=degenerate, degenerate_directions=deg_dirs,
+        timings=timings, stages=stages, mode=mode, n_source=len(src), n_target=len(tgt),
+    )
+
+
+def _subsample(idx: NDArray[np.intp], limit: int, rng: np.random.Generator) -> NDArray[np.intp]:
+    if len(idx) <= limit:
+        return idx
+    return np.sort(rng.choice(idx, size=limit, replace=False))
+
+
+def _register_paper(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
+                    cfg: KentRegConfig, timings: dict[str, float]) -> RegistrationResult:
+    """Algorithms 1 and 2 of the paper, as written."""
+    em_cfg = cfg.em
+    R0 = T_init[:3, :3]
+    rng = np.random.default_rng(cfg.clustering.seed)
+    t0 = time.perf_counter()
+    # Pair the separately clustered partitions by their mean directions under the start.
+    sim = tgt.centers @ (src.centers @ R0.T).T
+    rows, cols = linear_sum_assignment(-sim)
+    results: list[EMResult] = []
+    for i, j in zip(rows, cols, strict=True):
+        yi = _subsample(np.flatnonzero(tgt.labels == i), em_cfg.max_points_per_cluster, rng)
+        xj = _subsample(np.flatnonzero(src.labels == j), em_cfg.max_points_per_cluster, rng)
+        if len(yi) < 3 or len(xj) < 3:
+            continue
+        results.append(paper_cluster_em(
+            tgt.normals[yi], src.normals[xj], R0, outlier_weight=em_cfg.outlier_weight,
+            max_iterations=em_cfg.max_iterations, tolerance=em_cfg.tolerance,
+        ))
+    if not results:
+        raise KentRegError('No cluster pair had enough normals for the EM.')
+    R = average_rotations(np.array([r.R for r in results]))
+    timings['rotation'] = _ms(t0)
+    t0 = time.perf_counter()
+    t = centroid_translation(R, src.points, tgt.points)
+    timings['translation'] = _ms(t0)
+    timings['refine'] = 0.0
+    T = make_transform(R, t)
+    H_rot = np.sum([r.hessian for r in results], axis=0)
+    covariance = np.zeros((6, 6))
+    covariance[3:, 3:] = _rotation_covariance(H_rot)
+    cov_t = (np.cov(tgt.points.T) / len(tgt) + R @ np.cov(src.points.T) @ R.T / len(src))
+    covariance[:3, :3] = cov_t
+    rot_evals = np.linalg.eigvalsh(0.5 * (H_rot + H_rot.T))
+    rot_degenerate = bool(rot_evals[0] < cfg.translation.degeneracy_ratio
+                          * max(rot_evals[-1], 1e-300))
+    em = EMResult(
+        R=R, kappa=np.concatenate([r.kappa for r in results]),
+        beta=np.concatenate([r.beta for r in results]), log_likelihood=[],
+        iterations=sum(r.iterations for r in results),
+        converged=all(r.converged for r in results),
+        inlier_fraction=float(np.mean([r.inlier_fraction for r in results])), hessian=H_rot,
+    )
+    history = [v for r in results for v in r.log_likelihood]
+    spread = max(rotation_angle(r.R.T @ R) for r in results)
+    stages = {'rotation': make_transform(R, T_init[:3, 3]), 'translation': T}
+    res = _finish(T, em.converged, em.iterations, em, em.inlier_fraction, covariance,
+                  rot_degenerate, np.zeros((0, 3)), rot_degenerate, timings, stages, 'paper',
+                  src, tgt, history)
+    if spread > np.radians(2.0):
+        logger.debug('Paper mode: per-cluster rotations spread %.2f deg before averaging.',
+                     np.degrees(spread))
+    return res
+
+
+def result_summary(result: RegistrationResult) -> dict[str, Any]:
+    """A JSON-ready summary of a result (for logs and metrics files)."""
+    return {
+        'status': result.status,
+        'message': result.message,
+        'converged': result.converged,
+        'iterations': result.iterations,
+        'inlier_fraction': result.inlier_fraction,
+        'degenerate': result.degenerate,
+        'timings_ms': dict(result.timings),
+        'n_source': result.n_source,
+        'n_target': result.n_target,
+    }

@@ -1,0 +1,202 @@
+"""SO(3) helpers: exp/log maps, Procrustes, the Kent M-step solver, rotation averaging."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def hat(w: ArrayLike) -> FloatArray:
+    """Skew-symmetric matrix of a vector: ``hat(w) @ v == cross(w, v)``; shape (..., 3, 3)."""
+    w = np.asarray(w, dtype=np.float64)
+    out = np.zeros((*w.shape[:-1], 3, 3))
+    out[..., 0, 1] = -w[..., 2]
+    out[..., 0, 2] = w[..., 1]
+    out[..., 1, 0] = w[..., 2]
+    out[..., 1, 2] = -w[..., 0]
+    out[..., 2, 0] = -w[..., 1]
+    out[..., 2, 1] = w[..., 0]
+    return out
+
+
+def vee(m: FloatArray) -> FloatArray:
+    """Inverse of :func:`hat` applied to the skew part of ``m``; shape (..., 3)."""
+    return 0.5 * np.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def exp_so3(w: ArrayLike) -> FloatArray:
+    """Rodrigues' formula: rotation matrix of the rotation vector ``w`` (radians)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = float(np.linalg.norm(w))
+    k = hat(w)
+    if theta < 1e-8:
+        return np.eye(3) + k + 0.5 * k @ k
+    return np.eye(3) + np.sin(theta) / theta * k + (1 - np.cos(theta)) / theta**2 * k @ k
+
+
+def log_so3(R: FloatArray) -> FloatArray:
+    """Rotation vector (radians) of a rotation matrix."""
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos))
+    if theta < 1e-8:
+        return vee(R)
+    if np.pi - theta < 1e-5:
+        # Near pi: axis from the symmetric part.
+        B = (R + np.eye(3)) / 2.0
+        axis = np.sqrt(np.maximum(np.diag(B), 0.0))
+        i = int(np.argmax(axis))
+        axis = B[:, i] / max(axis[i], 1e-12)
+        axis /= np.linalg.norm(axis)
+        if np.dot(vee(R), axis) < 0:
+            axis = -axis
+        return axis * theta
+    return vee(R) * (theta / np.sin(theta))
+
+
+def rotation_angle(R: FloatArray) -> float:
+    """Angle of a rotation matrix in radians (the geodesic distance to identity)."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def project_to_so3(M: FloatArray) -> FloatArray:
+    """Closest rotation (Frobenius) to a 3x3 matrix, by SVD."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def procrustes(C: FloatArray) -> FloatArray:
+    """``argmax_{R in SO(3)} tr(R C)`` (Wahba's problem), with ``C = sum w x y^T``.
+
+    The returned R rotates the ``x`` vectors onto the ``y`` vectors.
+    """
+    U, _, Vt = np.linalg.svd(C)
+    V = Vt.T
+    d = np.sign(np.linalg.det(V @ U.T)) or 1.0
+    return V @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+@dataclass(frozen=True)
+class KentRotationProblem:
+    """The M-step objective ``f(R) = sum_k tr(R^T A_k R B_k) - tr(R C)``.
+
+    This is the paper's eq. (solve_for_R) ``beta tr(R^T A R B) - kappa tr(R C)`` generalised to
+    several Kent components: pass ``A_k`` already scaled by ``beta_k`` and ``C`` already scaled
+    by the ``kappa_k``. ``A_k`` and ``B_k`` are symmetric.
+
+    Attributes
+    ----------
+    A : ndarray, shape (K, 3, 3)
+    B : ndarray, shape (K, 3, 3)
+    C : ndarray, shape (3, 3)
+    """
+
+    A: FloatArray
+    B: FloatArray
+    C: FloatArray
+
+    def value(self, R: FloatArray) -> float:
+        quad = np.einsum('ji,kjl,lm,kmi->', R, self.A, R, self.B)
+        return float(quad - np.trace(R @ self.C))
+
+    def gradient(self, R: FloatArray) -> FloatArray:
+        """Riemannian gradient for the right perturbation ``R exp(hat(w))``, shape (3,)."""
+        G = 2.0 * np.einsum('kij,jl,klm->im', self.A, R, self.B) - self.C.T
+        M = R.T @ G
+        return 2.0 * vee(M)
+
+    def hessian(self, R: FloatArray, h: float = 1e-6) -> FloatArray:
+        """Riemannian Hessian by central differences of the gradient, symmetrised, (3, 3)."""
+        H = np.empty((3, 3))
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = h
+            H[:, i] = (self.gradient(R @ exp_so3(e)) - self.gradient(R @ exp_so3(-e))) / (2 * h)
+        return 0.5 * (H + H.T)
+
+
+def solve_kent_rotation(problem: KentRotationProblem, R0: FloatArray, *,
+                        max_iterations: int = 50, tolerance: float = 1e-12
+                        ) -> tuple[FloatArray, int]:
+    """Minimise a :class:`KentRotationProblem` over SO(3) by Riemannian Newton steps.
+
+    Newton directions come from the Riemannian Hessian (damped to be positive definite, so a
+    descent direction always results); step lengths from Armijo backtracking along the
+    retraction ``R exp(hat(w))``. Converges quadratically near a non-degenerate minimum.
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3)
+    iterations : int
+    """
+    R = np.array(R0, dtype=np.float64)
+    f = problem.value(R)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        g = problem.gradient(R)
+        gnorm = float(np.linalg.norm(g))
+        if gnorm < tolerance:
+            break
+        H = problem.hessian(R)
+        evals, evecs = np.linalg.eigh(H)
+        floor = max(1e-9, 1e-6 * float(np.max(np.abs(evals))))
+        evals = np.maximum(np.abs(evals), floor)
+        step = -(evecs @ ((evecs.T @ g) / evals))
+        slope = float(g @ step)
+        t = 1.0
+        while t > 1e-10:
+            R_new = R @ exp_so3(t * step)
+            f_new = problem.value(R_new)
+            if f_new <= f + 1e-4 * t * slope:
+                break
+            t *= 0.5
+        else:
+            break
+        R, f_prev, f = project_to_so3(R_new), f, f_new
+        if float(np.linalg.norm(t * step)) < 1e-13 or abs(f_prev - f) <= 1e-15 * max(1, abs(f)):
+            break
+    return R, it
+
+
+def average_rotations(rotations: Sequence[FloatArray] | FloatArray,
+                      weights: ArrayLike | None = None) -> FloatArray:
+    """Euclidean (chordal L2) mean of rotations, as in the paper's eq. (rot_avg) (Moakher 2002).
+
+    ``R = Rbar U diag(1/sqrt(l1), 1/sqrt(l2), s/sqrt(l3)) U^T`` where ``Rbar`` is the
+    (weighted) arithmetic mean, ``Rbar^T Rbar = U diag(l1, l2, l3) U^T`` with ``l3`` the smallest
+    eigenvalue, and ``s = sign(det Rbar)``.
+
+    Parameters
+    ----------
+    rotations : array_like, shape (K, 3, 3)
+    weights : array_like, shape (K,), optional
+        Non-negative weights (default: equal).
+    """
+    Rs = np.asarray(rotations, dtype=np.float64)
+    if Rs.ndim != 3 or Rs.shape[1:] != (3, 3) or len(Rs) == 0:
+        raise ValueError(f'Expected `rotations` to have shape (K, 3, 3), got {Rs.shape}.')
+    w = np.ones(len(Rs)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(Rs),) or np.any(w < 0) or not w.sum() > 0:
+        raise ValueError(f'Expected {len(Rs)} non-negative weights with a positive sum, got {w}.')
+    Rbar = np.einsum('k,kij->ij', w / w.sum(), Rs)
+    evals, U = np.linalg.eigh(Rbar.T @ Rbar)  # ascending: evals[0] is the smallest
+    evals = np.maximum(evals, 1e-15)
+    s = 1.0 if np.linalg.det(Rbar) > 0 else -1.0
+    scale = np.array([s / np.sqrt(evals[0]), 1.0 / np.sqrt(evals[1]), 1.0 / np.sqrt(evals[2])])
+    return Rbar @ U @ np.diag(scale) @ U.T
+
+
+def make_transform(R: FloatArray, t: ArrayLike) -> FloatArray:
+    """4x4 homogeneous transform from a rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T

@@ -1,0 +1,212 @@
+"""Translation with the rotation fixed.
+
+* :func:`centroid_translation`: the paper's eq. (translation) ``t = mu_y - R mu_x``.
+* :func:`plane_offset_translation`: a correspondence-free start. For each dominant model normal
+  direction, the histograms of plane offsets ``d = mu . p`` of the model points and of the
+  rotated observed points are cross-correlated; the best shift is the translation component
+  along that direction. The components are combined by weighted least squares.
+* :func:`point_to_plane_translation`: robust 3-DOF point-to-plane least squares (IRLS with a
+  Geman-McClure kernel) on nearest-neighbour correspondences. The smallest eigenvalue of its
+  normal matrix flags directions the scene does not constrain (e.g. a corridor's axis).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+FloatArray = NDArray[np.float64]
+
+
+def centroid_translation(R: FloatArray, source: FloatArray, target: FloatArray) -> FloatArray:
+    """``t = mean(target) - R mean(source)`` (the paper's translation)."""
+    return target.mean(axis=0) - R @ source.mean(axis=0)
+
+
+def plane_offset_translation(
+    R: FloatArray,
+    t0: FloatArray,
+    source: FloatArray,
+    source_normals: FloatArray,
+    target: FloatArray,
+    target_normals: FloatArray,
+    directions: FloatArray,
+    *,
+    bin_size: float = 0.05,
+    max_shift: float = 2.0,
+    min_cosine: float = 0.9,
+    min_points: int = 50,
+) -> tuple[FloatArray, int]:
+    """Translation from cross-correlated plane-offset histograms per direction.
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3)
+        Rotation source -> target.
+    t0 : ndarray, shape (3,)
+        Prior translation; the search along each direction is within ``max_shift`` of it, and
+        directions the clusters do not span keep its component.
+    source, source_normals : ndarray, shape (N, 3)
+    target, target_normals : ndarray, shape (M, 3)
+    directions : ndarray, shape (K, 3)
+        Unit directions (the model's cluster mean normals).
+
+    Returns
+    -------
+    t : ndarray, shape (3,)
+    used : int
+        Number of directions that contributed.
+    """
+    src = source @ R.T
+    src_n = source_normals @ R.T
+    rows: list[FloatArray] = []
+    rhs: list[float] = []
+    wts: list[float] = []
+    nbins = int(np.ceil(2 * max_shift / bin_size))
+    for d in directions:
+        mt = target_normals @ d > min_cosine
+        ms = src_n @ d > min_cosine
+        if mt.sum() < min_points or ms.sum() < min_points:
+            continue
+        off_t = target[mt] @ d
+        off_s = src[ms] @ d + float(d @ t0)
+        lo = min(off_t.min(), off_s.min()) - max_shift
+        hi = max(off_t.max(), off_s.max()) + max_shift
+        edges_n = int(np.ceil((hi - lo) / bin_size)) + 1
+        ht = np.bincount(((off_t - lo) / bin_size).astype(np.intp), minlength=edges_n)
+        hs = np.bincount(((off_s - lo) / bin_size).astype(np.intp), minlength=edges_n)
+        ht = ht.astype(np.float64)
+        hs = hs.astype(np.float64)
+        size = 1 << int(np.ceil(np.log2(2 * edges_n)))
+        corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
+        shifts = np.concatenate([corr[: nbins // 2 + 1], corr[-(nbins // 2):]])
+        lags = np.concatenate([np.arange(nbins // 2 + 1), -np.arange(nbins // 2, 0, -1)])
+        best = int(np.argmax(shifts))
+        peak = shifts[best]
+        if peak <= 0:
+            continue
+        # Parabolic sub-bin interpolation.
+        frac = 0.0
+        if 0 < best < len(shifts) - 1 and lags[best - 1] == lags[best] - 1 \
+                and lags[best + 1] == lags[best] + 1:
+            a, b, c = shifts[best - 1], shifts[best], shifts[best + 1]
+            denom = a - 2 * b + c
+            if denom < 0:
+                frac = 0.5 * (a - c) / denom
+        shift = (lags[best] + frac) * bin_size
+        # Confidence: peak over mean correlation, times the points involved.
+        contrast = peak / max(float(np.mean(np.abs(shifts))), 1e-12)
+        rows.append(d)
+        rhs.append(float(d @ t0) + shift)
+        wts.append(contrast * min(ms.sum(), mt.sum()))
+    if not rows:
+        return np.array(t0, dtype=np.float64), 0
+    D = np.array(rows)
+    s = np.array(rhs)
+    w = np.array(wts)
+    # Weighted least squares with a weak prior toward t0 for unconstrained directions.
+    H = (D * w[:, None]).T @ D
+    g = (D * w[:, None]).T @ s
+    reg = 1e-6 * max(float(np.trace(H)), 1e-12)
+    t = np.linalg.solve(H + reg * np.eye(3), g + reg * t0)
+    return t, len(rows)
+
+
+@dataclass(frozen=True)
+class TranslationResult:
+    """Outcome of :func:`point_to_plane_translation`.
+
+    Attributes
+    ----------
+    t : ndarray, shape (3,)
+    hessian : ndarray, shape (3, 3)
+        Normal matrix ``sum w n n^T`` at the solution.
+    sigma2 : float
+        Weighted residual variance (m^2).
+    iterations : int
+    inlier_fraction : float
+    degenerate_directions : ndarray, shape (D, 3)
+        Unit directions whose eigenvalue ratio is below the threshold.
+    """
+
+    t: FloatArray
+    hessian: FloatArray
+    sigma2: float
+    iterations: int
+    inlier_fraction: float
+    degenerate_directions: FloatArray
+
+
+def robust_scale(residuals: FloatArray, floor: float) -> float:
+    """Robust standard deviation (1.4826 MAD), at least ``floor``."""
+    if len(residuals) == 0:
+        return floor
+    return max(1.4826 * float(np.median(np.abs(residuals))), floor)
+
+
+def geman_mcclure_weights(r: FloatArray, sigma: float) -> FloatArray:
+    """IRLS weights of the Geman-McClure kernel ``rho(r) = r^2 / (r^2 + sigma^2)``."""
+    s2 = sigma * sigma
+    return (s2 / (s2 + r * r)) ** 2
+
+
+def degenerate_directions(H: FloatArray, ratio: float) -> FloatArray:
+    """Eigenvectors of a symmetric PSD matrix whose eigenvalue is < ``ratio`` * largest."""
+    evals, evecs = np.linalg.eigh(H)
+    top = max(float(evals[-1]), 1e-300)
+    return evecs[:, evals < ratio * top].T
+
+
+def point_to_plane_translation(
+    R: FloatArray,
+    t0: FloatArray,
+    source: FloatArray,
+    target: FloatArray,
+    target_normals: FloatArray,
+    target_tree: cKDTree,
+    *,
+    max_iterations: int = 20,
+    max_distance: float = 1.0,
+    min_distance: float = 0.1,
+    noise_floor: float = 0.005,
+    degeneracy_ratio: float = 0.02,
+) -> TranslationResult:
+    """Robust 3-DOF point-to-plane least squares for ``t`` with ``R`` fixed.
+
+    The correspondence gate shrinks geometrically from ``max_distance`` toward
+    ``min_distance``; residuals are weighted by Geman-McClure with a robust (MAD) scale.
+    """
+    src = source @ R.T
+    t = np.array(t0, dtype=np.float64)
+    gate = max_distance
+    H = np.zeros((3, 3))
+    sigma2 = 0.0
+    inlier = 0.0
+    it = 0
+    for it in range(1, max_iterations + 1):
+        moved = src + t
+        dist, idx = target_tree.query(moved, k=1, distance_upper_bound=gate, workers=-1)
+        ok = np.isfinite(dist)
+        if ok.sum() < 10:
+            break
+        q = target[idx[ok]]
+        nq = target_normals[idx[ok]]
+        r = np.einsum('ij,ij->i', nq, moved[ok] - q)
+        sigma = robust_scale(r, noise_floor)
+        w = geman_mcclure_weights(r, sigma)
+        H = (nq * w[:, None]).T @ nq
+        g = (nq * w[:, None]).T @ r
+        reg = 1e-9 * max(float(np.trace(H)), 1e-12)
+        dt = -np.linalg.solve(H + reg * np.eye(3), g)
+        t = t + dt
+        sigma2 = float(np.sum(w * r * r) / max(np.sum(w), 1e-12))
+        inlier = float(ok.mean())
+        gate = max(gate * 0.7, min_distance)
+        if np.linalg.norm(dt) < 1e-5 and gate <= min_distance:
+            break
+    return TranslationResult(t=t, hessian=H, sigma2=sigma2, iterations=it,
+                             inlier_fraction=inlier,
+                             degenerate_directions=degenerate_directions(H, degeneracy_ratio))
