@@ -1,0 +1,157 @@
+"""Trajectory plots for evaluation runs (matplotlib, imported lazily; not part of the core).
+
+matplotlib is an optional dependency (extras ``test`` and ``bench``). The figure is drawn with
+the object-oriented API on an Agg canvas, so no pyplot state or global backend is touched and
+the function is safe in headless processes and worker threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from kentreg_ros.core.metrics import as_poses
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+logger = logging.getLogger(__name__)
+
+_EST_COLOUR = 'tab:blue'
+_GT_COLOUR = 'tab:gray'
+
+
+def _as_series(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'Expected `{name}` to be numeric, got {exc}.') from exc
+    if arr.ndim != 1:
+        raise ValueError(f'Expected `{name}` to have shape (M,), got {arr.shape}.')
+    return arr
+
+
+def _plot_top_view(
+    ax: Axes, xy: NDArray[np.float64], label: str, colour: str, *, linewidth: float, alpha: float
+) -> None:
+    ax.plot(xy[:, 0], xy[:, 1], color=colour, label=label, linewidth=linewidth, alpha=alpha)
+    ax.plot(*xy[0], marker='o', color=colour, markersize=7, linestyle='none')
+    ax.plot(*xy[-1], marker='s', color=colour, markersize=7, linestyle='none')
+
+
+def plot_trajectory(
+    path_png: str | os.PathLike[str],
+    T_est: ArrayLike,
+    T_gt: ArrayLike | None = None,
+    *,
+    e_R_deg: ArrayLike | None = None,
+    e_t: ArrayLike | None = None,
+    title: str = '',
+) -> Path:
+    """Write a PNG with the top view of a trajectory and, optionally, its per-pair errors.
+
+    The left panel shows the x-y positions of the estimate over the ground truth with equal axes
+    and start (circle) and end (square) markers. The ground truth is drawn as given: align the
+    trajectories first (e.g. with :func:`kentreg_ros.core.metrics.ate`'s ``T_gt_est``) if they
+    do not share a world frame. Each given error series adds a panel on the right, plotted
+    against the pair index.
+
+    Parameters
+    ----------
+    path_png : str or os.PathLike
+        Output file; its directory must exist.
+    T_est : array_like, shape (N, 4, 4)
+        Estimated poses ``T_world_sensor``.
+    T_gt : array_like, shape (M, 4, 4), optional
+        Ground-truth poses in the same world frame.
+    e_R_deg : array_like, shape (P,), optional
+        Rotation error of each pair in degrees (e.g. :func:`~kentreg_ros.core.metrics.rpe`'s
+        ``e_R_deg``).
+    e_t : array_like, shape (P,), optional
+        Translation error of each pair in metres.
+    title : str
+        Figure title; none if empty.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path_png``.
+
+    Raises
+    ------
+    ImportError
+        matplotlib is not installed.
+    ValueError
+        Invalid poses or error series of the wrong shape.
+    """
+    est = as_poses(T_est, 'T_est')
+    gt = None if T_gt is None else as_poses(T_gt, 'T_gt')
+    series: list[tuple[NDArray[np.float64], str, str]] = []
+    if e_R_deg is not None:
+        series.append((_as_series(e_R_deg, 'e_R_deg'), 'rotation error $e_R$ [deg]', 'tab:red'))
+    if e_t is not None:
+        series.append((_as_series(e_t, 'e_t'), 'translation error $e_t$ [m]', 'tab:green'))
+
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as exc:
+        raise ImportError(
+            'plot_trajectory needs matplotlib: pip install matplotlib '
+            "(or the package's `bench` / `test` extra)."
+        ) from exc
+
+    path = Path(path_png)
+    if series:
+        fig = Figure(figsize=(13.0, 6.0), layout='constrained')
+        grid = fig.add_gridspec(len(series), 2, width_ratios=(1.1, 1.0))
+        ax_top = fig.add_subplot(grid[:, 0])
+    else:
+        fig = Figure(figsize=(7.0, 6.5), layout='constrained')
+        ax_top = fig.add_subplot()
+    FigureCanvasAgg(fig)
+
+    if gt is not None:
+        _plot_top_view(ax_top, gt[:, :2, 3], 'ground truth', _GT_COLOUR, linewidth=2.5, alpha=0.8)
+    _plot_top_view(ax_top, est[:, :2, 3], 'estimate', _EST_COLOUR, linewidth=1.5, alpha=1.0)
+    # Proxy entries so the legend explains the markers once, in black.
+    ax_top.plot([], [], marker='o', color='black', linestyle='none', label='start')
+    ax_top.plot([], [], marker='s', color='black', linestyle='none', label='end')
+    ax_top.set_aspect('equal', adjustable='datalim')
+    ax_top.set_xlabel('x [m]')
+    ax_top.set_ylabel('y [m]')
+    ax_top.set_title('top view (x-y)')
+    ax_top.grid(True, alpha=0.3)
+    ax_top.legend(loc='best')
+
+    ax_prev = None
+    for row, (values, label, colour) in enumerate(series):
+        ax = fig.add_subplot(grid[row, 1], sharex=ax_prev)
+        index = np.arange(values.size)
+        ax.plot(index, values, color=colour, linewidth=1.0, marker='.', markersize=3)
+        finite = values[np.isfinite(values)]
+        if finite.size:
+            mean = float(finite.mean())
+            ax.axhline(
+                mean, color='black', linestyle='--', linewidth=0.8, label=f'mean {mean:.3g}'
+            )
+            ax.legend(loc='upper right')
+        ax.set_ylabel(label)
+        ax.set_ylim(bottom=0.0)
+        ax.grid(True, alpha=0.3)
+        if row == len(series) - 1:
+            ax.set_xlabel('pair index')
+        else:
+            ax.tick_params(labelbottom=False)
+        ax_prev = ax
+
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=120)
+    logger.debug('Wrote trajectory plot %s', path)
+    return path
