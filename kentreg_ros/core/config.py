@@ -79,7 +79,7 @@ class EMConfig:
 
     max_iterations: int = _f(50, 'Maximum EM iterations.', range=(1, 10000))
     tolerance: float = _f(
-        1e-6, 'Stop when the relative change of Q or the rotation change (rad) is below this.',
+        1e-4, 'Stop when the relative change of Q or the rotation change (rad) is below this.',
         range=(0.0, 1.0),
     )
     outlier_weight: float = _f(
@@ -120,6 +120,8 @@ class TranslationConfig:
         True, 'Start from a per-direction cross-correlation of plane offsets.'
     )
     max_iterations: int = _f(20, 'Iterations of the 3-DOF solve.', range=(1, 1000))
+    tolerance: float = _f(1e-3, 'Stop when the translation update is below this (m).',
+                          range=(0.0, 1.0))
     max_correspondence_distance: float = _f(
         1.0, 'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
@@ -137,8 +139,8 @@ class RefineConfig:
     """Final joint 6-DOF refinement on positions and Kent-weighted normals."""
 
     method: str = _f(
-        'plane_to_plane',
-        "Joint refinement cost: 'plane_to_plane' (GICP-like), 'point_to_plane', or 'none'.",
+        'point_to_plane',
+        "Joint refinement cost: 'point_to_plane', 'plane_to_plane' (GICP-like), or 'none'.",
         choices=('plane_to_plane', 'point_to_plane', 'none'),
     )
     normal_weight: bool = _f(
@@ -150,7 +152,7 @@ class RefineConfig:
         range=(0.001, 100.0),
     )
     tolerance: float = _f(
-        1e-5, 'Stop when the update is below this (rad and m).', range=(0.0, 1.0)
+        1e-4, 'Stop when the update is below this (rad and m).', range=(0.0, 1.0)
     )
 
 

@@ -153,21 +153,26 @@ def shared_rotation_em(
     it = 0
     tau = np.zeros((n, k))
     problem = KentRotationProblem(np.zeros((k, 3, 3)), np.zeros((k, 3, 3)), np.zeros((3, 3)))
+    xx = np.einsum('ni,nj->nij', x, x).reshape(n, 9)  # fixed across iterations
+    gamma_flat = gamma.transpose(1, 0, 2).reshape(3, 3 * k)  # columns (k, c)
+    A_shape = np.einsum('ki,kj->kij', g2, g2) - np.einsum('ki,kj->kij', g1, g1)
     for it in range(1, max_iterations + 1):
         # E-step.
-        z = x @ R.T
-        u = np.einsum('nj,kjc->nkc', z, gamma)
-        logf = (-kent_log_normalizer(kappa, beta) + kappa * u[:, :, 0]
-                + beta * (u[:, :, 1] ** 2 - u[:, :, 2] ** 2))
-        logits = np.concatenate([log_pi + logf, np.full((n, 1), log_out)], axis=1)
-        log_p = logsumexp(logits, axis=1)
-        tau = np.exp(logits[:, :k] - log_p[:, None]) * pw[:, None]
+        u = (x @ (R.T @ gamma_flat)).reshape(n, k, 3)
+        logits = np.empty((n, k + 1))
+        logits[:, :k] = (log_pi - kent_log_normalizer(kappa, beta) + kappa * u[:, :, 0]
+                         + beta * (u[:, :, 1] ** 2 - u[:, :, 2] ** 2))
+        logits[:, k] = log_out
+        top = logits.max(axis=1, keepdims=True)
+        ex = np.exp(logits - top)
+        total = ex.sum(axis=1, keepdims=True)
+        log_p = top[:, 0] + np.log(total[:, 0])
+        tau = ex[:, :k] / total * pw[:, None]
         history.append(float(np.sum(pw * log_p)))
         # M-step, rotation.
         C = x.T @ (tau * kappa) @ mu
-        A = (beta[:, None, None] * (np.einsum('ki,kj->kij', g2, g2)
-                                    - np.einsum('ki,kj->kij', g1, g1)))
-        Bm = np.einsum('nk,ni,nj->kij', tau, x, x)
+        A = beta[:, None, None] * A_shape
+        Bm = (tau.T @ xx).reshape(k, 3, 3)
         problem = KentRotationProblem(A, Bm, C)
         if rotation == 'shared':
             starts = [R, procrustes(C)]
@@ -182,12 +187,13 @@ def shared_rotation_em(
                 Rj, _ = solve_kent_rotation(pj, R)
                 Rs.append(Rj)
             R_new = average_rotations(np.array(Rs), mass + 1e-12)
-        # M-step, Kent parameters from residuals about the model directions.
-        z = x @ R_new.T
+        # M-step, Kent parameters from residuals about the model directions:
+        # E[(g1.z)^2] = g1^T R B R^T g1 / sum(tau), no pass over the points needed.
         w = tau.sum(axis=0)
         wsafe = np.maximum(w, 1e-12)
-        v1 = np.maximum(np.einsum('nk,nk->k', tau, (z @ g1.T) ** 2) / wsafe, 1e-12)
-        v2 = np.maximum(np.einsum('nk,nk->k', tau, (z @ g2.T) ** 2) / wsafe, 1e-12)
+        RB = np.einsum('ij,kjl,ml->kim', R_new, Bm, R_new)
+        v1 = np.maximum(np.einsum('ki,kij,kj->k', g1, RB, g1) / wsafe, 1e-12)
+        v2 = np.maximum(np.einsum('ki,kij,kj->k', g2, RB, g2) / wsafe, 1e-12)
         if use_beta:
             kappa_new = 0.5 * (1.0 / v1 + 1.0 / v2)
             beta_new = np.maximum(0.25 * (1.0 / v1 - 1.0 / v2), 0.0)

@@ -59,6 +59,24 @@ def plane_covariances(normals: FloatArray, epsilon: float = PLANE_EPSILON) -> Fl
     return np.eye(3)[None] - (1.0 - epsilon) * np.einsum('ni,nj->nij', normals, normals)
 
 
+def inverse_3x3_symmetric(M: FloatArray) -> FloatArray:
+    """Inverse of a stack of symmetric 3x3 matrices by the adjugate, shape (N, 3, 3)."""
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 1], M[:, 1, 2], M[:, 2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    det = a * A + b * B + c * C
+    inv = np.empty_like(M)
+    inv[:, 0, 0] = A
+    inv[:, 0, 1] = inv[:, 1, 0] = B
+    inv[:, 0, 2] = inv[:, 2, 0] = C
+    inv[:, 1, 1] = a * f - c * c
+    inv[:, 1, 2] = inv[:, 2, 1] = b * c - a * e
+    inv[:, 2, 2] = a * d - b * b
+    return inv / det[:, None, None]
+
+
 def _solve_spd(H: FloatArray, g: FloatArray) -> FloatArray:
     reg = 1e-9 * max(float(np.trace(H)), 1e-12)
     return np.linalg.solve(H + reg * np.eye(len(H)), g)
@@ -101,8 +119,6 @@ def refine_joint(
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
     gate = max_distance
-    Cs = plane_covariances(source_normals) if method == 'plane_to_plane' else None
-    Ct = plane_covariances(target_normals) if method == 'plane_to_plane' else None
     H = np.zeros((6, 6))
     sigma2 = 0.0
     inlier = 0.0
@@ -130,20 +146,24 @@ def refine_joint(
                                               1e-9), *kappa_range))
             w = w * np.exp(kappa_n * (cos - 1.0))
         # J = d e / d delta = [hat(x), -I] for the left perturbation delta = (omega, v).
-        J = np.zeros((len(ok), 3, 6))
-        J[:, :, :3] = hat(xo)
-        J[:, :, 3:] = -np.eye(3)
         if method == 'plane_to_plane':
-            assert Cs is not None and Ct is not None
-            cov = Ct[j] + np.einsum('ij,njk,lk->nil', R, Cs[ok], R)
-            W = np.linalg.inv(cov) * w[:, None, None]
-            JW = np.einsum('nai,nab->nib', J, W)  # J^T W, (n, 6, 3)
-            H = np.einsum('nib,nbj->ij', JW, J)
-            g = np.einsum('nib,nb->i', JW, e)
-            maha = np.einsum('na,nab,nb->n', e, W, e)
-            sigma2 = float(np.sum(maha) / max(float(w.sum()), 1e-12))
+            # GICP combined covariance C_q + R C_p R^T with planar C = I - (1 - eps) n n^T.
+            cov = 2.0 * np.eye(3)[None] - (1.0 - PLANE_EPSILON) * (
+                nq[:, :, None] * nq[:, None, :] + np_rot[:, :, None] * np_rot[:, None, :])
+            W = inverse_3x3_symmetric(cov) * w[:, None, None]
+            We = np.einsum('nab,nb->na', W, e)
+            # J^T W J and J^T W e in closed form: hat(x)^T W hat(x) = -hat(x) W hat(x).
+            hx = hat(xo)
+            WJw = np.matmul(W, hx)  # W hat(x), (n, 3, 3)
+            H = np.empty((6, 6))
+            H[:3, :3] = -np.tensordot(hx, WJw, axes=([0, 2], [0, 1]))
+            H[:3, 3:] = np.tensordot(hx, W, axes=([0, 1], [0, 1]))
+            H[3:, :3] = H[:3, 3:].T
+            H[3:, 3:] = W.sum(axis=0)
+            g = np.concatenate([-np.einsum('nab,nb->a', hx, We), -We.sum(axis=0)])
+            sigma2 = float(np.einsum('na,na->', e, We) / max(float(w.sum()), 1e-12))
         else:
-            Jn = np.einsum('na,nai->ni', nq, J)  # (n, 6)
+            Jn = np.concatenate([np.cross(nq, xo), -nq], axis=1)  # n^T [hat(x), -I]
             H = (Jn * w[:, None]).T @ Jn
             g = (Jn * w[:, None]).T @ r_plane
             sigma2 = float(np.sum(w * r_plane**2) / max(float(w.sum()), 1e-12))

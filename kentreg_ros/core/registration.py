@@ -396,6 +396,7 @@ def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
             max_iterations=tr_cfg.max_iterations,
             max_distance=max(tr_cfg.max_correspondence_distance, min_gate),
             min_distance=min_gate, degeneracy_ratio=tr_cfg.degeneracy_ratio,
+            tolerance=tr_cfg.tolerance,
         )
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
         inlier = tres.inlier_fraction

@@ -173,6 +173,7 @@ def point_to_plane_translation(
     min_distance: float = 0.1,
     noise_floor: float = 0.005,
     degeneracy_ratio: float = 0.02,
+    tolerance: float = 1e-3,
 ) -> TranslationResult:
     """Robust 3-DOF point-to-plane least squares for ``t`` with ``R`` fixed.
 
@@ -205,7 +206,7 @@ def point_to_plane_translation(
         sigma2 = float(np.sum(w * r * r) / max(np.sum(w), 1e-12))
         inlier = float(ok.mean())
         gate = max(gate * 0.7, min_distance)
-        if np.linalg.norm(dt) < 1e-5 and gate <= min_distance:
+        if np.linalg.norm(dt) < tolerance and gate <= min_distance:
             break
     return TranslationResult(t=t, hessian=H, sigma2=sigma2, iterations=it,
                              inlier_fraction=inlier,
