@@ -8,6 +8,12 @@ from kentreg_ros.core.errors import (
     KentRegError,
 )
 from kentreg_ros.core.preprocess import as_points, drop_nonfinite, voxel_downsample
+from kentreg_ros.core.registration import (
+    PreparedScan,
+    RegistrationResult,
+    prepare_scan,
+    register,
+)
 
 __all__ = [
     'ConfigError',
@@ -15,8 +21,12 @@ __all__ = [
     'InvalidPointCloudError',
     'KentRegConfig',
     'KentRegError',
+    'PreparedScan',
+    'RegistrationResult',
     'as_points',
     'drop_nonfinite',
     'load_config',
+    'prepare_scan',
+    'register',
     'voxel_downsample',
 ]

@@ -16,8 +16,12 @@ def _rng(rng: np.random.Generator | int | None) -> np.random.Generator:
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
-def kmeanspp_sphere(x: FloatArray, k: int, rng: np.random.Generator | int | None = 0,
-                    weights: FloatArray | None = None) -> FloatArray:
+def kmeanspp_sphere(
+    x: FloatArray,
+    k: int,
+    rng: np.random.Generator | int | None = 0,
+    weights: FloatArray | None = None,
+) -> FloatArray:
     """k-means++ seeding on the sphere with the cosine dissimilarity ``1 - x . c``.
 
     Parameters
@@ -50,14 +54,20 @@ def kmeanspp_sphere(x: FloatArray, k: int, rng: np.random.Generator | int | None
     return centers
 
 
-def spherical_kmeans(x: ArrayLike, k: int, *, max_iterations: int = 50,
-                     rng: np.random.Generator | int | None = 0,
-                     weights: ArrayLike | None = None
-                     ) -> tuple[NDArray[np.intp], FloatArray]:
+def spherical_kmeans(
+    x: ArrayLike,
+    k: int,
+    *,
+    max_iterations: int = 50,
+    rng: np.random.Generator | int | None = 0,
+    weights: ArrayLike | None = None,
+    restarts: int = 3,
+) -> tuple[NDArray[np.intp], FloatArray]:
     """Cluster unit vectors by spherical k-means.
 
     Each centre is the normalised (weighted) mean of its members; members are assigned to the
-    centre of largest cosine. Empty clusters are re-seeded at the worst-fitting vector.
+    centre of largest cosine. Empty clusters are re-seeded at the worst-fitting vector. The
+    best of ``restarts`` k-means++ initialisations (largest total cosine) is returned.
 
     Parameters
     ----------
@@ -69,6 +79,8 @@ def spherical_kmeans(x: ArrayLike, k: int, *, max_iterations: int = 50,
     rng : Generator or int, optional
         Seed of the k-means++ initialisation.
     weights : array_like, shape (N,), optional
+    restarts : int
+        Independent seeded initialisations.
 
     Returns
     -------
@@ -85,13 +97,28 @@ def spherical_kmeans(x: ArrayLike, k: int, *, max_iterations: int = 50,
     xs = _normalize_rows(xs)
     w = np.ones(len(xs)) if weights is None else np.asarray(weights, dtype=np.float64)
     k = min(k, len(xs))
-    centers = kmeanspp_sphere(xs, k, rng, w)
+    gen = _rng(rng)
+    best: tuple[float, NDArray[np.intp], FloatArray] | None = None
+    for _ in range(max(1, restarts)):
+        labels, centers = _lloyd(xs, w, kmeanspp_sphere(xs, k, gen, w), max_iterations)
+        score = float(np.sum(w * np.einsum('ij,ij->i', xs, centers[labels])))
+        if best is None or score > best[0]:
+            best = (score, labels, centers)
+    assert best is not None
+    return best[1], best[2]
+
+
+def _lloyd(
+    xs: FloatArray, w: FloatArray, centers: FloatArray, max_iterations: int
+) -> tuple[NDArray[np.intp], FloatArray]:
+    k = len(centers)
     labels = np.full(len(xs), -1, dtype=np.intp)
     for _ in range(max_iterations):
         sims = xs @ centers.T
         new_labels = np.argmax(sims, axis=1)
         sums = np.zeros((k, 3))
-        np.add.at(sums, new_labels, xs * w[:, None])
+        for axis in range(3):
+            sums[:, axis] = np.bincount(new_labels, weights=xs[:, axis] * w, minlength=k)
         norms = np.linalg.norm(sums, axis=1)
         empty = norms < 1e-12
         if empty.any():

@@ -22,8 +22,13 @@ from kentreg_ros.core.errors import ConfigError
 NODE_NAME = 'kentreg_node'
 
 
-def _f(default: Any, description: str, *, range: tuple[float, float] | None = None,
-       choices: tuple[str, ...] | None = None) -> Any:
+def _f(
+    default: Any,
+    description: str,
+    *,
+    range: tuple[float, float] | None = None,
+    choices: tuple[str, ...] | None = None,
+) -> Any:
     meta: dict[str, Any] = {'description': description}
     if range is not None:
         meta['range'] = range
@@ -42,13 +47,16 @@ class PreprocessConfig:
         range=(0.0, 10.0),
     )
     target_points: int = _f(
-        10000, 'Points kept after automatic voxel downsampling (paper: ~10,000).',
+        10000,
+        'Points kept after automatic voxel downsampling (paper: ~10,000).',
         range=(100, 2_000_000),
     )
-    min_range: float = _f(0.0, 'Drop points closer to the sensor than this (m).',
-                          range=(0.0, 1000.0))
-    max_range: float = _f(0.0, 'Drop points farther than this (m); 0 keeps all.',
-                          range=(0.0, 10000.0))
+    min_range: float = _f(
+        0.0, 'Drop points closer to the sensor than this (m).', range=(0.0, 1000.0)
+    )
+    max_range: float = _f(
+        0.0, 'Drop points farther than this (m); 0 keeps all.', range=(0.0, 10000.0)
+    )
 
 
 @dataclass(frozen=True)
@@ -71,6 +79,7 @@ class ClusteringConfig:
     n_clusters: int = _f(6, 'Number of spherical k-means clusters K.', range=(1, 64))
     max_iterations: int = _f(50, 'Spherical k-means iterations.', range=(1, 1000))
     seed: int = _f(0, 'Seed of the k-means++ initialisation.', range=(0, 2**31 - 1))
+    restarts: int = _f(3, 'k-means++ restarts; the best clustering is kept.', range=(1, 100))
 
 
 @dataclass(frozen=True)
@@ -79,20 +88,24 @@ class EMConfig:
 
     max_iterations: int = _f(50, 'Maximum EM iterations.', range=(1, 10000))
     tolerance: float = _f(
-        1e-4, 'Stop when the relative change of Q or the rotation change (rad) is below this.',
+        1e-4,
+        'Stop when the relative change of Q or the rotation change (rad) is below this.',
         range=(0.0, 1.0),
     )
     outlier_weight: float = _f(
         0.1, 'Mixture weight pi0 of the uniform outlier component.', range=(0.0, 0.99)
     )
-    kent_beta: bool = _f(True, 'Robust mode: use the Kent ovalness beta (False: von Mises-Fisher).')
+    kent_beta: bool = _f(
+        True, 'Robust mode: use the Kent ovalness beta (False: von Mises-Fisher).'
+    )
     rotation: str = _f(
         'shared',
         'Robust mode: one rotation shared by all clusters, or per-cluster EM then averaging.',
         choices=('shared', 'averaged'),
     )
     kappa_cap_start: float = _f(
-        20.0, 'Robust mode: initial cap on kappa (wide basin); it rises each pass.',
+        20.0,
+        'Robust mode: initial cap on kappa (wide basin); it rises each pass.',
         range=(1.0, 1e6),
     )
     kappa_cap_end: float = _f(2000.0, 'Robust mode: final cap on kappa.', range=(1.0, 1e7))
@@ -120,10 +133,12 @@ class TranslationConfig:
         True, 'Start from a per-direction cross-correlation of plane offsets.'
     )
     max_iterations: int = _f(20, 'Iterations of the 3-DOF solve.', range=(1, 1000))
-    tolerance: float = _f(1e-3, 'Stop when the translation update is below this (m).',
-                          range=(0.0, 1.0))
+    tolerance: float = _f(
+        1e-3, 'Stop when the translation update is below this (m).', range=(0.0, 1.0)
+    )
     max_correspondence_distance: float = _f(
-        1.0, 'Largest point-to-point distance accepted as a correspondence (m).',
+        1.0,
+        'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
     degeneracy_ratio: float = _f(
@@ -148,7 +163,8 @@ class RefineConfig:
     )
     max_iterations: int = _f(30, 'Gauss-Newton iterations.', range=(1, 1000))
     max_correspondence_distance: float = _f(
-        1.0, 'Largest point-to-point distance accepted as a correspondence (m).',
+        1.0,
+        'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
     tolerance: float = _f(
@@ -162,11 +178,13 @@ class OdometryConfig:
 
     constant_velocity: bool = _f(True, 'Start each registration from the last relative motion.')
     max_step_rotation_deg: float = _f(
-        90.0, 'A step rotating more than this is rejected as a failure (deg).',
+        90.0,
+        'A step rotating more than this is rejected as a failure (deg).',
         range=(0.0, 180.0),
     )
     max_step_translation: float = _f(
-        10.0, 'A step translating more than this is rejected as a failure (m).',
+        10.0,
+        'A step translating more than this is rejected as a failure (m).',
         range=(0.0, 1000.0),
     )
 
@@ -181,8 +199,11 @@ class KentRegConfig:
     improved pipeline; each of its ideas has a switch so benchmarks can show ablations.
     """
 
-    mode: str = _f('robust', "'robust' (default) or 'paper' (the paper's recipe as written).",
-                   choices=('robust', 'paper'))
+    mode: str = _f(
+        'robust',
+        "'robust' (default) or 'paper' (the paper's recipe as written).",
+        choices=('robust', 'paper'),
+    )
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     normals: NormalsConfig = field(default_factory=NormalsConfig)
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
@@ -245,7 +266,9 @@ def iter_fields(config: Any, prefix: str = '') -> Iterator[tuple[str, Any, datac
 def _validate_value(name: str, value: Any, f: dataclasses.Field) -> None:
     meta = f.metadata
     if 'choices' in meta and value not in meta['choices']:
-        raise ConfigError(f'Expected `{name}` to be one of {list(meta["choices"])}, got {value!r}.')
+        raise ConfigError(
+            f'Expected `{name}` to be one of {list(meta["choices"])}, got {value!r}.'
+        )
     if 'range' in meta:
         lo, hi = meta['range']
         if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
@@ -348,7 +371,9 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ConfigError(f'Cannot read configuration file {str(path)!r}: {exc.strerror}.') from exc
+        raise ConfigError(
+            f'Cannot read configuration file {str(path)!r}: {exc.strerror}.'
+        ) from exc
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -363,8 +388,9 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
     return _flatten(_nest(data))
 
 
-def load_config(path: str | Path, node_name: str = NODE_NAME,
-                ignore_prefixes: tuple[str, ...] = ('node.',)) -> KentRegConfig:
+def load_config(
+    path: str | Path, node_name: str = NODE_NAME, ignore_prefixes: tuple[str, ...] = ('node.',)
+) -> KentRegConfig:
     """Load a :class:`KentRegConfig` from a YAML file (see :func:`parameters_from_yaml`).
 
     Keys under ``ignore_prefixes`` belong to the ROS node only and are skipped here.

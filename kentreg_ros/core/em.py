@@ -86,8 +86,7 @@ class ModelClusters:
     weights: FloatArray
 
     @classmethod
-    def from_labels(cls, normals: FloatArray, labels: NDArray[np.intp], k: int
-                    ) -> ModelClusters:
+    def from_labels(cls, normals: FloatArray, labels: NDArray[np.intp], k: int) -> ModelClusters:
         onehot = (labels[None, :] == np.arange(k)[:, None]).astype(np.float64)
         counts = onehot.sum(axis=1)
         keep = counts > 0
@@ -160,8 +159,12 @@ def shared_rotation_em(
         # E-step.
         u = (x @ (R.T @ gamma_flat)).reshape(n, k, 3)
         logits = np.empty((n, k + 1))
-        logits[:, :k] = (log_pi - kent_log_normalizer(kappa, beta) + kappa * u[:, :, 0]
-                         + beta * (u[:, :, 1] ** 2 - u[:, :, 2] ** 2))
+        logits[:, :k] = (
+            log_pi
+            - kent_log_normalizer(kappa, beta)
+            + kappa * u[:, :, 0]
+            + beta * (u[:, :, 1] ** 2 - u[:, :, 2] ** 2)
+        )
         logits[:, k] = log_out
         top = logits.max(axis=1, keepdims=True)
         ex = np.exp(logits - top)
@@ -182,8 +185,11 @@ def shared_rotation_em(
             Rs = []
             mass = tau.sum(axis=0)
             for j in range(k):
-                pj = KentRotationProblem(A[j:j + 1], Bm[j:j + 1],
-                                         x.T @ (tau[:, j:j + 1] * kappa[j]) @ mu[j:j + 1])
+                pj = KentRotationProblem(
+                    A[j : j + 1],
+                    Bm[j : j + 1],
+                    x.T @ (tau[:, j : j + 1] * kappa[j]) @ mu[j : j + 1],
+                )
                 Rj, _ = solve_kent_rotation(pj, R)
                 Rs.append(Rj)
             R_new = average_rotations(np.array(Rs), mass + 1e-12)
@@ -214,9 +220,16 @@ def shared_rotation_em(
                 break
         cap = min(cap * kappa_cap_growth, kappa_cap_end)
     inlier = float(tau.sum() / max(pw.sum(), 1e-12))
-    return EMResult(R=R, kappa=kappa, beta=beta, log_likelihood=history, iterations=it,
-                    converged=converged, inlier_fraction=inlier,
-                    hessian=problem.hessian(R))
+    return EMResult(
+        R=R,
+        kappa=kappa,
+        beta=beta,
+        log_likelihood=history,
+        iterations=it,
+        converged=converged,
+        inlier_fraction=inlier,
+        hessian=problem.hessian(R),
+    )
 
 
 def paper_cluster_em(
@@ -294,7 +307,13 @@ def paper_cluster_em(
                 converged = True
                 break
         q_prev = q
-    return EMResult(R=R, kappa=np.array([kappa]), beta=np.array([beta]),
-                    log_likelihood=history, iterations=it, converged=converged,
-                    inlier_fraction=float(tau_mass.sum() / max(n, 1)),
-                    hessian=problem.hessian(R))
+    return EMResult(
+        R=R,
+        kappa=np.array([kappa]),
+        beta=np.array([beta]),
+        log_likelihood=history,
+        iterations=it,
+        converged=converged,
+        inlier_fraction=float(tau_mass.sum() / max(n, 1)),
+        hessian=problem.hessian(R),
+    )

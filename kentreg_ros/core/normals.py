@@ -38,9 +38,13 @@ class NormalEstimate:
     neighbors: NDArray[np.intp]
 
 
-def estimate_normals(points: FloatArray, k: int = 15, *,
-                     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
-                     tree: cKDTree | None = None) -> NormalEstimate:
+def estimate_normals(
+    points: FloatArray,
+    k: int = 15,
+    *,
+    viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+    tree: cKDTree | None = None,
+) -> NormalEstimate:
     """Estimate unit surface normals by PCA over the k nearest neighbours.
 
     Parameters
@@ -78,12 +82,14 @@ def estimate_normals(points: FloatArray, k: int = 15, *,
     total = evals.sum(axis=1)
     curvature = np.where(total > 0, evals[:, 0] / np.where(total > 0, total, 1.0), 1.0 / 3.0)
     normals = orient_normals(points, normals, viewpoint)
-    return NormalEstimate(normals=normals, curvature=np.clip(curvature, 0.0, 1.0 / 3.0),
-                          neighbors=idx)
+    return NormalEstimate(
+        normals=normals, curvature=np.clip(curvature, 0.0, 1.0 / 3.0), neighbors=idx
+    )
 
 
-def orient_normals(points: FloatArray, normals: FloatArray,
-                   viewpoint: ArrayLike = (0.0, 0.0, 0.0)) -> FloatArray:
+def orient_normals(
+    points: FloatArray, normals: FloatArray, viewpoint: ArrayLike = (0.0, 0.0, 0.0)
+) -> FloatArray:
     """Flip normals so that ``n . (viewpoint - x) >= 0`` (Rusu 2013)."""
     vp = np.asarray(viewpoint, dtype=np.float64).reshape(3)
     sign = np.where(np.einsum('ij,ij->i', normals, vp - points) < 0.0, -1.0, 1.0)
@@ -97,8 +103,9 @@ def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> Floa
     return np.einsum('ij,ij->i', normals, mean) / np.maximum(norm, 1e-12)
 
 
-def normal_inlier_mask(normals: FloatArray, neighbors: NDArray[np.intp],
-                       min_cosine: float) -> NDArray[np.bool_]:
+def normal_inlier_mask(
+    normals: FloatArray, neighbors: NDArray[np.intp], min_cosine: float
+) -> NDArray[np.bool_]:
     """Mask of normals agreeing with their neighbourhood (cosine >= ``min_cosine``).
 
     ``min_cosine <= -1`` keeps every normal.

@@ -14,8 +14,9 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 
-def as_points(points: ArrayLike, name: str = 'points', *, allow_nonfinite: bool = False
-              ) -> FloatArray:
+def as_points(
+    points: ArrayLike, name: str = 'points', *, allow_nonfinite: bool = False
+) -> FloatArray:
     """Validate and convert an array-like to a C-contiguous float64 array of shape (N, 3).
 
     Parameters
@@ -54,8 +55,12 @@ def drop_nonfinite(points: ArrayLike) -> tuple[FloatArray, int]:
     return np.ascontiguousarray(arr[keep]), int((~keep).sum())
 
 
-def crop_range(points: FloatArray, min_range: float = 0.0, max_range: float = 0.0,
-               origin: ArrayLike = (0.0, 0.0, 0.0)) -> FloatArray:
+def crop_range(
+    points: FloatArray,
+    min_range: float = 0.0,
+    max_range: float = 0.0,
+    origin: ArrayLike = (0.0, 0.0, 0.0),
+) -> FloatArray:
     """Keep points whose distance to ``origin`` is in ``[min_range, max_range]``.
 
     ``max_range = 0`` means no upper bound.
@@ -134,8 +139,9 @@ def choose_voxel_size(points: FloatArray, target_points: int, *, iterations: int
     return best
 
 
-def downsample(points: FloatArray, *, voxel_size: float = 0.0, target_points: int = 10000
-               ) -> tuple[FloatArray, float]:
+def downsample(
+    points: FloatArray, *, voxel_size: float = 0.0, target_points: int = 10000
+) -> tuple[FloatArray, float]:
     """Voxel downsample with a fixed size, or an automatic size reaching ``target_points``.
 
     Returns ``(points, voxel_size_used)``; ``voxel_size_used`` is 0 when nothing was done.

@@ -74,12 +74,14 @@ def inverse_3x3_symmetric(M: FloatArray) -> FloatArray:
     inv[:, 1, 1] = a * f - c * c
     inv[:, 1, 2] = inv[:, 2, 1] = b * c - a * e
     inv[:, 2, 2] = a * d - b * b
-    return inv / det[:, None, None]
+    out: FloatArray = inv / det[:, None, None]
+    return out
 
 
 def _solve_spd(H: FloatArray, g: FloatArray) -> FloatArray:
     reg = 1e-9 * max(float(np.trace(H)), 1e-12)
-    return np.linalg.solve(H + reg * np.eye(len(H)), g)
+    out: FloatArray = np.linalg.solve(H + reg * np.eye(len(H)), g)
+    return out
 
 
 def refine_joint(
@@ -142,14 +144,16 @@ def refine_joint(
         if normal_weight:
             cos = np.einsum('ij,ij->i', nq, np_rot)
             resid = np.maximum(1.0 - cos, 0.0)
-            kappa_n = float(np.clip(1.0 / max(float(np.average(resid, weights=w + 1e-12)),
-                                              1e-9), *kappa_range))
+            kappa_n = float(
+                np.clip(1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9), *kappa_range)
+            )
             w = w * np.exp(kappa_n * (cos - 1.0))
         # J = d e / d delta = [hat(x), -I] for the left perturbation delta = (omega, v).
         if method == 'plane_to_plane':
             # GICP combined covariance C_q + R C_p R^T with planar C = I - (1 - eps) n n^T.
             cov = 2.0 * np.eye(3)[None] - (1.0 - PLANE_EPSILON) * (
-                nq[:, :, None] * nq[:, None, :] + np_rot[:, :, None] * np_rot[:, None, :])
+                nq[:, :, None] * nq[:, None, :] + np_rot[:, :, None] * np_rot[:, None, :]
+            )
             W = inverse_3x3_symmetric(cov) * w[:, None, None]
             We = np.einsum('nab,nb->na', W, e)
             # J^T W J and J^T W e in closed form: hat(x)^T W hat(x) = -hat(x) W hat(x).
@@ -173,12 +177,22 @@ def refine_joint(
         t = dR @ t + delta[3:]
         inlier = len(ok) / len(source)
         gate = max(gate * 0.7, min_distance)
-        if (np.linalg.norm(delta[:3]) < tolerance and np.linalg.norm(delta[3:]) < tolerance
-                and gate <= min_distance):
+        if (
+            np.linalg.norm(delta[:3]) < tolerance
+            and np.linalg.norm(delta[3:]) < tolerance
+            and gate <= min_distance
+        ):
             converged = True
             break
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t
-    return RefineResult(T=T, hessian=H, sigma2=sigma2, iterations=it, converged=converged,
-                        inlier_fraction=inlier, kappa_normal=kappa_n)
+    return RefineResult(
+        T=T,
+        hessian=H,
+        sigma2=sigma2,
+        iterations=it,
+        converged=converged,
+        inlier_fraction=inlier,
+        kappa_normal=kappa_n,
+    )

@@ -201,8 +201,9 @@ def prepare_scan(
     if normals is None:
         t0 = time.perf_counter()
         pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
-        pts, voxel = downsample(pts, voxel_size=cfg.preprocess.voxel_size,
-                                target_points=cfg.preprocess.target_points)
+        pts, voxel = downsample(
+            pts, voxel_size=cfg.preprocess.voxel_size, target_points=cfg.preprocess.target_points
+        )
         timings['downsample'] = _ms(t0)
         if len(pts) < max(k, MIN_POINTS):
             raise InvalidPointCloudError(
@@ -246,19 +247,39 @@ def prepare_scan(
         tree = cKDTree(pts)
     timings['outliers'] = _ms(t0)
     t0 = time.perf_counter()
-    labels, centers = spherical_kmeans(nrm, cfg.clustering.n_clusters,
-                                       max_iterations=cfg.clustering.max_iterations,
-                                       rng=cfg.clustering.seed)
+    labels, centers = spherical_kmeans(
+        nrm,
+        cfg.clustering.n_clusters,
+        max_iterations=cfg.clustering.max_iterations,
+        rng=cfg.clustering.seed,
+        restarts=cfg.clustering.restarts,
+    )
     clusters = ModelClusters.from_labels(nrm, labels, len(centers))
     timings['clustering'] = _ms(t0)
     timings['total'] = _ms(t_start)
-    return PreparedScan(points=pts, normals=nrm, curvature=curv, labels=labels, centers=centers,
-                        clusters=clusters, tree=tree, voxel_size=voxel, viewpoint=vp,
-                        n_input=n_input, n_normal_outliers=n_out, timings=timings)
+    return PreparedScan(
+        points=pts,
+        normals=nrm,
+        curvature=curv,
+        labels=labels,
+        centers=centers,
+        clusters=clusters,
+        tree=tree,
+        voxel_size=voxel,
+        viewpoint=vp,
+        n_input=n_input,
+        n_normal_outliers=n_out,
+        timings=timings,
+    )
 
 
-def _as_prepared(scan: ArrayLike | PreparedScan, normals: ArrayLike | None,
-                 cfg: KentRegConfig, viewpoint: ArrayLike, name: str) -> PreparedScan:
+def _as_prepared(
+    scan: ArrayLike | PreparedScan,
+    normals: ArrayLike | None,
+    cfg: KentRegConfig,
+    viewpoint: ArrayLike,
+    name: str,
+) -> PreparedScan:
     if isinstance(scan, PreparedScan):
         if normals is not None:
             raise ValueError(f'`{name}_normals` cannot be given with a PreparedScan `{name}`.')
@@ -342,8 +363,9 @@ def register(
     return result
 
 
-def _translation_gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
-                       ) -> tuple[float, float]:
+def _translation_gates(
+    src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
+) -> tuple[float, float]:
     voxel = max(src.voxel_size, tgt.voxel_size)
     if voxel <= 0.0:
         d = tgt.tree.query(tgt.points[:: max(1, len(tgt) // 500)], k=2)[0][:, 1]
@@ -355,22 +377,34 @@ def _translation_gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
 def _rotation_covariance(H: FloatArray) -> FloatArray:
     Hs = 0.5 * (H + H.T)
     evals, evecs = np.linalg.eigh(Hs)
-    inv = np.where(evals > 1e-9 * max(float(evals[-1]), 1e-300), 1.0 / np.maximum(evals, 1e-300),
-                   1e6)
+    inv = np.where(
+        evals > 1e-9 * max(float(evals[-1]), 1e-300), 1.0 / np.maximum(evals, 1e-300), 1e6
+    )
     return (evecs * inv) @ evecs.T
 
 
-def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
-                     cfg: KentRegConfig, timings: dict[str, float]) -> RegistrationResult:
+def _register_robust(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    timings: dict[str, float],
+) -> RegistrationResult:
     em_cfg = cfg.em
     stages: dict[str, FloatArray] = {}
     t0 = time.perf_counter()
     em = shared_rotation_em(
-        src.normals, tgt.clusters, T_init[:3, :3],
-        outlier_weight=em_cfg.outlier_weight, use_beta=em_cfg.kent_beta,
-        rotation=em_cfg.rotation, kappa_cap_start=em_cfg.kappa_cap_start,
-        kappa_cap_end=em_cfg.kappa_cap_end, kappa_cap_growth=em_cfg.kappa_cap_growth,
-        max_iterations=em_cfg.max_iterations, tolerance=em_cfg.tolerance,
+        src.normals,
+        tgt.clusters,
+        T_init[:3, :3],
+        outlier_weight=em_cfg.outlier_weight,
+        use_beta=em_cfg.kent_beta,
+        rotation=em_cfg.rotation,
+        kappa_cap_start=em_cfg.kappa_cap_start,
+        kappa_cap_end=em_cfg.kappa_cap_end,
+        kappa_cap_growth=em_cfg.kappa_cap_growth,
+        max_iterations=em_cfg.max_iterations,
+        tolerance=em_cfg.tolerance,
     )
     R = em.R
     timings['rotation'] = _ms(t0)
@@ -387,15 +421,28 @@ def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
     else:
         t = T_init[:3, 3].copy()
         if tr_cfg.cross_correlation:
-            t, _ = plane_offset_translation(R, t, src.points, src.normals, tgt.points,
-                                            tgt.normals, tgt.centers,
-                                            bin_size=max(min_gate / 4.0, 0.02))
+            t, _ = plane_offset_translation(
+                R,
+                t,
+                src.points,
+                src.normals,
+                tgt.points,
+                tgt.normals,
+                tgt.centers,
+                bin_size=max(min_gate / 4.0, 0.02),
+            )
             stages['cross_correlation'] = make_transform(R, t)
         tres = point_to_plane_translation(
-            R, t, src.points, tgt.points, tgt.normals, tgt.tree,
+            R,
+            t,
+            src.points,
+            tgt.points,
+            tgt.normals,
+            tgt.tree,
             max_iterations=tr_cfg.max_iterations,
             max_distance=max(tr_cfg.max_correspondence_distance, min_gate),
-            min_distance=min_gate, degeneracy_ratio=tr_cfg.degeneracy_ratio,
+            min_distance=min_gate,
+            degeneracy_ratio=tr_cfg.degeneracy_ratio,
             tolerance=tr_cfg.tolerance,
         )
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
@@ -408,10 +455,18 @@ def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
     t0 = time.perf_counter()
     if cfg.refine.method != 'none':
         ref = refine_joint(
-            T, src.points, src.normals, tgt.points, tgt.normals, tgt.tree,
-            method=cfg.refine.method, normal_weight=cfg.refine.normal_weight,
-            max_iterations=cfg.refine.max_iterations, max_distance=max_gate,
-            min_distance=min_gate, tolerance=cfg.refine.tolerance,
+            T,
+            src.points,
+            src.normals,
+            tgt.points,
+            tgt.normals,
+            tgt.tree,
+            method=cfg.refine.method,
+            normal_weight=cfg.refine.normal_weight,
+            max_iterations=cfg.refine.max_iterations,
+            max_distance=max_gate,
+            min_distance=min_gate,
+            tolerance=cfg.refine.tolerance,
         )
         T = ref.T
         stages['refine'] = T
@@ -438,23 +493,51 @@ def _register_robust(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
     rot_evals = np.linalg.eigvalsh(0.5 * (em.hessian + em.hessian.T))
     rot_degenerate = bool(rot_evals[0] < tr_cfg.degeneracy_ratio * max(rot_evals[-1], 1e-300))
     degenerate = len(deg_dirs) > 0 or rot_degenerate
-    return _finish(T, converged, iterations, em, inlier, covariance, degenerate, deg_dirs,
-                   rot_degenerate, timings, stages, 'robust', src, tgt,
-                   list(em.log_likelihood))
+    return _finish(
+        T,
+        converged,
+        iterations,
+        em,
+        inlier,
+        covariance,
+        degenerate,
+        deg_dirs,
+        rot_degenerate,
+        timings,
+        stages,
+        'robust',
+        src,
+        tgt,
+        list(em.log_likelihood),
+    )
 
 
-def _finish(T: FloatArray, converged: bool, iterations: int, em: EMResult, inlier: float,
-            covariance: FloatArray, degenerate: bool, deg_dirs: FloatArray,
-            rot_degenerate: bool, timings: dict[str, float], stages: dict[str, FloatArray],
-            mode: str, src: PreparedScan, tgt: PreparedScan, history: list[float]
-            ) -> RegistrationResult:
+def _finish(
+    T: FloatArray,
+    converged: bool,
+    iterations: int,
+    em: EMResult,
+    inlier: float,
+    covariance: FloatArray,
+    degenerate: bool,
+    deg_dirs: FloatArray,
+    rot_degenerate: bool,
+    timings: dict[str, float],
+    stages: dict[str, FloatArray],
+    mode: str,
+    src: PreparedScan,
+    tgt: PreparedScan,
+    history: list[float],
+) -> RegistrationResult:
     if not np.isfinite(T).all():
         status, message = STATUS_FAILED, 'The estimate is not finite.'
         T = np.full((4, 4), np.nan)
     elif inlier < 0.05:
         status = STATUS_FAILED
-        message = (f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
-                   'do not overlap at this pose.')
+        message = (
+            f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
+            'do not overlap at this pose.'
+        )
     elif degenerate:
         status = STATUS_DEGENERATE
         parts = []
@@ -470,11 +553,23 @@ def _finish(T: FloatArray, converged: bool, iterations: int, em: EMResult, inlie
         status = STATUS_MAX_ITERATIONS
         message = 'Stopped at the iteration limit before meeting the tolerance.'
     return RegistrationResult(
-        T_target_source=T, converged=bool(converged and status != STATUS_FAILED),
-        iterations=int(iterations), status=status, message=message, kappa=em.kappa,
-        beta=em.beta, log_likelihood=tuple(history), inlier_fraction=float(inlier),
-        covariance=covariance, degenerate=degenerate, degenerate_directions=deg_dirs,
-        timings=timings, stages=stages, mode=mode, n_source=len(src), n_target=len(tgt),
+        T_target_source=T,
+        converged=bool(converged and status != STATUS_FAILED),
+        iterations=int(iterations),
+        status=status,
+        message=message,
+        kappa=em.kappa,
+        beta=em.beta,
+        log_likelihood=tuple(history),
+        inlier_fraction=float(inlier),
+        covariance=covariance,
+        degenerate=degenerate,
+        degenerate_directions=deg_dirs,
+        timings=timings,
+        stages=stages,
+        mode=mode,
+        n_source=len(src),
+        n_target=len(tgt),
     )
 
 
@@ -484,8 +579,13 @@ def _subsample(idx: NDArray[np.intp], limit: int, rng: np.random.Generator) -> N
     return np.sort(rng.choice(idx, size=limit, replace=False))
 
 
-def _register_paper(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
-                    cfg: KentRegConfig, timings: dict[str, float]) -> RegistrationResult:
+def _register_paper(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    timings: dict[str, float],
+) -> RegistrationResult:
     """Algorithms 1 and 2 of the paper, as written."""
     em_cfg = cfg.em
     R0 = T_init[:3, :3]
@@ -500,10 +600,16 @@ def _register_paper(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
         xj = _subsample(np.flatnonzero(src.labels == j), em_cfg.max_points_per_cluster, rng)
         if len(yi) < 3 or len(xj) < 3:
             continue
-        results.append(paper_cluster_em(
-            tgt.normals[yi], src.normals[xj], R0, outlier_weight=em_cfg.outlier_weight,
-            max_iterations=em_cfg.max_iterations, tolerance=em_cfg.tolerance,
-        ))
+        results.append(
+            paper_cluster_em(
+                tgt.normals[yi],
+                src.normals[xj],
+                R0,
+                outlier_weight=em_cfg.outlier_weight,
+                max_iterations=em_cfg.max_iterations,
+                tolerance=em_cfg.tolerance,
+            )
+        )
     if not results:
         raise KentRegError('No cluster pair had enough normals for the EM.')
     R = average_rotations(np.array([r.R for r in results]))
@@ -516,27 +622,47 @@ def _register_paper(src: PreparedScan, tgt: PreparedScan, T_init: FloatArray,
     H_rot = np.sum([r.hessian for r in results], axis=0)
     covariance = np.zeros((6, 6))
     covariance[3:, 3:] = _rotation_covariance(H_rot)
-    cov_t = (np.cov(tgt.points.T) / len(tgt) + R @ np.cov(src.points.T) @ R.T / len(src))
+    cov_t = np.cov(tgt.points.T) / len(tgt) + R @ np.cov(src.points.T) @ R.T / len(src)
     covariance[:3, :3] = cov_t
     rot_evals = np.linalg.eigvalsh(0.5 * (H_rot + H_rot.T))
-    rot_degenerate = bool(rot_evals[0] < cfg.translation.degeneracy_ratio
-                          * max(rot_evals[-1], 1e-300))
+    rot_degenerate = bool(
+        rot_evals[0] < cfg.translation.degeneracy_ratio * max(rot_evals[-1], 1e-300)
+    )
     em = EMResult(
-        R=R, kappa=np.concatenate([r.kappa for r in results]),
-        beta=np.concatenate([r.beta for r in results]), log_likelihood=[],
+        R=R,
+        kappa=np.concatenate([r.kappa for r in results]),
+        beta=np.concatenate([r.beta for r in results]),
+        log_likelihood=[],
         iterations=sum(r.iterations for r in results),
         converged=all(r.converged for r in results),
-        inlier_fraction=float(np.mean([r.inlier_fraction for r in results])), hessian=H_rot,
+        inlier_fraction=float(np.mean([r.inlier_fraction for r in results])),
+        hessian=H_rot,
     )
     history = [v for r in results for v in r.log_likelihood]
     spread = max(rotation_angle(r.R.T @ R) for r in results)
     stages = {'rotation': make_transform(R, T_init[:3, 3]), 'translation': T}
-    res = _finish(T, em.converged, em.iterations, em, em.inlier_fraction, covariance,
-                  rot_degenerate, np.zeros((0, 3)), rot_degenerate, timings, stages, 'paper',
-                  src, tgt, history)
+    res = _finish(
+        T,
+        em.converged,
+        em.iterations,
+        em,
+        em.inlier_fraction,
+        covariance,
+        rot_degenerate,
+        np.zeros((0, 3)),
+        rot_degenerate,
+        timings,
+        stages,
+        'paper',
+        src,
+        tgt,
+        history,
+    )
     if spread > np.radians(2.0):
-        logger.debug('Paper mode: per-cluster rotations spread %.2f deg before averaging.',
-                     np.degrees(spread))
+        logger.debug(
+            'Paper mode: per-cluster rotations spread %.2f deg before averaging.',
+            np.degrees(spread),
+        )
     return res
 
 

@@ -123,9 +123,13 @@ class KentRotationProblem:
         return 0.5 * (H + H.T)
 
 
-def solve_kent_rotation(problem: KentRotationProblem, R0: FloatArray, *,
-                        max_iterations: int = 50, tolerance: float = 1e-12
-                        ) -> tuple[FloatArray, int]:
+def solve_kent_rotation(
+    problem: KentRotationProblem,
+    R0: FloatArray,
+    *,
+    max_iterations: int = 50,
+    tolerance: float = 1e-12,
+) -> tuple[FloatArray, int]:
     """Minimise a :class:`KentRotationProblem` over SO(3) by Riemannian Newton steps.
 
     Newton directions come from the Riemannian Hessian (damped to be positive definite, so a
@@ -166,8 +170,9 @@ def solve_kent_rotation(problem: KentRotationProblem, R0: FloatArray, *,
     return R, it
 
 
-def average_rotations(rotations: Sequence[FloatArray] | FloatArray,
-                      weights: ArrayLike | None = None) -> FloatArray:
+def average_rotations(
+    rotations: Sequence[FloatArray] | FloatArray, weights: ArrayLike | None = None
+) -> FloatArray:
     """Euclidean (chordal L2) mean of rotations, as in the paper's eq. (rot_avg) (Moakher 2002).
 
     ``R = Rbar U diag(1/sqrt(l1), 1/sqrt(l2), s/sqrt(l3)) U^T`` where ``Rbar`` is the

@@ -82,7 +82,7 @@ def plane_offset_translation(
         hs = hs.astype(np.float64)
         size = 1 << int(np.ceil(np.log2(2 * edges_n)))
         corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
-        shifts = np.concatenate([corr[: nbins // 2 + 1], corr[-(nbins // 2):]])
+        shifts = np.concatenate([corr[: nbins // 2 + 1], corr[-(nbins // 2) :]])
         lags = np.concatenate([np.arange(nbins // 2 + 1), -np.arange(nbins // 2, 0, -1)])
         best = int(np.argmax(shifts))
         peak = shifts[best]
@@ -90,8 +90,11 @@ def plane_offset_translation(
             continue
         # Parabolic sub-bin interpolation.
         frac = 0.0
-        if 0 < best < len(shifts) - 1 and lags[best - 1] == lags[best] - 1 \
-                and lags[best + 1] == lags[best] + 1:
+        if (
+            0 < best < len(shifts) - 1
+            and lags[best - 1] == lags[best] - 1
+            and lags[best + 1] == lags[best] + 1
+        ):
             a, b, c = shifts[best - 1], shifts[best], shifts[best + 1]
             denom = a - 2 * b + c
             if denom < 0:
@@ -208,6 +211,11 @@ def point_to_plane_translation(
         gate = max(gate * 0.7, min_distance)
         if np.linalg.norm(dt) < tolerance and gate <= min_distance:
             break
-    return TranslationResult(t=t, hessian=H, sigma2=sigma2, iterations=it,
-                             inlier_fraction=inlier,
-                             degenerate_directions=degenerate_directions(H, degeneracy_ratio))
+    return TranslationResult(
+        t=t,
+        hessian=H,
+        sigma2=sigma2,
+        iterations=it,
+        inlier_fraction=inlier,
+        degenerate_directions=degenerate_directions(H, degeneracy_ratio),
+    )

@@ -1,0 +1,96 @@
+"""Preprocessing, PCA normals with outlier removal, and spherical k-means."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kentreg_ros.core.clustering import spherical_kmeans
+from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core.kent import KentParams, sample_kent
+from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
+from kentreg_ros.core.preprocess import (
+    as_points,
+    choose_voxel_size,
+    drop_nonfinite,
+    voxel_downsample,
+)
+from kentreg_ros.core.rotations import exp_so3
+
+
+def test_voxel_downsample_returns_voxel_centroids() -> None:
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2], [1.7, 0.4, 0.2]])
+    out = voxel_downsample(pts, 1.0)
+    np.testing.assert_allclose(sorted(out.tolist()), [[0.2, 0.2, 0.2], [1.6, 0.3, 0.2]])
+
+
+def test_automatic_voxel_size_reaches_the_target_count() -> None:
+    rng = np.random.default_rng(0)
+    pts = np.column_stack(
+        [rng.uniform(0, 20, 80000), rng.uniform(0, 20, 80000), rng.normal(scale=0.01, size=80000)]
+    )
+    size = choose_voxel_size(pts, 10000)
+    assert abs(len(voxel_downsample(pts, size)) - 10000) < 1500
+
+
+def test_points_validation_messages() -> None:
+    with pytest.raises(InvalidPointCloudError, match=r'shape \(N, 3\), got \(5, 2\)'):
+        as_points(np.zeros((5, 2)))
+    pts, dropped = drop_nonfinite(np.array([[0, 0, 0], [np.nan, 0, 0], [1, np.inf, 0.0]]))
+    assert dropped == 2 and pts.shape == (1, 3)
+
+
+def test_plane_normals_are_exact_and_face_the_viewpoint() -> None:
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-2, 2, 2000), rng.uniform(-2, 2, 2000), np.full(2000, 3.0)])
+    est = estimate_normals(pts, 15, viewpoint=(0, 0, 0))
+    np.testing.assert_allclose(est.normals, np.tile([0, 0, -1.0], (2000, 1)), atol=1e-9)
+    est_up = estimate_normals(pts, 15, viewpoint=(0, 0, 10))
+    assert np.all(est_up.normals[:, 2] > 0.999)
+    assert np.all(est.curvature < 1e-9)
+
+
+def test_normal_outlier_removal_drops_scattered_points_not_the_plane() -> None:
+    rng = np.random.default_rng(2)
+    plane = np.column_stack(
+        [rng.uniform(-2, 2, 3000), rng.uniform(-2, 2, 3000), rng.normal(scale=0.002, size=3000)]
+    )
+    clutter = rng.uniform(-2, 2, size=(300, 3)) * [1, 1, 0.5] + [0, 0, 1.0]
+    pts = np.concatenate([plane, clutter])
+    est = estimate_normals(pts, 15, viewpoint=(0, 0, 5))
+    keep = normal_inlier_mask(est.normals, est.neighbors, 0.8)
+    assert keep[:3000].mean() > 0.97
+    assert keep[3000:].mean() < 0.6
+    assert normal_inlier_mask(est.normals, est.neighbors, -1.0).all()
+
+
+def test_too_few_points_for_normals_is_a_clear_error() -> None:
+    with pytest.raises(InvalidPointCloudError, match='at least k=15'):
+        estimate_normals(np.random.default_rng(0).random((10, 3)), 15)
+
+
+def test_spherical_kmeans_recovers_kent_clusters_and_is_seeded() -> None:
+    rng = np.random.default_rng(3)
+    means = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-0.6, -0.8, 0]])
+    samples = []
+    for m in means:
+        a = np.cross(m, [0.3, 0.5, 0.8])
+        a /= np.linalg.norm(a)
+        gamma = np.column_stack([m, a, np.cross(m, a)])
+        samples.append(sample_kent(KentParams(kappa=100.0, beta=30.0, gamma=gamma), 500, rng))
+    x = np.concatenate(samples)
+    labels, centers = spherical_kmeans(x, 4, rng=0)
+    for m in means:
+        assert np.max(centers @ m) > 0.99
+    truth = np.repeat(np.arange(4), 500)
+    for j in range(4):  # every true cluster maps onto one label
+        assert np.bincount(labels[truth == j]).max() >= 495
+    labels2, centers2 = spherical_kmeans(x, 4, rng=0)
+    np.testing.assert_array_equal(labels, labels2)
+    np.testing.assert_array_equal(centers, centers2)
+
+
+def test_spherical_kmeans_handles_more_clusters_than_points() -> None:
+    x = exp_so3([0.1, 0.2, 0.3])[:2]
+    labels, centers = spherical_kmeans(x, 5)
+    assert len(centers) == 2 and set(labels) == {0, 1}

@@ -1,0 +1,239 @@
+"""End-to-end tests of register(): synthetic scenes with known motion, the real pair, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scenes import (
+    SMALL_GICP_PAIR,
+    add_outliers,
+    box_room,
+    corridor,
+    pose_errors,
+    random_transform,
+    read_ply_xyz,
+    transform_points,
+)
+
+from kentreg_ros.core import (
+    InvalidPointCloudError,
+    KentRegConfig,
+    RegistrationResult,
+    prepare_scan,
+    register,
+)
+from kentreg_ros.core.rotations import exp_so3, make_transform
+
+needs_pair = pytest.mark.skipif(
+    not SMALL_GICP_PAIR.exists(),
+    reason=f'real data not present at {SMALL_GICP_PAIR} (../shared exists only in CI/dev)',
+)
+
+
+def _room_pair(
+    seed: int, angle: float, dist: float, outliers: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    target = box_room(rng, 10000)
+    T = random_transform(rng, angle, dist)  # T_target_source
+    source = transform_points(np.linalg.inv(T), box_room(np.random.default_rng(seed), 10000))
+    source = source + rng.normal(scale=0.005, size=source.shape)
+    return add_outliers(rng, source, outliers), add_outliers(rng, target, outliers), T
+
+
+@pytest.mark.parametrize(
+    ('seed', 'angle', 'dist', 'outliers'),
+    [(0, 10.0, 0.3, 0.0), (1, 20.0, 0.5, 0.0), (2, 10.0, 0.3, 0.3)],
+)
+def test_robust_recovers_known_motion_in_synthetic_room(
+    seed: int, angle: float, dist: float, outliers: float
+) -> None:
+    source, target, T = _room_pair(seed, angle, dist, outliers)
+    result = register(source, target, viewpoint=(0.0, 0.0, 0.2))
+    e_r, e_t = pose_errors(result.T_target_source, T)
+    assert result.status in ('converged', 'max_iterations'), result.message
+    assert e_r < 0.2 and e_t < 0.02, (e_r, e_t)
+
+
+def test_result_has_the_documented_fields() -> None:
+    source, target, T = _room_pair(3, 5.0, 0.2)
+    result = register(source, target)
+    assert isinstance(result, RegistrationResult)
+    assert result.T_target_source.shape == (4, 4)
+    assert result.covariance.shape == (6, 6)
+    assert np.all(np.linalg.eigvalsh(result.covariance) >= 0)
+    assert result.kappa.shape == result.beta.shape and len(result.kappa) >= 1
+    assert np.all(result.beta < result.kappa / 2)
+    assert len(result.log_likelihood) >= 1 and result.iterations > 0
+    assert 0.0 < result.inlier_fraction <= 1.0
+    assert {'rotation', 'translation', 'refine', 'total'} <= set(result.timings)
+    assert set(result.stages) >= {'rotation', 'translation', 'refine'}
+
+
+def test_prepared_scans_are_reusable_and_give_the_same_result() -> None:
+    source, target, _ = _room_pair(4, 8.0, 0.2)
+    cfg = KentRegConfig()
+    direct = register(source, target, config=cfg)
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    cached = register(s, t, config=cfg)
+    np.testing.assert_allclose(cached.T_target_source, direct.T_target_source, atol=1e-9)
+    assert cached.timings['prepare_source'] < 1.0  # nothing recomputed
+
+
+def test_precomputed_normals_are_used() -> None:
+    source, target, T = _room_pair(5, 5.0, 0.1)
+    cfg = KentRegConfig()
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    result = register(s.points, t.points, source_normals=s.normals, target_normals=t.normals)
+    e_r, e_t = pose_errors(result.T_target_source, T)
+    assert e_r < 0.2 and e_t < 0.02
+
+
+def test_paper_mode_runs_end_to_end_on_synthetic_room() -> None:
+    """The paper's recipe runs and returns a proper rotation; its accuracy is reported.
+
+    Measured: from identity with a true 5 deg motion it ends 0.84 deg off with the default
+    clustering (3 k-means++ restarts), but 18.7 deg off with a single k-means++ start. Each
+    cluster's EM leaves the rotation about the cluster's own axis nearly undetermined, so the
+    result hinges on the partition: the fragility the feasibility study found.
+    """
+    source, target, T = _room_pair(6, 5.0, 0.0)
+    result = register(source, target, config=KentRegConfig.paper())
+    assert result.mode == 'paper'
+    R = result.T_target_source[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+    assert np.linalg.det(R) > 0
+    assert result.status in ('converged', 'max_iterations', 'degenerate')
+    assert len(result.kappa) == KentRegConfig().clustering.n_clusters
+    assert np.all(result.beta < result.kappa / 2)
+    assert result.stages.keys() == {'rotation', 'translation'}
+    print(
+        'paper mode on the synthetic room: {:.2f} deg, {:.3f} m'.format(
+            *pose_errors(result.T_target_source, T)
+        )
+    )
+
+
+@pytest.mark.parametrize(
+    'ablation',
+    [
+        {'em.kent_beta': False},
+        {'em.rotation': 'averaged'},
+        {'translation.method': 'centroid'},
+        {'translation.cross_correlation': False},
+        {'refine.method': 'plane_to_plane'},
+        {'refine.method': 'none'},
+        {'refine.normal_weight': False},
+    ],
+)
+def test_every_ablation_switch_runs(ablation: dict) -> None:
+    source, target, T = _room_pair(7, 5.0, 0.1)
+    result = register(source, target, config=KentRegConfig().with_updates(ablation))
+    assert np.isfinite(result.T_target_source).all()
+    e_r, _ = pose_errors(result.T_target_source, T)
+    assert e_r < 5.0, (ablation, e_r)
+
+
+def test_corridor_flags_degenerate_translation_axis() -> None:
+    rng = np.random.default_rng(8)
+    target = corridor(rng)
+    source = corridor(rng)  # same corridor, new samples: along-axis motion unobservable
+    result = register(source, target)
+    assert result.degenerate
+    assert result.status == 'degenerate'
+    assert 'poorly constrained' in result.message
+    axis = np.abs(result.degenerate_directions[0])
+    assert axis[0] > 0.95, result.degenerate_directions
+
+
+def test_single_plane_is_degenerate_not_silent() -> None:
+    rng = np.random.default_rng(9)
+    plane = np.column_stack(
+        [rng.uniform(-5, 5, 3000), rng.uniform(-5, 5, 3000), rng.normal(scale=0.005, size=3000)]
+    )
+    result = register(plane + [0.1, 0.0, 0.0], plane)
+    assert result.status == 'degenerate' and result.degenerate
+
+
+def test_identical_clouds_give_identity_and_converge() -> None:
+    source, _, _ = _room_pair(10, 0.0, 0.0)
+    result = register(source, source)
+    e_r, e_t = pose_errors(result.T_target_source, np.eye(4))
+    assert result.converged and e_r < 1e-3 and e_t < 1e-4
+
+
+@pytest.mark.parametrize(
+    ('points', 'match'),
+    [
+        (np.zeros((100, 2)), r'shape \(N, 3\)'),
+        (np.full((100, 3), np.nan), 'NaN or inf'),
+        (np.array([[0, 0, 0], [np.inf, 1, 1]] * 50, dtype=float), 'NaN or inf'),
+        (np.random.default_rng(0).random((10, 3)), 'at least'),
+        (np.zeros((0, 3)), 'at least'),
+    ],
+)
+def test_register_rejects_bad_clouds(points: np.ndarray, match: str) -> None:
+    good, _, _ = _room_pair(11, 0.0, 0.0)
+    with pytest.raises(InvalidPointCloudError, match=match):
+        register(points, good)
+    with pytest.raises(InvalidPointCloudError, match=match):
+        register(good, points)
+
+
+def test_register_rejects_bad_init() -> None:
+    good, _, _ = _room_pair(12, 0.0, 0.0)
+    with pytest.raises(ValueError, match='init'):
+        register(good, good, init=np.eye(3))
+    with pytest.raises(ValueError, match='rotation'):
+        register(good, good, init=np.diag([1.0, 1.0, -1.0, 1.0]))
+
+
+@pytest.fixture(scope='module')
+def real_pair() -> tuple[object, object, np.ndarray]:
+    cfg = KentRegConfig()
+    source = read_ply_xyz(SMALL_GICP_PAIR / 'source.ply')
+    target = read_ply_xyz(SMALL_GICP_PAIR / 'target.ply')
+    T_ref = np.loadtxt(SMALL_GICP_PAIR / 'T_target_source.txt')
+    return prepare_scan(source, config=cfg), prepare_scan(target, config=cfg), T_ref
+
+
+@needs_pair
+@pytest.mark.parametrize('start', ['identity', 'perturbed'])
+def test_robust_mode_on_real_small_gicp_pair(real_pair: tuple, start: str) -> None:
+    """Within 0.3 deg / 3 cm of the stored transform (itself good to ~0.2 deg / 2 cm)."""
+    source, target, T_ref = real_pair
+    init = np.eye(4)
+    if start == 'perturbed':
+        rng = np.random.default_rng(1)
+        axis = rng.normal(size=3)
+        direction = rng.normal(size=3)
+        P = make_transform(
+            exp_so3(axis / np.linalg.norm(axis) * np.radians(10.0)),
+            direction / np.linalg.norm(direction) * 0.5,
+        )
+        init = T_ref @ P
+        assert pose_errors(init, T_ref)[0] > 9.9
+    result = register(source, target, init=init)
+    e_r, e_t = pose_errors(result.T_target_source, T_ref)
+    assert e_r < 0.3 and e_t < 0.03, (e_r, e_t)
+
+
+@needs_pair
+def test_paper_mode_on_real_small_gicp_pair_is_reported_honestly(real_pair: tuple) -> None:
+    """The paper's recipe as written: measured, not hidden.
+
+    Measured (seeded, deterministic): 0.52 deg and 0.54 m from identity (robust: 0.25 deg,
+    0.020 m). The centroid translation leaves the true 0.5 m motion uncorrected, because the
+    two scans see different parts of the scene from different viewpoints.
+    """
+    source, target, T_ref = real_pair
+    paper = register(source, target, config=KentRegConfig.paper())
+    robust = register(source, target)
+    e_r_paper, e_t_paper = pose_errors(paper.T_target_source, T_ref)
+    e_r_robust, e_t_robust = pose_errors(robust.T_target_source, T_ref)
+    print(
+        f'paper mode: {e_r_paper:.3f} deg, {e_t_paper:.3f} m; '
+        f'robust: {e_r_robust:.3f} deg, {e_t_robust:.3f} m'
+    )
+    assert np.isfinite(paper.T_target_source).all()
+    assert e_t_paper > 5 * e_t_robust

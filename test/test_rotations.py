@@ -1,0 +1,120 @@
+"""SO(3) helpers, the Riemannian Kent M-step solver and rotation averaging."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
+
+from kentreg_ros.core.rotations import (
+    KentRotationProblem,
+    average_rotations,
+    exp_so3,
+    log_so3,
+    procrustes,
+    project_to_so3,
+    rotation_angle,
+    solve_kent_rotation,
+)
+
+
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    return Rotation.random(n, random_state=rng).as_matrix()
+
+
+def test_exp_log_round_trip_including_near_pi() -> None:
+    rng = np.random.default_rng(0)
+    for w in [*rng.normal(size=(20, 3)), np.array([1e-10, 0, 0]), np.array([0, np.pi - 1e-7, 0])]:
+        R = exp_so3(w)
+        np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(exp_so3(log_so3(R)), R, atol=1e-6)
+
+
+def test_procrustes_recovers_rotation_from_noisy_vectors() -> None:
+    rng = np.random.default_rng(1)
+    R = _random_rotations(rng, 1)[0]
+    x = rng.normal(size=(500, 3))
+    y = x @ R.T + rng.normal(scale=0.01, size=x.shape)
+    R_est = procrustes(x.T @ y)
+    assert np.degrees(rotation_angle(R_est.T @ R)) < 0.2
+
+
+def _random_problem(rng: np.random.Generator, beta: float, kappa: float) -> KentRotationProblem:
+    g = _random_rotations(rng, 1)[0]
+    A = np.outer(g[:, 2], g[:, 2]) - np.outer(g[:, 1], g[:, 1])
+    x = rng.normal(size=(200, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    R_true = _random_rotations(rng, 1)[0]
+    y = x @ R_true.T
+    y += rng.normal(scale=0.3, size=y.shape)
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    B = x.T @ x
+    C = x.T @ y
+    return KentRotationProblem(beta * A[None], B[None], kappa * C)
+
+
+@pytest.mark.parametrize(('beta', 'kappa'), [(0.0, 10.0), (5.0, 20.0), (40.0, 100.0)])
+def test_kent_rotation_solver_matches_brute_force_optimisation(beta: float, kappa: float) -> None:
+    rng = np.random.default_rng(int(beta + kappa))
+    problem = _random_problem(rng, beta, kappa)
+    R_start = procrustes(problem.C)
+    R_newton, _ = solve_kent_rotation(problem, R_start)
+    # Brute force: many random starts of a derivative-free optimiser over rotation vectors.
+    best = np.inf
+    for w0 in rng.normal(scale=2.0, size=(30, 3)):
+        res = minimize(
+            lambda w: problem.value(exp_so3(w)),
+            w0,
+            method='Nelder-Mead',
+            options={'xatol': 1e-10, 'fatol': 1e-12, 'maxiter': 4000},
+        )
+        best = min(best, res.fun)
+    assert problem.value(R_newton) <= best + 1e-6 * max(1.0, abs(best))
+    assert np.linalg.norm(problem.gradient(R_newton)) < 1e-6
+
+
+def test_kent_rotation_solver_gradient_matches_finite_differences() -> None:
+    rng = np.random.default_rng(3)
+    problem = _random_problem(rng, 7.0, 15.0)
+    R = _random_rotations(rng, 1)[0]
+    g = problem.gradient(R)
+    h = 1e-6
+    fd = [
+        (problem.value(R @ exp_so3(h * e)) - problem.value(R @ exp_so3(-h * e))) / (2 * h)
+        for e in np.eye(3)
+    ]
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize('spread_deg', [1.0, 20.0, 60.0])
+def test_average_matches_scipy_rotation_mean(spread_deg: float) -> None:
+    rng = np.random.default_rng(4)
+    center = _random_rotations(rng, 1)[0]
+    Rs = np.array(
+        [center @ exp_so3(rng.normal(size=3) * np.radians(spread_deg)) for _ in range(7)]
+    )
+    w = rng.random(7)
+    for weights in (None, w):
+        ours = average_rotations(Rs, weights)
+        theirs = Rotation.from_matrix(Rs).mean(weights=weights).as_matrix()
+        np.testing.assert_allclose(ours, theirs, atol=1e-9)
+
+
+def test_average_of_identical_rotations_is_that_rotation() -> None:
+    R = _random_rotations(np.random.default_rng(5), 1)[0]
+    np.testing.assert_allclose(average_rotations(np.array([R, R, R])), R, atol=1e-12)
+
+
+def test_average_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match=r'shape \(K, 3, 3\)'):
+        average_rotations(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match='non-negative'):
+        average_rotations(np.array([np.eye(3)]), [-1.0])
+
+
+def test_project_to_so3_returns_a_rotation() -> None:
+    M = np.random.default_rng(6).normal(size=(3, 3))
+    R = project_to_so3(M)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
