@@ -74,13 +74,13 @@ def inverse_3x3_symmetric(M: FloatArray) -> FloatArray:
     inv[:, 1, 1] = a * f - c * c
     inv[:, 1, 2] = inv[:, 2, 1] = b * c - a * e
     inv[:, 2, 2] = a * d - b * b
-    out: FloatArray = inv / det[:, None, None]
+    out: FloatArray = np.asarray(inv / det[:, None, None], dtype=np.float64)
     return out
 
 
 def _solve_spd(H: FloatArray, g: FloatArray) -> FloatArray:
     reg = 1e-9 * max(float(np.trace(H)), 1e-12)
-    out: FloatArray = np.linalg.solve(H + reg * np.eye(len(H)), g)
+    out: FloatArray = np.asarray(np.linalg.solve(H + reg * np.eye(len(H)), g), dtype=np.float64)
     return out
 
 
