@@ -1,0 +1,488 @@
+"""Scan-to-previous-scan LiDAR odometry: register, chain ``T_world_lidar``, keep the new model.
+
+The loop of the design card, one scan at a time::
+
+    predict    T_world_pred = T_world_last @ motion      (constant velocity, or no motion)
+    prepare    the new scan once (crop, voxels, normals, clusters)
+    register   source = new scan (observed), target = model (previous scan), init = prediction
+    check      status 'failed', or a step beyond odometry.max_step_* -> fall back to prediction
+    chain      T_world_curr = T_world_model @ T_model_curr
+    keep       the new scan, with its cached preprocessing, as the next model
+
+A failure never corrupts the trajectory: a registration that fails (or jumps implausibly far)
+keeps the predicted pose and is flagged ``'fell_back'``; a cloud that cannot be used at all
+(:class:`~kentreg_ros.core.errors.InvalidPointCloudError`, e.g. too few points) is flagged
+``'rejected'``, gets the predicted pose, and the model is kept for the next scan.
+
+:class:`Odometry` keeps no global state; the ROS node runs one instance in one worker thread.
+An instance is not meant to be shared between threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core.registration import (
+    STATUS_DEGENERATE,
+    STATUS_FAILED,
+    PreparedScan,
+    RegistrationResult,
+    prepare_scan,
+    register,
+)
+from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform, rotation_angle
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+HEALTH_FIRST = 'first'
+HEALTH_OK = 'ok'
+HEALTH_DEGENERATE = 'degenerate'
+HEALTH_FELL_BACK = 'fell_back'
+HEALTH_REJECTED = 'rejected'
+#: Every health value of an :class:`OdometryStep`, in order of severity.
+HEALTHS = (HEALTH_FIRST, HEALTH_OK, HEALTH_DEGENERATE, HEALTH_FELL_BACK, HEALTH_REJECTED)
+
+#: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
+MAX_VELOCITY_SCALE = 5.0
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryStep:
+    """What :meth:`Odometry.step` did with one scan.
+
+    Attributes
+    ----------
+    index : int
+        0-based number of the scan since the start (or the last :meth:`Odometry.reset`).
+    stamp_ns : int
+        Acquisition time of the scan, integer nanoseconds.
+    frame_id : str or None
+        Sensor frame of the scan, as given.
+    T_world_lidar : ndarray, shape (4, 4)
+        Pose of the scan in the odometry (world) frame.
+    T_prev_curr : ndarray, shape (4, 4)
+        Motion since the previous scan's pose: maps points of this scan into the previous
+        scan's frame (identity for the first scan).
+    T_model_pred : ndarray, shape (4, 4)
+        The prediction in the model's frame, the ``init`` given to the registration.
+    model_index : int
+        Index of the scan used as the model (target); ``-1`` when there was none.
+    result : RegistrationResult or None
+        The registration result; None for the first scan, a rejected scan, or a registration
+        that raised.
+    health : str
+        ``'first'`` (became the first model), ``'ok'`` (estimate used), ``'degenerate'``
+        (estimate used, but some direction is poorly constrained), ``'fell_back'`` (the
+        registration failed or jumped too far: the pose is the prediction) or ``'rejected'``
+        (the cloud is unusable: the pose is the prediction and the model is kept).
+    message : str
+        Human-readable explanation of the health.
+    timings : dict of str to float
+        Milliseconds: ``'preprocess'`` (:func:`prepare_scan` of this scan), ``'register'``
+        (total of :func:`register`), the registration stages (``'rotation'``,
+        ``'translation'``, ``'refine'``) when it ran, and ``'total'`` for the whole step.
+    n_points : int
+        Points given.
+    n_prepared : int
+        Points kept after preprocessing (0 if rejected).
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str | None
+    T_world_lidar: FloatArray
+    T_prev_curr: FloatArray
+    T_model_pred: FloatArray
+    model_index: int
+    result: RegistrationResult | None
+    health: str
+    message: str
+    timings: dict[str, float] = field(default_factory=dict)
+    n_points: int = 0
+    n_prepared: int = 0
+
+    @property
+    def ok(self) -> bool:
+        """True when the pose comes from a registration (or is the first pose)."""
+        return self.health in (HEALTH_FIRST, HEALTH_OK, HEALTH_DEGENERATE)
+
+    @property
+    def stamp(self) -> float:
+        """Acquisition time in seconds (float; use ``stamp_ns`` for exact values)."""
+        return self.stamp_ns * 1e-9
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _check_pose(T: ArrayLike, name: str) -> FloatArray:
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape != (4, 4) or not np.isfinite(arr).all():
+        raise ValueError(f'Expected `{name}` to be a finite 4x4 transform, got shape {arr.shape}.')
+    R = arr[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0.0:
+        raise ValueError(f'Expected the rotation block of `{name}` to be a rotation matrix.')
+    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f'Expected the last row of `{name}` to be [0, 0, 0, 1], got {arr[3]}.')
+    return arr.copy()
+
+
+def _invert(T: FloatArray) -> FloatArray:
+    R = T[:3, :3]
+    return make_transform(R.T, -R.T @ T[:3, 3])
+
+
+def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
+    """Rotation vector and translation of ``T`` scaled by ``factor`` (first-order screw)."""
+    if factor == 1.0:
+        return T.copy()
+    return make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
+
+
+def _as_stamp(stamp_ns: int) -> int:
+    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer):
+        raise TypeError(
+            f'Expected `stamp_ns` to be an integer number of nanoseconds, got {stamp_ns!r}.'
+        )
+    return int(stamp_ns)
+
+
+class Odometry:
+    """Scan-to-previous-scan odometry with the Kent registration.
+
+    Parameters
+    ----------
+    config : KentRegConfig, optional
+        Registration and odometry settings (default ``KentRegConfig()``, robust mode). The
+        ``odometry`` section selects the constant-velocity prediction and the largest
+        plausible step.
+    initial_pose : array_like, shape (4, 4), optional
+        ``T_world_lidar`` of the first scan (default identity).
+
+    Notes
+    -----
+    Every scan is preprocessed exactly once: the :class:`PreparedScan` of the new scan is the
+    source of this registration and the target of the next one.
+
+    The constant-velocity prediction repeats the motion between the last two poses, stretched
+    by the ratio of the time gaps when scans arrive irregularly (e.g. a dropped scan in the ROS
+    node; the factor is limited to :data:`MAX_VELOCITY_SCALE`).
+
+    Examples
+    --------
+    >>> odom = Odometry(KentRegConfig())                      # doctest: +SKIP
+    >>> for points, stamp_ns in scans:                        # doctest: +SKIP
+    ...     step = odom.step(points, stamp_ns, frame_id='lidar')
+    ...     if not step.ok:
+    ...         log.warning(step.message)
+    >>> odom.poses.shape                                      # doctest: +SKIP
+    (N, 4, 4)
+    """
+
+    def __init__(
+        self, config: KentRegConfig | None = None, *, initial_pose: ArrayLike | None = None
+    ) -> None:
+        cfg = config if config is not None else KentRegConfig()
+        if not isinstance(cfg, KentRegConfig):
+            raise TypeError(f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.')
+        self._config = cfg
+        self._initial_pose = (
+            np.eye(4) if initial_pose is None else _check_pose(initial_pose, 'initial_pose')
+        )
+        self._max_rotation = np.radians(cfg.odometry.max_step_rotation_deg)
+        self._max_translation = cfg.odometry.max_step_translation
+        self.reset()
+
+    # ----------------------------------------------------------------------------------------
+    # State
+
+    def reset(self, initial_pose: ArrayLike | None = None) -> None:
+        """Forget every scan and pose; the next scan starts a new trajectory.
+
+        Parameters
+        ----------
+        initial_pose : array_like, shape (4, 4), optional
+            ``T_world_lidar`` of the next first scan (default: the one given at construction).
+        """
+        if initial_pose is not None:
+            self._initial_pose = _check_pose(initial_pose, 'initial_pose')
+        self._model: PreparedScan | None = None
+        self._model_index = -1
+        self._T_world_model = self._initial_pose.copy()
+        self._poses: list[FloatArray] = []
+        self._stamps: list[int] = []
+        self._frame_id: str | None = None
+        self._counts = dict.fromkeys(HEALTHS, 0)
+
+    @property
+    def config(self) -> KentRegConfig:
+        """The settings in use."""
+        return self._config
+
+    @property
+    def poses(self) -> FloatArray:
+        """``T_world_lidar`` of every scan so far, shape (N, 4, 4)."""
+        if not self._poses:
+            return np.zeros((0, 4, 4))
+        return np.array(self._poses)
+
+    @property
+    def stamps_ns(self) -> NDArray[np.int64]:
+        """Stamps of every scan so far, integer nanoseconds, shape (N,)."""
+        return np.array(self._stamps, dtype=np.int64)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Number of steps per health value (see :data:`HEALTHS`)."""
+        return dict(self._counts)
+
+    @property
+    def n_steps(self) -> int:
+        """Scans given to :meth:`step`."""
+        return len(self._poses)
+
+    @property
+    def n_failed(self) -> int:
+        """Scans whose pose is a prediction: fell back or rejected."""
+        return self._counts[HEALTH_FELL_BACK] + self._counts[HEALTH_REJECTED]
+
+    @property
+    def n_degenerate(self) -> int:
+        """Scans registered in a degenerate scene (estimate used, flagged)."""
+        return self._counts[HEALTH_DEGENERATE]
+
+    @property
+    def has_model(self) -> bool:
+        """True once a scan has been accepted as the model."""
+        return self._model is not None
+
+    # ----------------------------------------------------------------------------------------
+    # The loop
+
+    def _predict(self, stamp_ns: int) -> FloatArray:
+        """``T_world_pred`` of a scan taken at ``stamp_ns``."""
+        if not self._poses:
+            return self._initial_pose.copy()
+        T_last = self._poses[-1]
+        if not self._config.odometry.constant_velocity or len(self._poses) < 2:
+            return T_last.copy()
+        motion = _invert(self._poses[-2]) @ T_last
+        gap_last = self._stamps[-1] - self._stamps[-2]
+        gap_now = stamp_ns - self._stamps[-1]
+        factor = 1.0
+        if gap_last > 0 and gap_now > 0:
+            factor = min(gap_now / gap_last, MAX_VELOCITY_SCALE)
+        return T_last @ _scale_motion(motion, factor)
+
+    def _check_step(self, T_model_curr: FloatArray) -> str:
+        """Why a registered step is implausible, or '' if it is not."""
+        angle = rotation_angle(T_model_curr[:3, :3])
+        dist = float(np.linalg.norm(T_model_curr[:3, 3]))
+        if angle > self._max_rotation:
+            return (
+                f'the step rotates {np.degrees(angle):.1f} deg, more than '
+                f'odometry.max_step_rotation_deg={self._config.odometry.max_step_rotation_deg}'
+            )
+        if dist > self._max_translation:
+            return (
+                f'the step translates {dist:.2f} m, more than '
+                f'odometry.max_step_translation={self._max_translation}'
+            )
+        return ''
+
+    def step(
+        self, points: ArrayLike, stamp_ns: int, *, frame_id: str | None = None
+    ) -> OdometryStep:
+        """Register a new scan against the previous one and return its pose.
+
+        Parameters
+        ----------
+        points : array_like, shape (N, 3)
+            Finite points of the new scan in its sensor frame (drop NaN/inf first).
+        stamp_ns : int
+            Acquisition time, integer nanoseconds (e.g. the message header stamp).
+        frame_id : str, optional
+            Sensor frame of the scan; recorded in the step.
+
+        Returns
+        -------
+        OdometryStep
+            The pose and the health of the step. Never raises for a cloud that is merely
+            unusable or a registration that fails: those are the ``'rejected'`` and
+            ``'fell_back'`` healths.
+
+        Raises
+        ------
+        TypeError
+            ``stamp_ns`` is not an integer.
+        """
+        t_start = time.perf_counter()
+        stamp = _as_stamp(stamp_ns)
+        index = len(self._poses)
+        if self._stamps and stamp <= self._stamps[-1]:
+            logger.warning(
+                'Scan %d: stamp %d ns is not after the previous one (%d ns).',
+                index,
+                stamp,
+                self._stamps[-1],
+            )
+        if frame_id is not None:
+            if self._frame_id is not None and frame_id != self._frame_id:
+                logger.warning(
+                    'Scan %d: frame_id changed from %r to %r.', index, self._frame_id, frame_id
+                )
+            self._frame_id = frame_id
+        T_world_pred = self._predict(stamp)
+        T_model_pred = _invert(self._T_world_model) @ T_world_pred
+        timings: dict[str, float] = {}
+        n_points = int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0
+
+        t0 = time.perf_counter()
+        try:
+            scan = prepare_scan(points, config=self._config)
+        except InvalidPointCloudError as exc:
+            timings['preprocess'] = _ms(t0)
+            message = f'Rejected the scan: {exc} The pose is the prediction.'
+            logger.warning('Scan %d: %s', index, message)
+            return self._record(
+                index,
+                stamp,
+                frame_id,
+                T_world_pred,
+                T_model_pred,
+                None,
+                HEALTH_REJECTED,
+                message,
+                timings,
+                t_start,
+                n_points,
+                0,
+                new_model=None,
+            )
+        timings['preprocess'] = _ms(t0)
+
+        if self._model is None:
+            return self._record(
+                index,
+                stamp,
+                frame_id,
+                T_world_pred,
+                T_model_pred,
+                None,
+                HEALTH_FIRST,
+                'First scan: it becomes the model.',
+                timings,
+                t_start,
+                n_points,
+                len(scan),
+                new_model=scan,
+            )
+
+        t0 = time.perf_counter()
+        result: RegistrationResult | None = None
+        reason = ''
+        try:
+            result = register(scan, self._model, init=T_model_pred, config=self._config)
+        except (KentRegError, np.linalg.LinAlgError) as exc:
+            reason = f'the registration raised {type(exc).__name__}: {exc}'
+        timings['register'] = _ms(t0)
+        if result is not None:
+            for stage in ('rotation', 'translation', 'refine'):
+                if stage in result.timings:
+                    timings[stage] = result.timings[stage]
+            if result.status == STATUS_FAILED:
+                reason = f'the registration failed: {result.message}'
+            else:
+                reason = self._check_step(result.T_target_source)
+        if result is None or reason:
+            message = f'Fell back to the prediction: {reason}'
+            logger.warning('Scan %d: %s', index, message)
+            return self._record(
+                index,
+                stamp,
+                frame_id,
+                T_world_pred,
+                T_model_pred,
+                result,
+                HEALTH_FELL_BACK,
+                message,
+                timings,
+                t_start,
+                n_points,
+                len(scan),
+                new_model=scan,
+            )
+        T_world_curr = self._T_world_model @ result.T_target_source
+        health = HEALTH_DEGENERATE if result.status == STATUS_DEGENERATE else HEALTH_OK
+        if health == HEALTH_DEGENERATE:
+            logger.info('Scan %d: %s', index, result.message)
+        return self._record(
+            index,
+            stamp,
+            frame_id,
+            T_world_curr,
+            T_model_pred,
+            result,
+            health,
+            result.message,
+            timings,
+            t_start,
+            n_points,
+            len(scan),
+            new_model=scan,
+        )
+
+    def _record(
+        self,
+        index: int,
+        stamp: int,
+        frame_id: str | None,
+        T_world_curr: FloatArray,
+        T_model_pred: FloatArray,
+        result: RegistrationResult | None,
+        health: str,
+        message: str,
+        timings: dict[str, float],
+        t_start: float,
+        n_points: int,
+        n_prepared: int,
+        *,
+        new_model: PreparedScan | None,
+    ) -> OdometryStep:
+        T_prev_curr = _invert(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
+        model_index = self._model_index
+        if new_model is not None:
+            # A fall-back still moves the model on: the scan is valid and its predicted pose is
+            # the best estimate; the next registration then bridges one scan gap, not two.
+            self._model = new_model
+            self._model_index = index
+            self._T_world_model = T_world_curr.copy()
+        self._poses.append(T_world_curr.copy())
+        self._stamps.append(stamp)
+        self._counts[health] += 1
+        timings['total'] = _ms(t_start)
+        return OdometryStep(
+            index=index,
+            stamp_ns=stamp,
+            frame_id=frame_id,
+            T_world_lidar=T_world_curr.copy(),
+            T_prev_curr=T_prev_curr,
+            T_model_pred=T_model_pred,
+            model_index=model_index,
+            result=result,
+            health=health,
+            message=message,
+            timings=timings,
+            n_points=n_points,
+            n_prepared=n_prepared,
+        )

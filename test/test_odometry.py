@@ -1,0 +1,230 @@
+"""Tests of kentreg_ros.core.odometry on a seeded synthetic room with a known trajectory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import kentreg_ros.core.odometry as odometry_module
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core.metrics import rpe
+from kentreg_ros.core.odometry import Odometry, OdometryStep
+from kentreg_ros.core.registration import PreparedScan
+from kentreg_ros.core.rotations import rotation_angle
+
+N_POINTS = 8000
+STEP_NS = 100_000_000  # 10 Hz
+
+ROOM = ([-10.0, -7.0, -1.5], [10.0, 7.0, 2.5])
+BOXES = (
+    ([2.0, 1.0, -1.5], [3.5, 2.5, 0.5]),
+    ([-4.0, -5.0, -1.5], [-2.5, -3.0, 1.0]),
+    ([5.0, -6.0, -1.5], [7.0, -4.5, 0.0]),
+    ([-7.0, 3.0, -1.5], [-6.0, 5.5, 1.8]),
+)
+
+
+def _box_faces(lo: list[float], hi: list[float]) -> list[tuple[int, float, np.ndarray]]:
+    lo_, hi_ = np.asarray(lo), np.asarray(hi)
+    return [(axis, float(val), np.stack([lo_, hi_])) for axis in range(3)
+            for val in (lo_[axis], hi_[axis])]  # fmt: skip
+
+
+def sample_room(rng: np.random.Generator, n: int = N_POINTS) -> np.ndarray:
+    """``n`` points on the walls of a 20 x 14 x 4 m room with four boxes, world frame."""
+    faces = _box_faces(*ROOM)
+    for lo, hi in BOXES:
+        faces += _box_faces(lo, hi)
+    areas = []
+    for axis, _, bounds in faces:
+        others = [a for a in range(3) if a != axis]
+        areas.append(float(np.prod(bounds[1, others] - bounds[0, others])))
+    counts = rng.multinomial(n, np.array(areas) / np.sum(areas))
+    parts = []
+    for (axis, val, bounds), count in zip(faces, counts, strict=True):
+        pts = rng.uniform(bounds[0], bounds[1], (count, 3))
+        pts[:, axis] = val
+        parts.append(pts)
+    return np.concatenate(parts)
+
+
+def true_trajectory(n: int) -> np.ndarray:
+    """``T_world_lidar``, shape (n, 4, 4): 6 deg of yaw and 0.35 m per scan, some roll/pitch."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    i = np.arange(n)
+    euler = np.stack([6.0 * i, 1.5 * np.sin(i), 1.0 * np.cos(i)], axis=1)
+    T[:, :3, :3] = Rotation.from_euler('zyx', euler, degrees=True).as_matrix()
+    T[:, :3, 3] = np.stack([0.35 * i - 1.0, 0.1 * i, 0.02 * i], axis=1)
+    return T
+
+
+def observe(rng: np.random.Generator, T_world_lidar: np.ndarray, noise: float = 0.005
+            ) -> np.ndarray:  # fmt: skip
+    """A fresh sample of the room in the sensor frame (new points every scan, with noise)."""
+    world = sample_room(rng) + rng.normal(0.0, noise, (N_POINTS, 3))
+    return (world - T_world_lidar[:3, 3]) @ T_world_lidar[:3, :3]
+
+
+@pytest.fixture(scope='module')
+def scans() -> tuple[np.ndarray, list[np.ndarray]]:
+    rng = np.random.default_rng(7)
+    T = true_trajectory(6)
+    return T, [observe(rng, T_i) for T_i in T]
+
+
+def run(odom: Odometry, clouds: list[np.ndarray]) -> list[OdometryStep]:
+    return [odom.step(c, i * STEP_NS, frame_id='lidar') for i, c in enumerate(clouds)]
+
+
+def test_odometry_recovers_known_trajectory(scans: tuple[np.ndarray, list[np.ndarray]]) -> None:
+    T_true, clouds = scans
+    odom = Odometry(KentRegConfig(), initial_pose=T_true[0])
+    steps = run(odom, clouds)
+    assert [s.health for s in steps] == ['first'] + ['ok'] * 5
+    assert odom.n_steps == 6 and odom.n_failed == 0 and odom.n_degenerate == 0
+    assert odom.poses.shape == (6, 4, 4)
+    np.testing.assert_array_equal(odom.stamps_ns, np.arange(6) * STEP_NS)
+    errors = rpe(odom.poses, T_true)
+    assert errors['rotation_deg']['max'] < 0.1
+    assert errors['translation_m']['max'] < 0.01
+    # Chained with the given initial pose, the absolute poses match too.
+    np.testing.assert_allclose(odom.poses[:, :3, 3], T_true[:, :3, 3], atol=0.02)
+    for prev, step in zip(steps, steps[1:], strict=False):
+        np.testing.assert_allclose(prev.T_world_lidar @ step.T_prev_curr, step.T_world_lidar,
+                                   atol=1e-9)  # fmt: skip
+        assert step.result is not None and step.result.ok
+        assert step.model_index == prev.index
+        assert {'preprocess', 'register', 'total'} <= set(step.timings)
+        assert step.frame_id == 'lidar' and step.ok
+    assert steps[0].result is None and steps[0].model_index == -1
+    np.testing.assert_array_equal(steps[0].T_prev_curr, np.eye(4))
+
+
+def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarray]],
+                                          monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
+    _, clouds = scans
+    prepared: list[int] = []
+    registered: list[tuple[object, object]] = []
+    real_prepare, real_register = odometry_module.prepare_scan, odometry_module.register
+
+    def counting_prepare(*args: object, **kwargs: object) -> PreparedScan:
+        prepared.append(1)
+        return real_prepare(*args, **kwargs)  # type: ignore[arg-type]
+
+    def checking_register(source: object, target: object, **kwargs: object) -> object:
+        registered.append((source, target))
+        return real_register(source, target, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(odometry_module, 'prepare_scan', counting_prepare)
+    monkeypatch.setattr(odometry_module, 'register', checking_register)
+    run(Odometry(), clouds[:4])
+    assert len(prepared) == 4
+    assert len(registered) == 3
+    for (source, target), (next_source, next_target) in zip(registered, registered[1:],
+                                                            strict=False):  # fmt: skip
+        assert isinstance(source, PreparedScan) and isinstance(target, PreparedScan)
+        assert next_target is source  # the new scan, prepared once, is the next model
+
+
+def test_odometry_rejects_tiny_cloud_without_corrupting_later_poses(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    T_true, clouds = scans
+    clouds = list(clouds)
+    clouds[3] = clouds[3][:5]
+    odom = Odometry(initial_pose=T_true[0])
+    steps = run(odom, clouds)
+    assert [s.health for s in steps] == ['first', 'ok', 'ok', 'rejected', 'ok', 'ok']
+    rejected = steps[3]
+    assert not rejected.ok and rejected.result is None
+    assert 'Rejected' in rejected.message and 'points' in rejected.message
+    assert odom.n_failed == 1 and odom.counts['rejected'] == 1
+    # The rejected scan gets the constant-velocity prediction ...
+    np.testing.assert_allclose(rejected.T_prev_curr, steps[2].T_prev_curr, atol=1e-9)
+    # ... the model stays scan 2, and scan 4 is registered against it over two motions.
+    assert steps[4].model_index == 2 and steps[5].model_index == 4
+    for i in (4, 5):
+        e_R = np.degrees(rotation_angle(T_true[i][:3, :3].T @ odom.poses[i][:3, :3]))
+        assert e_R < 0.1
+        np.testing.assert_allclose(odom.poses[i][:3, 3], T_true[i][:3, 3], atol=0.02)
+
+
+def test_odometry_falls_back_on_implausible_step(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    _, clouds = scans
+    cfg = KentRegConfig().with_updates({'odometry.max_step_rotation_deg': 3.0})
+    odom = Odometry(cfg)
+    steps = run(odom, clouds[:3])
+    assert [s.health for s in steps] == ['first', 'fell_back', 'fell_back']
+    assert odom.n_failed == 2
+    assert 'max_step_rotation_deg' in steps[1].message
+    assert steps[1].result is not None  # the rejected estimate is kept for inspection
+    # No motion known yet: the predictions, hence the poses, stay at the start.
+    np.testing.assert_allclose(odom.poses, np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
+
+
+def test_odometry_falls_back_when_registration_raises(
+    scans: tuple[np.ndarray, list[np.ndarray]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    T_true, clouds = scans
+    odom = Odometry(initial_pose=T_true[0])
+    run(odom, clouds[:3])
+
+    def broken_register(*args: object, **kwargs: object) -> object:
+        raise KentRegError('No cluster pair had enough normals for the EM.')
+
+    monkeypatch.setattr(odometry_module, 'register', broken_register)
+    step = odom.step(clouds[3], 3 * STEP_NS)
+    assert step.health == 'fell_back' and step.result is None
+    assert 'KentRegError' in step.message
+    # Constant velocity: the prediction repeats the motion from scan 1 to scan 2.
+    poses = odom.poses
+    np.testing.assert_allclose(step.T_prev_curr, np.linalg.inv(poses[1]) @ poses[2], atol=1e-9)
+
+
+def test_odometry_stretches_constant_velocity_over_a_dropped_scan(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    T_true, clouds = scans
+    odom = Odometry()
+    odom.step(clouds[0], 0)
+    odom.step(clouds[1], STEP_NS)
+    step = odom.step(clouds[3], 3 * STEP_NS)  # scan 2 was dropped: twice the gap
+    step_angle = rotation_angle(T_true[0][:3, :3].T @ T_true[1][:3, :3])
+    assert rotation_angle(step.T_model_pred[:3, :3]) == pytest.approx(2 * step_angle, rel=0.05)
+    assert step.health == 'ok'
+    T_true_13 = np.linalg.inv(T_true[1]) @ T_true[3]
+    assert rotation_angle(T_true_13[:3, :3].T @ step.T_prev_curr[:3, :3]) < np.radians(0.1)
+
+
+def test_odometry_without_constant_velocity_starts_from_last_pose(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    _, clouds = scans
+    odom = Odometry(KentRegConfig().with_updates({'odometry.constant_velocity': False}))
+    steps = run(odom, clouds[:3])
+    np.testing.assert_allclose(steps[2].T_model_pred, np.eye(4), atol=1e-12)
+    assert all(s.ok for s in steps)
+
+
+def test_odometry_reset_forgets_the_trajectory(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    _, clouds = scans
+    odom = Odometry()
+    run(odom, clouds[:2])
+    odom.reset()
+    assert odom.n_steps == 0 and odom.poses.shape == (0, 4, 4) and not odom.has_model
+    assert odom.step(clouds[2], 5).health == 'first'
+
+
+def test_odometry_rejects_bad_arguments() -> None:
+    with pytest.raises(TypeError, match='KentRegConfig'):
+        Odometry({'mode': 'robust'})  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match='initial_pose'):
+        Odometry(initial_pose=np.ones((4, 4)))
+    with pytest.raises(TypeError, match='stamp_ns'):
+        Odometry().step(np.zeros((100, 3)), 1.5)  # type: ignore[arg-type]
