@@ -228,3 +228,47 @@ def test_odometry_rejects_bad_arguments() -> None:
         Odometry(initial_pose=np.ones((4, 4)))
     with pytest.raises(TypeError, match='stamp_ns'):
         Odometry().step(np.zeros((100, 3)), 1.5)  # type: ignore[arg-type]
+
+
+def test_propagate_covariance_matches_monte_carlo() -> None:
+    rng = np.random.default_rng(3)
+    T_wm = np.eye(4)
+    T_wm[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 1.1]).as_matrix()
+    T_wm[:3, 3] = [4.0, -2.0, 0.5]
+    T_mc = np.eye(4)
+    T_mc[:3, :3] = Rotation.from_rotvec([0.05, 0.1, -0.4]).as_matrix()
+    T_mc[:3, 3] = [1.5, 0.7, -0.2]
+    A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    cov_m, cov_s = 1e-4 * A @ A.T, 1e-4 * B @ B.T
+    n = 20000
+    e_m = rng.multivariate_normal(np.zeros(6), cov_m, n)
+    e_s = rng.multivariate_normal(np.zeros(6), cov_s, n)
+    R_m = Rotation.from_rotvec(e_m[:, 3:]).as_matrix() @ T_wm[:3, :3]
+    p_m = T_wm[:3, 3] + e_m[:, :3]
+    # Left perturbation of the step in the model frame: T_true = exp(delta) T.
+    dR_s = Rotation.from_rotvec(e_s[:, 3:]).as_matrix()
+    R_s = dR_s @ T_mc[:3, :3]
+    t_s = np.einsum('nij,j->ni', dR_s, T_mc[:3, 3]) + e_s[:, :3]
+    R_c = R_m @ R_s
+    p_c = p_m + np.einsum('nij,nj->ni', R_m, t_s)
+    T_wc = T_wm @ T_mc
+    w = Rotation.from_matrix(R_c @ T_wc[:3, :3].T).as_rotvec()
+    errors = np.concatenate([p_c - T_wc[:3, 3], w], axis=1)
+    expected = odometry_module.propagate_covariance(cov_m, T_wm, T_mc, cov_s)
+    np.testing.assert_allclose(np.cov(errors.T), expected, atol=0.05 * np.abs(expected).max())
+
+
+def test_odometry_covariance_grows_and_inflates_on_fall_back(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    _, clouds = scans
+    clouds = list(clouds[:4])
+    clouds[2] = clouds[2][:5]
+    steps = run(Odometry(), clouds)
+    assert [s.health for s in steps] == ['first', 'ok', 'rejected', 'ok']
+    np.testing.assert_array_equal(steps[0].covariance, np.zeros((6, 6)))
+    variances = [np.diag(s.covariance) for s in steps]
+    assert np.all(variances[1] > 0) and np.all(variances[1] < 1e-4)
+    assert variances[2][0] >= 0.05**2  # the prediction is known only to the size of the motion
+    # Scan 3 is registered against scan 1, the model that was kept: no inflation.
+    assert np.all(variances[3] < 1e-3)

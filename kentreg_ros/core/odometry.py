@@ -37,7 +37,7 @@ from kentreg_ros.core.registration import (
     prepare_scan,
     register,
 )
-from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform, rotation_angle
+from kentreg_ros.core.rotations import exp_so3, hat, log_so3, make_transform, rotation_angle
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +53,8 @@ HEALTHS = (HEALTH_FIRST, HEALTH_OK, HEALTH_DEGENERATE, HEALTH_FELL_BACK, HEALTH_
 
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
+#: Smallest standard deviations (m, rad) of a predicted step (fall-back or rejected scan).
+PREDICTION_MIN_STD = (0.05, float(np.radians(1.0)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +96,12 @@ class OdometryStep:
         Points given.
     n_prepared : int
         Points kept after preprocessing (0 if rejected).
+    covariance : ndarray, shape (6, 6)
+        First-order covariance of ``T_world_lidar`` in the order (x, y, z, rot_x, rot_y, rot_z)
+        of nav_msgs/Odometry: position error in world axes, rotation error about world axes
+        (see :func:`propagate_covariance`). The registration covariances are chained; a
+        predicted step adds an isotropic uncertainty as large as the predicted motion (at least
+        :data:`PREDICTION_MIN_STD`). It grows without bound, as odometry drift does.
     """
 
     index: int
@@ -109,6 +117,7 @@ class OdometryStep:
     timings: dict[str, float] = field(default_factory=dict)
     n_points: int = 0
     n_prepared: int = 0
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
 
     @property
     def ok(self) -> bool:
@@ -147,6 +156,59 @@ def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
     if factor == 1.0:
         return T.copy()
     return make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
+
+
+def _prediction_covariance(T_model_pred: FloatArray) -> FloatArray:
+    """Isotropic covariance of a step known only by prediction, as large as the motion."""
+    std_t = max(float(np.linalg.norm(T_model_pred[:3, 3])), PREDICTION_MIN_STD[0])
+    std_r = max(rotation_angle(T_model_pred[:3, :3]), PREDICTION_MIN_STD[1])
+    return np.diag([std_t**2] * 3 + [std_r**2] * 3)
+
+
+def propagate_covariance(
+    cov_world_model: ArrayLike,
+    T_world_model: ArrayLike,
+    T_model_curr: ArrayLike,
+    cov_step: ArrayLike,
+) -> FloatArray:
+    """Covariance of ``T_world_curr = T_world_model @ T_model_curr``, to first order.
+
+    Parameters
+    ----------
+    cov_world_model : array_like, shape (6, 6)
+        Covariance of ``T_world_model`` in the order (x, y, z, rot_x, rot_y, rot_z), for the
+        errors ``R_true = exp(w) R`` and ``p_true = p + v`` (world axes, at the pose's own
+        position: the usual reading of a nav_msgs/Odometry pose covariance).
+    T_world_model, T_model_curr : array_like, shape (4, 4)
+    cov_step : array_like, shape (6, 6)
+        Covariance of ``T_model_curr`` for the left perturbation ``T_true = exp(delta) T`` in
+        the model frame, (x, y, z, rot_x, rot_y, rot_z): what
+        :attr:`~kentreg_ros.core.registration.RegistrationResult.covariance` gives.
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        Covariance of ``T_world_curr`` in the convention of ``cov_world_model``.
+
+    Notes
+    -----
+    With ``R = R_world_model`` and ``d = R t_model_curr`` (the step in world axes),
+    ``v_curr = v_model - [d]x w_model + R v_step - [d]x R w_step`` and
+    ``w_curr = w_model + R w_step``.
+    """
+    cov_m = np.asarray(cov_world_model, dtype=np.float64)
+    T_wm = np.asarray(T_world_model, dtype=np.float64)
+    T_mc = np.asarray(T_model_curr, dtype=np.float64)
+    R = T_wm[:3, :3]
+    d_hat = hat(R @ T_mc[:3, 3])
+    J_model = np.eye(6)
+    J_model[:3, 3:] = -d_hat
+    J_step = np.zeros((6, 6))
+    J_step[:3, :3] = R
+    J_step[:3, 3:] = -d_hat @ R
+    J_step[3:, 3:] = R
+    cov = J_model @ cov_m @ J_model.T + J_step @ np.asarray(cov_step, np.float64) @ J_step.T
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
 
 def _as_stamp(stamp_ns: int) -> int:
@@ -219,6 +281,7 @@ class Odometry:
         self._model: PreparedScan | None = None
         self._model_index = -1
         self._T_world_model = self._initial_pose.copy()
+        self._cov_model = np.zeros((6, 6))
         self._poses: list[FloatArray] = []
         self._stamps: list[int] = []
         self._frame_id: str | None = None
@@ -343,63 +406,41 @@ class Odometry:
                 )
             self._frame_id = frame_id
         T_world_pred = self._predict(stamp)
-        T_model_pred = _invert(self._T_world_model) @ T_world_pred
-        timings: dict[str, float] = {}
-        n_points = int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0
+        pending = _Pending(
+            index=index,
+            stamp_ns=stamp,
+            frame_id=frame_id,
+            T_model_pred=_invert(self._T_world_model) @ T_world_pred,
+            n_points=int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0,
+            t_start=t_start,
+        )
 
         t0 = time.perf_counter()
         try:
             scan = prepare_scan(points, config=self._config)
         except InvalidPointCloudError as exc:
-            timings['preprocess'] = _ms(t0)
+            pending.timings['preprocess'] = _ms(t0)
             message = f'Rejected the scan: {exc} The pose is the prediction.'
             logger.warning('Scan %d: %s', index, message)
-            return self._record(
-                index,
-                stamp,
-                frame_id,
-                T_world_pred,
-                T_model_pred,
-                None,
-                HEALTH_REJECTED,
-                message,
-                timings,
-                t_start,
-                n_points,
-                0,
-                new_model=None,
-            )
-        timings['preprocess'] = _ms(t0)
-
+            return self._record(pending, T_world_pred, None, HEALTH_REJECTED, message, None)
+        pending.timings['preprocess'] = _ms(t0)
+        pending.n_prepared = len(scan)
         if self._model is None:
-            return self._record(
-                index,
-                stamp,
-                frame_id,
-                T_world_pred,
-                T_model_pred,
-                None,
-                HEALTH_FIRST,
-                'First scan: it becomes the model.',
-                timings,
-                t_start,
-                n_points,
-                len(scan),
-                new_model=scan,
-            )
+            message = 'First scan: it becomes the model.'
+            return self._record(pending, T_world_pred, None, HEALTH_FIRST, message, scan)
 
         t0 = time.perf_counter()
         result: RegistrationResult | None = None
         reason = ''
         try:
-            result = register(scan, self._model, init=T_model_pred, config=self._config)
+            result = register(scan, self._model, init=pending.T_model_pred, config=self._config)
         except (KentRegError, np.linalg.LinAlgError) as exc:
             reason = f'the registration raised {type(exc).__name__}: {exc}'
-        timings['register'] = _ms(t0)
+        pending.timings['register'] = _ms(t0)
         if result is not None:
             for stage in ('rotation', 'translation', 'refine'):
                 if stage in result.timings:
-                    timings[stage] = result.timings[stage]
+                    pending.timings[stage] = result.timings[stage]
             if result.status == STATUS_FAILED:
                 reason = f'the registration failed: {result.message}'
             else:
@@ -407,82 +448,74 @@ class Odometry:
         if result is None or reason:
             message = f'Fell back to the prediction: {reason}'
             logger.warning('Scan %d: %s', index, message)
-            return self._record(
-                index,
-                stamp,
-                frame_id,
-                T_world_pred,
-                T_model_pred,
-                result,
-                HEALTH_FELL_BACK,
-                message,
-                timings,
-                t_start,
-                n_points,
-                len(scan),
-                new_model=scan,
-            )
+            return self._record(pending, T_world_pred, result, HEALTH_FELL_BACK, message, scan)
         T_world_curr = self._T_world_model @ result.T_target_source
         health = HEALTH_DEGENERATE if result.status == STATUS_DEGENERATE else HEALTH_OK
         if health == HEALTH_DEGENERATE:
             logger.info('Scan %d: %s', index, result.message)
-        return self._record(
-            index,
-            stamp,
-            frame_id,
-            T_world_curr,
-            T_model_pred,
-            result,
-            health,
-            result.message,
-            timings,
-            t_start,
-            n_points,
-            len(scan),
-            new_model=scan,
-        )
+        return self._record(pending, T_world_curr, result, health, result.message, scan)
 
     def _record(
         self,
-        index: int,
-        stamp: int,
-        frame_id: str | None,
+        pending: _Pending,
         T_world_curr: FloatArray,
-        T_model_pred: FloatArray,
         result: RegistrationResult | None,
         health: str,
         message: str,
-        timings: dict[str, float],
-        t_start: float,
-        n_points: int,
-        n_prepared: int,
-        *,
         new_model: PreparedScan | None,
     ) -> OdometryStep:
+        """Append the pose, move the model on (unless ``new_model`` is None), build the step."""
         T_prev_curr = _invert(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
+        if self._model is None and new_model is not None:
+            covariance = self._cov_model.copy()  # the first pose is the origin of the frame
+        else:
+            if health in (HEALTH_OK, HEALTH_DEGENERATE) and result is not None:
+                cov_step = np.asarray(result.covariance, dtype=np.float64)
+            else:
+                cov_step = _prediction_covariance(pending.T_model_pred)
+            T_model_curr = _invert(self._T_world_model) @ T_world_curr
+            covariance = propagate_covariance(
+                self._cov_model, self._T_world_model, T_model_curr, cov_step
+            )
         model_index = self._model_index
         if new_model is not None:
             # A fall-back still moves the model on: the scan is valid and its predicted pose is
             # the best estimate; the next registration then bridges one scan gap, not two.
             self._model = new_model
-            self._model_index = index
+            self._model_index = pending.index
             self._T_world_model = T_world_curr.copy()
+            self._cov_model = covariance
         self._poses.append(T_world_curr.copy())
-        self._stamps.append(stamp)
+        self._stamps.append(pending.stamp_ns)
         self._counts[health] += 1
-        timings['total'] = _ms(t_start)
+        pending.timings['total'] = _ms(pending.t_start)
         return OdometryStep(
-            index=index,
-            stamp_ns=stamp,
-            frame_id=frame_id,
+            index=pending.index,
+            stamp_ns=pending.stamp_ns,
+            frame_id=pending.frame_id,
             T_world_lidar=T_world_curr.copy(),
             T_prev_curr=T_prev_curr,
-            T_model_pred=T_model_pred,
+            T_model_pred=pending.T_model_pred,
             model_index=model_index,
             result=result,
             health=health,
             message=message,
-            timings=timings,
-            n_points=n_points,
-            n_prepared=n_prepared,
+            timings=pending.timings,
+            n_points=pending.n_points,
+            n_prepared=pending.n_prepared,
+            covariance=covariance,
         )
+
+
+@dataclass
+class _Pending:
+    """What is known of a step before its outcome."""
+
+    index: int
+    stamp_ns: int
+    frame_id: str | None
+    T_model_pred: FloatArray
+    n_points: int
+    t_start: float
+    n_prepared: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
