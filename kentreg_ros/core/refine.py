@@ -126,6 +126,8 @@ def refine_joint(
     inlier = 0.0
     kappa_n = kappa_range[0]
     converged = False
+    prev_delta: FloatArray | None = None
+    step_scale = 1.0
     it = 0
     for it in range(1, max_iterations + 1):
         x = source @ R.T + t
@@ -161,7 +163,8 @@ def refine_joint(
             WJw = np.matmul(W, hx)  # W hat(x), (n, 3, 3)
             H = np.empty((6, 6))
             H[:3, :3] = -np.tensordot(hx, WJw, axes=([0, 2], [0, 1]))
-            H[:3, 3:] = np.tensordot(hx, W, axes=([0, 1], [0, 1]))
+            # J_w^T W J_v = hat(x)^T W (-I) = hat(x) W; tensordot gives hat(x)^T W.
+            H[:3, 3:] = -np.tensordot(hx, W, axes=([0, 1], [0, 1]))
             H[3:, :3] = H[:3, 3:].T
             H[3:, 3:] = W.sum(axis=0)
             g = np.concatenate([-np.einsum('nab,nb->a', hx, We), -We.sum(axis=0)])
@@ -172,6 +175,13 @@ def refine_joint(
             g = (Jn * w[:, None]).T @ r_plane
             sigma2 = float(np.sum(w * r_plane**2) / max(float(w.sum()), 1e-12))
         delta = -_solve_spd(H, g)
+        # Nearest-neighbour correspondences can make Gauss-Newton alternate between two
+        # correspondence sets; when consecutive steps reverse, halve the step so the cycle
+        # collapses onto its midpoint instead of stopping at an arbitrary end of it.
+        if prev_delta is not None and float(delta @ prev_delta) < 0.0:
+            step_scale *= 0.5
+        prev_delta = delta
+        delta = step_scale * delta
         dR = exp_so3(delta[:3])
         R = project_to_so3(dR @ R)
         t = dR @ t + delta[3:]

@@ -1,0 +1,116 @@
+"""Median per-stage times of kentreg at about 3k / 10k / 30k points per scan.
+
+Scans: consecutive pairs of the real BALM sequence (``../shared/data/balm``) when present,
+otherwise a seeded synthetic room. For each size the target (model) scan is prepared once and
+cached, as in odometry; the timed work per pair is the new scan's preprocessing
+(crop, voxel downsampling, normals, outlier removal, clustering) plus ``register``.
+
+Usage::
+
+    python benchmarks/bench_register.py [--pairs 10] [--sizes 3000 10000 30000] [--json out.json]
+
+Prints a table and writes ``benchmarks/results/bench_register.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from kentreg_ros.core import KentRegConfig, prepare_scan, register  # noqa: E402
+
+BALM = ROOT.parent / 'shared' / 'data' / 'balm'
+STAGES_PREP = ('downsample', 'normals', 'outliers', 'clustering')
+STAGES_REG = ('rotation', 'translation', 'refine')
+
+
+def load_balm_scan(i: int) -> np.ndarray:
+    raw = (BALM / f'full{i}.pcd').read_bytes()
+    start = raw.index(b'DATA binary\n') + len(b'DATA binary\n')
+    return np.frombuffer(raw[start:], dtype='<f4').reshape(-1, 8)[:, :3].astype(np.float64)
+
+
+def synthetic_scans(n: int) -> list[np.ndarray]:
+    sys.path.insert(0, str(ROOT / 'test'))
+    from scenes import box_room, random_transform, transform_points  # noqa: PLC0415
+
+    rng = np.random.default_rng(0)
+    base = box_room(rng, 80000)
+    return [transform_points(random_transform(rng, 5.0, 0.3), base) for _ in range(n)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--pairs', type=int, default=10)
+    parser.add_argument('--sizes', type=int, nargs='+', default=[3000, 10000, 30000])
+    parser.add_argument(
+        '--json', type=Path, default=ROOT / 'benchmarks' / 'results' / 'bench_register.json'
+    )
+    args = parser.parse_args(argv)
+    if BALM.exists():
+        scans = [load_balm_scan(i) for i in range(args.pairs + 1)]
+        source = 'BALM (real, 72k-90k points per raw scan)'
+    else:
+        scans = synthetic_scans(args.pairs + 1)
+        source = 'synthetic room (../shared/data/balm not found)'
+    rows = []
+    for size in args.sizes:
+        cfg = KentRegConfig().with_updates({'preprocess.target_points': size})
+        # Warm-up (imports, caches) on the first pair, not timed.
+        model = prepare_scan(scans[0], config=cfg)
+        register(prepare_scan(scans[1], config=cfg), model, config=cfg)
+        per_pair = []
+        for i in range(args.pairs):
+            model = prepare_scan(scans[i], config=cfg)
+            t0 = time.perf_counter()
+            scan = prepare_scan(scans[i + 1], config=cfg)
+            result = register(scan, model, config=cfg)
+            wall = (time.perf_counter() - t0) * 1e3
+            entry = {f'prep.{k}': scan.timings.get(k, 0.0) for k in STAGES_PREP}
+            entry.update({f'reg.{k}': result.timings[k] for k in STAGES_REG})
+            entry['prep.total'] = scan.timings['total']
+            entry['reg.total'] = result.timings['total']
+            entry['prep+reg'] = wall
+            entry['points'] = float(len(scan))
+            per_pair.append(entry)
+        med = {k: float(np.median([e[k] for e in per_pair])) for k in per_pair[0]}
+        med['target_points'] = size
+        rows.append(med)
+    keys = (
+        [f'prep.{k}' for k in STAGES_PREP]
+        + ['prep.total']
+        + [f'reg.{k}' for k in STAGES_REG]
+        + ['reg.total', 'prep+reg']
+    )
+    print(f'kentreg per-stage median ms over {args.pairs} pairs of {source}')
+    print(
+        f'machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, '
+        f'python {platform.python_version()}, numpy {np.__version__}'
+    )
+    header = f'{"stage":<22}' + ''.join(f'{int(r["target_points"]):>10}' for r in rows)
+    print(header)
+    print(f'{"points after prep":<22}' + ''.join(f'{r["points"]:>10.0f}' for r in rows))
+    for k in keys:
+        print(f'{k:<22}' + ''.join(f'{r[k]:>10.1f}' for r in rows))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(
+        json.dumps(
+            {'source': source, 'pairs': args.pairs, 'rows': rows, 'cpus': os.cpu_count()}, indent=2
+        )
+    )
+    print(f'wrote {args.json}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
