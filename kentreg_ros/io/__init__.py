@@ -1,0 +1,90 @@
+"""Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags.
+
+Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles` and
+:mod:`~kentreg_ros.io.poses` need only numpy/scipy; the bag names (``open_scan_source``,
+``BagWriter``, ...) load rosbags on first use, so a ROS node without rosbags can still import
+this package.
+"""
+
+from typing import TYPE_CHECKING, Any
+
+from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
+from kentreg_ros.io.pointcloud2 import (
+    CloudArrays,
+    MessageFactory,
+    array_to_pointcloud2,
+    pointcloud2_to_array,
+    rclpy_factory,
+    rosbags_factory,
+)
+from kentreg_ros.io.poses import (
+    Trajectory,
+    read_poses,
+    write_kitti,
+    write_tum,
+)
+from kentreg_ros.io.scanfiles import list_scans, read_scan, write_pcd
+
+if TYPE_CHECKING:
+    from kentreg_ros.io.bags import (
+        BagScanSource,
+        BagWriter,
+        FilesScanSource,
+        Scan,
+        ScanSource,
+        bag_topics,
+        is_bag,
+        open_scan_source,
+        read_ground_truth,
+    )
+
+_BAG_NAMES = frozenset(
+    {
+        'BagScanSource',
+        'BagWriter',
+        'FilesScanSource',
+        'Scan',
+        'ScanSource',
+        'bag_topics',
+        'is_bag',
+        'open_scan_source',
+        'read_ground_truth',
+    }
+)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _BAG_NAMES:
+        from kentreg_ros.io import bags
+
+        return getattr(bags, name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+
+
+__all__ = [
+    'BagError',
+    'BagScanSource',
+    'BagWriter',
+    'CloudArrays',
+    'FilesScanSource',
+    'MessageFactory',
+    'PoseFileError',
+    'Scan',
+    'ScanFileError',
+    'ScanSource',
+    'Trajectory',
+    'array_to_pointcloud2',
+    'bag_topics',
+    'is_bag',
+    'list_scans',
+    'open_scan_source',
+    'pointcloud2_to_array',
+    'rclpy_factory',
+    'read_ground_truth',
+    'read_poses',
+    'read_scan',
+    'rosbags_factory',
+    'write_kitti',
+    'write_pcd',
+    'write_tum',
+]

@@ -1,0 +1,854 @@
+"""Bags in and out, through rosbags (>= 0.11): one iterator for bags and scan folders alike.
+
+Reading
+    rosbag2 (``.db3`` or ``.mcap``, the file or its folder) and ROS 1 ``.bag`` files, through
+    :class:`rosbags.highlevel.AnyReader` with the ROS 2 Jazzy typestore for bags that embed no
+    message definitions. The PointCloud2 topic is picked automatically when there is exactly one.
+    Faults are one :class:`~kentreg_ros.io.errors.BagError`, raised where they happen: every
+    message before the fault has already been yielded. An MCAP file that rosbags cannot open
+    (truncated: no summary, no footer) is streamed record by record with the ``mcap`` package,
+    so the messages written before the cut are still delivered.
+Writing
+    :class:`BagWriter` writes a rosbag2 folder with one MCAP file (zstd-compressed chunks by
+    default), readable by ``ros2 bag play``, rosbags, Foxglove and the ``mcap`` CLI.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import shutil
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.io.errors import BagError, PoseFileError
+from kentreg_ros.io.pointcloud2 import (
+    _default_typestore,
+    array_to_pointcloud2,
+    ns_to_sec_nanosec,
+    pointcloud2_to_array,
+    rosbags_factory,
+    stamp_to_ns,
+)
+from kentreg_ros.io.poses import Trajectory, read_poses
+from kentreg_ros.io.scanfiles import SCAN_SUFFIXES, list_scans, read_scan
+
+logger = logging.getLogger(__name__)
+
+POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+POSESTAMPED = 'geometry_msgs/msg/PoseStamped'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+PATH = 'nav_msgs/msg/Path'
+#: Message types :func:`read_ground_truth` accepts.
+POSE_MSGTYPES = (
+    POSESTAMPED,
+    ODOMETRY,
+    'geometry_msgs/msg/PoseWithCovarianceStamped',
+    'geometry_msgs/msg/TransformStamped',
+    PATH,
+)
+BAG_SUFFIXES = ('.bag', '.mcap', '.db3')
+DEFAULT_RATE_HZ = 10.0
+
+
+class Scan(NamedTuple):
+    """One scan from a bag or a scan folder.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Header stamp (bags; the receive time when the header stamp is zero), or the pose
+        file's time / ``start + i / rate`` (scan folders), in nanoseconds.
+    frame_id : str
+        Sensor frame.
+    points : ndarray, shape (N, 3)
+        Finite points in the sensor frame.
+    extras : dict of str to ndarray, each shape (N,) or (N, k)
+        Per-point fields aligned with ``points``.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    points: NDArray[np.floating[Any]]
+    extras: dict[str, NDArray[Any]]
+
+
+@dataclass(frozen=True)
+class BagTopic:
+    """A topic of a bag: name, message type and message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+# --- opening bags ----------------------------------------------------------------------------
+
+
+def is_bag(path: str | Path) -> bool:
+    """True if ``path`` is a ``.bag``/``.mcap``/``.db3`` file or a rosbag2 folder."""
+    p = Path(path)
+    if p.is_file():
+        return p.suffix.lower() in BAG_SUFFIXES
+    if p.is_dir():
+        return (p / 'metadata.yaml').is_file() or len(_storage_files(p)) == 1
+    return False
+
+
+def _storage_files(folder: Path) -> list[Path]:
+    return sorted(x for x in folder.iterdir() if x.suffix.lower() in ('.mcap', '.db3'))
+
+
+def _topics_text(topics: Mapping[str, BagTopic]) -> str:
+    return ', '.join(f'{t.name} ({t.msgtype}, {t.count})' for t in topics.values()) or 'none'
+
+
+class _Bag:
+    """Topics and messages of one bag, with record-by-record salvage of damaged MCAP files."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f'{self.path}: no such file or folder.')
+        self.target = self.path
+        if self.path.is_dir() and not (self.path / 'metadata.yaml').is_file():
+            files = _storage_files(self.path)
+            if len(files) != 1:
+                raise BagError(
+                    f'{self.path}: not a rosbag2 folder (no metadata.yaml, '
+                    f'{len(files)} .mcap/.db3 files).'
+                )
+            self.target = files[0]
+        elif self.path.is_file() and self.path.suffix.lower() not in BAG_SUFFIXES:
+            raise BagError(f'{self.path}: not a bag (expected {", ".join(BAG_SUFFIXES)}).')
+        self.salvage: _McapSalvage | None = None
+        try:
+            with self._reader() as reader:
+                self.topics = {
+                    name: BagTopic(name, info.msgtype or '?', int(info.msgcount))
+                    for name, info in reader.topics.items()
+                }
+        except BagError:
+            raise
+        except Exception as exc:  # rosbags raises many types for damaged files
+            mcap_file = self._mcap_file()
+            if mcap_file is None:
+                raise BagError(f'{self.path}: cannot open bag ({_describe(exc)}).') from exc
+            logger.warning(
+                '%s: rosbags cannot open it (%s); reading the MCAP records one by one.',
+                self.path,
+                _describe(exc),
+            )
+            self.salvage = _McapSalvage(mcap_file)
+            self.topics = self.salvage.topics
+
+    def _reader(self) -> Any:
+        from rosbags.highlevel import AnyReader
+
+        return AnyReader([self.target], default_typestore=_default_typestore())
+
+    def _mcap_file(self) -> Path | None:
+        if self.target.is_file():
+            return self.target if self.target.suffix.lower() == '.mcap' else None
+        files = [f for f in _storage_files(self.target) if f.suffix.lower() == '.mcap']
+        return files[0] if len(files) == 1 else None
+
+    def messages(self, topic: str) -> Iterator[tuple[int, Any]]:
+        """Yield ``(log_time_ns, message)`` of ``topic``; raise BagError at a fault."""
+        if self.salvage is not None:
+            yield from self.salvage.messages(topic)
+            return
+        count = 0
+        try:
+            reader = self._reader()
+            reader.open()
+        except Exception as exc:
+            raise BagError(f'{self.path}: cannot open bag ({_describe(exc)}).') from exc
+        try:
+            connections = [c for c in reader.connections if c.topic == topic]
+            stream = reader.messages(connections=connections)
+            while True:
+                try:
+                    connection, log_time, raw = next(stream)
+                    msg = reader.deserialize(raw, connection.msgtype)
+                except StopIteration:
+                    return
+                except Exception as exc:
+                    raise BagError(
+                        f'{self.path}: bag is corrupt after {count} message(s) of {topic} '
+                        f'({_describe(exc)}).'
+                    ) from exc
+                count += 1
+                yield int(log_time), msg
+        finally:
+            try:
+                reader.close()
+            except Exception:  # closing a reader that failed mid-read may fail again
+                logger.debug('%s: error while closing the reader.', self.path, exc_info=True)
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
+
+
+class _McapSalvage:
+    """Stream an MCAP file record by record (for files without a readable summary)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.schemas: dict[int, Any] = {}
+        self.channels: dict[int, Any] = {}
+        counts: dict[int, int] = {}
+        self.fault: str | None = None
+        for record in self._records():
+            counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+        if self.fault is not None and not self.channels:
+            raise BagError(
+                f'{path}: MCAP file is truncated or corrupt before any complete chunk '
+                f'({self.fault}); nothing to read.'
+            )
+        self.topics = {}
+        for cid, channel in self.channels.items():
+            schema = self.schemas.get(channel.schema_id)
+            msgtype = schema.name if schema is not None else '?'
+            self.topics[channel.topic] = BagTopic(channel.topic, msgtype, counts.get(cid, 0))
+        if self.fault is None:
+            logger.warning('%s: all records read; only the summary section was damaged.', path)
+        self.typestore = self._typestore()
+
+    def _records(self) -> Iterator[Any]:
+        """Yield Message records; remember schemas, channels and the first fault."""
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        self.fault = None
+        with self.path.open('rb') as stream:
+            try:
+                for record in StreamReader(stream, validate_crcs=True).records:
+                    if isinstance(record, Schema):
+                        self.schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        self.channels[record.id] = record
+                    elif isinstance(record, Message):
+                        yield record
+            except Exception as exc:  # truncated or corrupt: EndOfFile, struct.error, ...
+                self.fault = _describe(exc)
+
+    def _typestore(self) -> Any:
+        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+        types: dict[str, Any] = {}
+        for schema in self.schemas.values():
+            text = schema.data.decode('utf-8', errors='replace')
+            try:
+                if schema.encoding == 'ros2msg':
+                    types.update(get_types_from_msg(text, schema.name))
+                elif schema.encoding == 'ros2idl':
+                    types.update(get_types_from_idl(text))
+            except Exception:
+                logger.warning('%s: cannot parse the schema of %s.', self.path, schema.name)
+        if not types:
+            return _default_typestore()
+        store = get_typestore(Stores.EMPTY)
+        store.register(types)
+        return store
+
+    def messages(self, topic: str) -> Iterator[tuple[int, Any]]:
+        count = 0
+        wanted = {cid for cid, c in self.channels.items() if c.topic == topic}
+        for record in self._records():
+            if record.channel_id not in wanted:
+                continue
+            channel = self.channels[record.channel_id]
+            msgtype = self.topics[topic].msgtype
+            if channel.message_encoding != 'cdr':
+                raise BagError(
+                    f'{self.path}: topic {topic} is encoded as '
+                    f'{channel.message_encoding!r}, not cdr.'
+                )
+            try:
+                msg = self.typestore.deserialize_cdr(record.data, msgtype)
+            except Exception as exc:
+                raise BagError(
+                    f'{self.path}: message {count} of {topic} cannot be decoded '
+                    f'({_describe(exc)}).'
+                ) from exc
+            count += 1
+            yield int(record.log_time), msg
+        if self.fault is not None:
+            raise BagError(
+                f'{self.path}: MCAP file is truncated or corrupt after {count} message(s) of '
+                f'{topic} ({self.fault}).'
+            )
+
+
+def bag_topics(path: str | Path) -> dict[str, BagTopic]:
+    """Topics of a bag (name -> :class:`BagTopic`)."""
+    return dict(_Bag(path).topics)
+
+
+# --- scan sources ----------------------------------------------------------------------------
+
+
+class ScanSource(abc.ABC):
+    """Iterable of :class:`Scan` from a bag or scan files; ``len()`` is the number of scans.
+
+    Iterating opens the underlying files and closes them when done; a source can be
+    iterated more than once. ``n_dropped`` counts the non-finite points dropped so far.
+    """
+
+    path: Path
+    n_dropped: int = 0
+
+    @abc.abstractmethod
+    def __iter__(self) -> Iterator[Scan]: ...
+
+    @abc.abstractmethod
+    def __len__(self) -> int: ...
+
+    @property
+    @abc.abstractmethod
+    def description(self) -> str:
+        """One line telling what is read (for logs)."""
+
+
+class BagScanSource(ScanSource):
+    """PointCloud2 messages of one topic of a bag.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.bag``, ``.mcap``, ``.db3`` file, or rosbag2 folder.
+    topic : str, optional
+        PointCloud2 topic; needed only when the bag has more than one.
+    fields : sequence of str, optional
+        Extra fields to keep; None keeps all, ``()`` none.
+    dtype : {numpy.float64, numpy.float32}
+
+    Raises
+    ------
+    BagError
+        Unreadable bag, no/ambiguous PointCloud2 topic, a topic of another type, no messages.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        topic: str | None = None,
+        *,
+        fields: Sequence[str] | None = None,
+        dtype: DTypeLike = np.float64,
+    ) -> None:
+        self.path = Path(path)
+        self._bag = _Bag(self.path)
+        self.fields = fields
+        self.dtype = dtype
+        topics = self._bag.topics
+        clouds = [t.name for t in topics.values() if t.msgtype == POINTCLOUD2]
+        if topic is None:
+            if not clouds:
+                raise BagError(
+                    f'{self.path}: no {POINTCLOUD2} topic; topics: {_topics_text(topics)}.'
+                )
+            if len(clouds) > 1:
+                raise BagError(
+                    f'{self.path}: {len(clouds)} {POINTCLOUD2} topics ({", ".join(clouds)}); '
+                    'choose one with topic= (--topic on the command line).'
+                )
+            topic = clouds[0]
+        elif topic not in topics:
+            raise BagError(
+                f'{self.path}: no topic {topic!r}; PointCloud2 topics: '
+                f'{", ".join(clouds) or "none"}.'
+            )
+        elif topics[topic].msgtype != POINTCLOUD2:
+            raise BagError(
+                f'{self.path}: topic {topic} carries {topics[topic].msgtype}, not {POINTCLOUD2}; '
+                f'PointCloud2 topics: {", ".join(clouds) or "none"}.'
+            )
+        if topics[topic].count == 0:
+            raise BagError(f'{self.path}: topic {topic} has no messages.')
+        self.topic = topic
+
+    def __len__(self) -> int:
+        return self._bag.topics[self.topic].count
+
+    @property
+    def description(self) -> str:
+        kind = 'damaged MCAP' if self._bag.salvage is not None else 'bag'
+        return f'{kind} {self.path} topic {self.topic} ({len(self)} messages)'
+
+    def __iter__(self) -> Iterator[Scan]:
+        for index, (log_time, msg) in enumerate(self._bag.messages(self.topic)):
+            try:
+                cloud = pointcloud2_to_array(msg, fields=self.fields, dtype=self.dtype)
+            except InvalidPointCloudError as exc:
+                raise InvalidPointCloudError(
+                    f'{self.path}: message {index} of {self.topic}: {exc}'
+                ) from exc
+            self.n_dropped += cloud.n_dropped
+            stamp = cloud.stamp_ns or log_time
+            yield Scan(int(stamp), cloud.frame_id, cloud.points, cloud.extras)
+
+
+class FilesScanSource(ScanSource):
+    """Scan files in a given order, timed by a pose file or a rate.
+
+    Parameters
+    ----------
+    files : sequence of str or Path
+        Scan files (.pcd, .ply, .bin, .csv), in scan order.
+    poses : Trajectory or str or Path, optional
+        One pose per scan; its times stamp the scans unless ``rate`` is given.
+    rate : float, optional
+        Scan rate in Hz: stamps are ``start_ns + i / rate``. Default: the pose times, or
+        10 Hz when there are none.
+    start_ns : int
+        First stamp when stamps come from ``rate``.
+    frame_id : str
+        Sensor frame given to every scan.
+    fields, dtype
+        As in :func:`~kentreg_ros.io.scanfiles.read_scan`.
+
+    Raises
+    ------
+    PoseFileError
+        The pose count differs from the scan count.
+    """
+
+    def __init__(
+        self,
+        files: Sequence[str | Path],
+        *,
+        poses: Trajectory | str | Path | None = None,
+        rate: float | None = None,
+        start_ns: int = 0,
+        frame_id: str = 'lidar',
+        fields: Sequence[str] | None = None,
+        dtype: DTypeLike = np.float64,
+    ) -> None:
+        self.files = [Path(f) for f in files]
+        if not self.files:
+            raise ValueError('Expected at least one scan file.')
+        self.path = self.files[0].parent
+        self.trajectory = read_poses(poses) if isinstance(poses, str | Path) else poses
+        if self.trajectory is not None and len(self.trajectory.T_world_sensor) != len(self.files):
+            raise PoseFileError(
+                f'{len(self.trajectory.T_world_sensor)} poses for {len(self.files)} scans in '
+                f'{self.path}; give one pose per scan.'
+            )
+        if rate is not None and not rate > 0.0:
+            raise ValueError(f'Expected `rate` > 0 Hz, got {rate!r}.')
+        if rate is None and self.trajectory is not None and self.trajectory.stamps_ns is not None:
+            self.stamps_ns = self.trajectory.stamps_ns.astype(np.int64)
+            self.timing = 'pose file times'
+        else:
+            hz = DEFAULT_RATE_HZ if rate is None else float(rate)
+            if start_ns < 0:
+                raise ValueError(f'Expected `start_ns` >= 0, got {start_ns}.')
+            steps = np.rint(np.arange(len(self.files)) * (1e9 / hz)).astype(np.int64)
+            self.stamps_ns = int(start_ns) + steps
+            self.timing = f'{hz:g} Hz'
+            if rate is None:
+                logger.info('No scan times given; stamping scans at %g Hz.', hz)
+        self.frame_id = frame_id
+        self.fields = fields
+        self.dtype = dtype
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    @property
+    def description(self) -> str:
+        return f'{len(self.files)} scan files in {self.path} ({self.timing})'
+
+    def __iter__(self) -> Iterator[Scan]:
+        for path, stamp in zip(self.files, self.stamps_ns, strict=True):
+            cloud = read_scan(path, fields=self.fields, dtype=self.dtype)
+            self.n_dropped += cloud.n_dropped
+            yield Scan(int(stamp), self.frame_id, cloud.points, cloud.extras)
+
+
+def open_scan_source(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    fields: Sequence[str] | None = None,
+    dtype: DTypeLike = np.float64,
+    poses: Trajectory | str | Path | None = None,
+    rate: float | None = None,
+    start_ns: int = 0,
+    frame_id: str = 'lidar',
+) -> ScanSource:
+    """Open a bag, a scan folder or a single scan file as an iterable of :class:`Scan`.
+
+    Parameters
+    ----------
+    path : str or Path
+        A bag (``.bag``, ``.mcap``, ``.db3``, rosbag2 folder), a folder of scan files (natural
+        order, see :func:`~kentreg_ros.io.scanfiles.list_scans`), or one scan file.
+    topic : str, optional
+        Bags only: the PointCloud2 topic, needed when there are several.
+    fields : sequence of str, optional
+        Extra fields to keep; None keeps all, ``()`` none.
+    dtype : {numpy.float64, numpy.float32}
+    poses, rate, start_ns, frame_id
+        Scan files only; see :class:`FilesScanSource`.
+
+    Returns
+    -------
+    ScanSource
+        ``for stamp_ns, frame_id, points, extras in source: ...``
+
+    Raises
+    ------
+    BagError, ScanFileError, PoseFileError
+    """
+    p = Path(path)
+    if is_bag(p):
+        if poses is not None or rate is not None:
+            raise ValueError('`poses` and `rate` apply to scan files, not to bags.')
+        return BagScanSource(p, topic, fields=fields, dtype=dtype)
+    if topic is not None:
+        raise ValueError(f'`topic` applies to bags; {p} is not a bag.')
+    if p.is_dir():
+        files = list_scans(p)
+    elif p.is_file() and p.suffix.lower() in SCAN_SUFFIXES:
+        files = [p]
+    else:
+        raise BagError(
+            f'{p}: neither a bag ({", ".join(BAG_SUFFIXES)}, rosbag2 folder) nor a scan '
+            f'folder or file ({", ".join(SCAN_SUFFIXES)}).'
+        )
+    return FilesScanSource(
+        files,
+        poses=poses,
+        rate=rate,
+        start_ns=start_ns,
+        frame_id=frame_id,
+        fields=fields,
+        dtype=dtype,
+    )
+
+
+# --- ground truth ----------------------------------------------------------------------------
+
+
+def _matrix(translation: Any, rotation: Any) -> NDArray[np.float64]:
+    """4x4 from a geometry_msgs Point/Vector3 and Quaternion."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([rotation.x, rotation.y, rotation.z, rotation.w]).as_matrix()
+    T[:3, 3] = (translation.x, translation.y, translation.z)
+    return T
+
+
+def read_ground_truth(path: str | Path, *, topic: str = '/ground_truth') -> Trajectory:
+    """Poses of a bag topic as a :class:`~kentreg_ros.io.poses.Trajectory`.
+
+    Parameters
+    ----------
+    path : str or Path
+        A bag.
+    topic : str
+        A topic of PoseStamped, Odometry, PoseWithCovarianceStamped or TransformStamped (one
+        pose per message, header stamps), or Path (the last message's poses).
+
+    Returns
+    -------
+    Trajectory
+        ``stamps_ns`` from the headers, ``T_world_sensor`` the poses in the header frame.
+
+    Raises
+    ------
+    BagError
+        No such topic, a type without poses, no messages, or a damaged bag.
+    """
+    bag = _Bag(path)
+    if topic not in bag.topics:
+        candidates = [t.name for t in bag.topics.values() if t.msgtype in POSE_MSGTYPES]
+        raise BagError(
+            f'{path}: no topic {topic!r}; pose topics: {", ".join(candidates) or "none"}.'
+        )
+    msgtype = bag.topics[topic].msgtype
+    if msgtype not in POSE_MSGTYPES:
+        raise BagError(
+            f'{path}: topic {topic} carries {msgtype}; expected one of {", ".join(POSE_MSGTYPES)}.'
+        )
+    stamps: list[int] = []
+    poses: list[NDArray[np.float64]] = []
+    for _, msg in bag.messages(topic):
+        if msgtype == PATH:
+            stamps = [stamp_to_ns(p.header.stamp) for p in msg.poses]
+            poses = [_matrix(p.pose.position, p.pose.orientation) for p in msg.poses]
+            continue
+        stamps.append(stamp_to_ns(msg.header.stamp))
+        if msgtype == 'geometry_msgs/msg/TransformStamped':
+            poses.append(_matrix(msg.transform.translation, msg.transform.rotation))
+        else:
+            pose = msg.pose if msgtype == POSESTAMPED else msg.pose.pose  # *WithCovariance
+            poses.append(_matrix(pose.position, pose.orientation))
+    if not poses:
+        raise BagError(f'{path}: topic {topic} has no poses.')
+    return Trajectory(np.array(stamps, dtype=np.int64), np.stack(poses))
+
+
+# --- writing ---------------------------------------------------------------------------------
+
+
+class BagWriter:
+    """Write a rosbag2 MCAP bag: point clouds, poses, odometry, paths, TF.
+
+    Use as a context manager. The output is a rosbag2 folder ``<path>/`` holding
+    ``<name>.mcap`` and ``metadata.yaml`` (what ``ros2 bag play <path>`` expects); a path ending
+    in ``.mcap`` is taken without the suffix. The bag is closed properly even when the ``with``
+    block raises, so what was written before an error stays readable.
+
+    Parameters
+    ----------
+    path : str or Path
+        Folder to create.
+    compress : bool
+        zstd-compress the MCAP chunks (default True; ``ros2 bag`` reads them natively).
+    overwrite : bool
+        Replace an existing rosbag2 folder (only one holding nothing but bag files).
+    custom_data : dict of str to str, optional
+        Stored in ``metadata.yaml`` (``custom_data``), e.g. provenance.
+    typestore : rosbags Typestore, optional
+        Default: ROS 2 Jazzy.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        compress: bool = True,
+        overwrite: bool = False,
+        custom_data: Mapping[str, str] | None = None,
+        typestore: Any = None,
+    ) -> None:
+        p = Path(path)
+        if p.suffix.lower() == '.mcap':
+            p = p.with_suffix('')
+        self.path = p
+        self.compress = compress
+        self.overwrite = overwrite
+        self.custom_data = dict(custom_data or {})
+        self.typestore = typestore if typestore is not None else _default_typestore()
+        self._factory = rosbags_factory(self.typestore)
+        self._writer: Any = None
+        self._connections: dict[str, Any] = {}
+        self.counts: dict[str, int] = {}
+
+    @property
+    def mcap_path(self) -> Path:
+        """The MCAP file inside the bag folder."""
+        return self.path / f'{self.path.name}.mcap'
+
+    def open(self) -> None:
+        """Create the bag folder and start writing."""
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+        if self.path.exists():
+            if not self.overwrite:
+                raise BagError(f'{self.path} exists; not overwriting (use overwrite).')
+            _remove_bag_folder(self.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        if self.compress:
+            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        for key, value in self.custom_data.items():
+            writer.set_custom_data(key, str(value))
+        try:
+            writer.open()
+        except Exception as exc:
+            raise BagError(f'{self.path}: cannot create bag ({_describe(exc)}).') from exc
+        self._writer = writer
+
+    def close(self) -> None:
+        """Finish the MCAP summary and metadata.yaml."""
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            writer.close()
+
+    def __enter__(self) -> BagWriter:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        """Write any rosbags message of the writer's typestore, logged at ``stamp_ns``."""
+        if self._writer is None:
+            raise BagError(f'{self.path}: writer is not open.')
+        msgtype = msg.__msgtype__
+        connection = self._connections.get(topic)
+        if connection is None:
+            connection = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+            self._connections[topic] = connection
+            self.counts[topic] = 0
+        elif connection.msgtype != msgtype:
+            raise BagError(
+                f'{self.path}: topic {topic} already carries {connection.msgtype}, not {msgtype}.'
+            )
+        self._writer.write(connection, int(stamp_ns), self.typestore.serialize_cdr(msg, msgtype))
+        self.counts[topic] += 1
+
+    def _header(self, stamp_ns: int, frame_id: str) -> Any:
+        sec, nanosec = ns_to_sec_nanosec(stamp_ns)
+        return self._factory.header(
+            stamp=self._factory.time(sec=sec, nanosec=nanosec), frame_id=frame_id
+        )
+
+    def _pose(self, T: ArrayLike) -> Any:
+        types = self.typestore.types
+        M = np.asarray(T, dtype=np.float64)
+        if M.shape != (4, 4):
+            raise ValueError(f'Expected a pose of shape (4, 4), got {M.shape}.')
+        x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
+        return types['geometry_msgs/msg/Pose'](
+            position=types['geometry_msgs/msg/Point'](*(float(v) for v in M[:3, 3])),
+            orientation=types['geometry_msgs/msg/Quaternion'](
+                float(x), float(y), float(z), float(w)
+            ),
+        )
+
+    def write_pointcloud(
+        self,
+        topic: str,
+        stamp_ns: int,
+        points: ArrayLike,
+        *,
+        extra: Mapping[str, ArrayLike] | None = None,
+        frame_id: str = 'lidar',
+        xyz_dtype: DTypeLike = np.float32,
+    ) -> None:
+        """Write a PointCloud2 (see :func:`~kentreg_ros.io.pointcloud2.array_to_pointcloud2`)."""
+        msg = array_to_pointcloud2(
+            points,
+            extra=extra,
+            frame_id=frame_id,
+            stamp_ns=stamp_ns,
+            xyz_dtype=xyz_dtype,
+            factory=self._factory,
+        )
+        self.write(topic, msg, stamp_ns)
+
+    def write_pose(
+        self, topic: str, stamp_ns: int, T_frame_child: ArrayLike, *, frame_id: str = 'world'
+    ) -> None:
+        """Write a PoseStamped: the pose (4, 4) of the child in ``frame_id``."""
+        msg = self.typestore.types[POSESTAMPED](
+            header=self._header(stamp_ns, frame_id), pose=self._pose(T_frame_child)
+        )
+        self.write(topic, msg, stamp_ns)
+
+    def write_odometry(
+        self,
+        topic: str,
+        stamp_ns: int,
+        T_frame_child: ArrayLike,
+        *,
+        frame_id: str = 'odom',
+        child_frame_id: str = 'base_link',
+        pose_covariance: ArrayLike | None = None,
+    ) -> None:
+        """Write an Odometry: pose (4, 4) of ``child_frame_id`` in ``frame_id``, zero twist.
+
+        ``pose_covariance`` is the 6x6 covariance of (x, y, z, rot_x, rot_y, rot_z); default 0.
+        """
+        types = self.typestore.types
+        cov = np.zeros(36) if pose_covariance is None else np.asarray(pose_covariance, float)
+        if cov.size != 36:
+            raise ValueError(f'Expected a 6x6 `pose_covariance`, got shape {cov.shape}.')
+        zero = types['geometry_msgs/msg/Vector3'](0.0, 0.0, 0.0)
+        msg = types[ODOMETRY](
+            header=self._header(stamp_ns, frame_id),
+            child_frame_id=child_frame_id,
+            pose=types['geometry_msgs/msg/PoseWithCovariance'](
+                pose=self._pose(T_frame_child), covariance=cov.reshape(36).copy()
+            ),
+            twist=types['geometry_msgs/msg/TwistWithCovariance'](
+                twist=types['geometry_msgs/msg/Twist'](linear=zero, angular=zero),
+                covariance=np.zeros(36),
+            ),
+        )
+        self.write(topic, msg, stamp_ns)
+
+    def write_path(
+        self,
+        topic: str,
+        stamp_ns: int,
+        stamps_ns: ArrayLike,
+        T_frame_child: ArrayLike,
+        *,
+        frame_id: str = 'world',
+    ) -> None:
+        """Write a nav_msgs Path of poses (N, 4, 4) timed ``stamps_ns`` (N,)."""
+        T = np.asarray(T_frame_child, dtype=np.float64)
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4) or stamps.shape != (len(T),):
+            raise ValueError(
+                f'Expected poses (N, 4, 4) and stamps (N,), got {T.shape} and {stamps.shape}.'
+            )
+        posestamped = self.typestore.types[POSESTAMPED]
+        poses = [
+            posestamped(header=self._header(int(s), frame_id), pose=self._pose(M))
+            for s, M in zip(stamps, T, strict=True)
+        ]
+        msg = self.typestore.types[PATH](header=self._header(stamp_ns, frame_id), poses=poses)
+        self.write(topic, msg, stamp_ns)
+
+    def write_transform(
+        self,
+        stamp_ns: int,
+        T_frame_child: ArrayLike,
+        *,
+        frame_id: str,
+        child_frame_id: str,
+        topic: str = '/tf',
+    ) -> None:
+        """Write a tf2_msgs TFMessage with one transform ``frame_id`` -> ``child_frame_id``."""
+        types = self.typestore.types
+        pose = self._pose(T_frame_child)
+        transform = types['geometry_msgs/msg/Transform'](
+            translation=types['geometry_msgs/msg/Vector3'](
+                pose.position.x, pose.position.y, pose.position.z
+            ),
+            rotation=pose.orientation,
+        )
+        stamped = types['geometry_msgs/msg/TransformStamped'](
+            header=self._header(stamp_ns, frame_id),
+            child_frame_id=child_frame_id,
+            transform=transform,
+        )
+        self.write(topic, types['tf2_msgs/msg/TFMessage'](transforms=[stamped]), stamp_ns)
+
+
+def _remove_bag_folder(path: Path) -> None:
+    entries = list(path.iterdir()) if path.is_dir() else []
+    is_bag_folder = (
+        path.is_dir()
+        and (path / 'metadata.yaml').is_file()
+        and all(
+            e.is_file() and e.suffix.lower() in ('.mcap', '.db3', '.yaml', '.zstd')
+            for e in entries
+        )
+    )
+    if not is_bag_folder:
+        raise BagError(f'{path} exists and is not a rosbag2 folder; not removing it.')
+    shutil.rmtree(path)
