@@ -19,7 +19,7 @@ setup(
     python_requires='>=3.11',
     install_requires=['numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'setuptools'],
     extras_require={
-        'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60'],
+        'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60', 'python-lzf>=0.2.4'],
         'test': [
             'pytest>=7',
             'ruff>=0.5',
@@ -27,6 +27,8 @@ setup(
             'rosbags>=0.11',
             'mcap>=1.1',
             'tqdm>=4.60',
+            'python-lzf>=0.2.4',
+            'plyfile>=1.0',
             'matplotlib>=3.7',
             'types-PyYAML',
         ],
@@ -41,6 +43,7 @@ setup(
     entry_points={
         'console_scripts': [
             'kentreg_register = kentreg_ros.cli_register:main',
+            'kentreg_convert = kentreg_ros.convert:main',
         ],
     },
 )
