@@ -176,6 +176,7 @@ def test_truncated_binary_pcd_raises(shared_data: Path, tmp_path: Path) -> None:
 
 
 def test_truncated_synthetic_pcds_raise(tmp_path: Path) -> None:
+    pytest.importorskip('lzf')
     pts, _ = _cloud(50)
     for data, pattern in [
         ('binary', 'binary data is truncated'),
