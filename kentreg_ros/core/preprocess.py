@@ -114,11 +114,15 @@ def count_voxels(points: FloatArray, voxel_size: float) -> int:
     return int(np.unique(_voxel_keys(points, voxel_size)).size)
 
 
-def choose_voxel_size(points: FloatArray, target_points: int, *, iterations: int = 4) -> float:
+def choose_voxel_size(
+    points: FloatArray, target_points: int, *, iterations: int = 4, initial: float = 0.0
+) -> float:
     """Voxel size for which :func:`voxel_downsample` keeps about ``target_points`` points.
 
     Surfaces dominate LiDAR scans, so the voxel count scales roughly as ``size**-2``; a few
-    secant steps in that model converge to within a few percent.
+    secant steps in that model converge to within a few percent. ``initial`` (e.g. the size
+    chosen for the previous scan of a sequence) replaces the bounding-box guess, which usually
+    leaves a single counting pass.
     """
     n = len(points)
     if n <= target_points:
@@ -127,7 +131,7 @@ def choose_voxel_size(points: FloatArray, target_points: int, *, iterations: int
     if extent <= 0.0:
         return 0.0
     # Initial guess: the area of a bounding-box shell split into target_points squares.
-    size = max(extent * np.sqrt(6.0 / target_points) * 0.5, 1e-6)
+    size = initial if initial > 0.0 else max(extent * np.sqrt(6.0 / target_points) * 0.5, 1e-6)
     best = size
     for _ in range(iterations):
         count = count_voxels(points, size)
@@ -140,13 +144,22 @@ def choose_voxel_size(points: FloatArray, target_points: int, *, iterations: int
 
 
 def downsample(
-    points: FloatArray, *, voxel_size: float = 0.0, target_points: int = 10000
+    points: FloatArray,
+    *,
+    voxel_size: float = 0.0,
+    target_points: int = 10000,
+    voxel_size_hint: float = 0.0,
 ) -> tuple[FloatArray, float]:
     """Voxel downsample with a fixed size, or an automatic size reaching ``target_points``.
 
+    ``voxel_size_hint`` starts the automatic search (see :func:`choose_voxel_size`).
     Returns ``(points, voxel_size_used)``; ``voxel_size_used`` is 0 when nothing was done.
     """
-    size = voxel_size if voxel_size > 0.0 else choose_voxel_size(points, target_points)
+    size = (
+        voxel_size
+        if voxel_size > 0.0
+        else choose_voxel_size(points, target_points, initial=voxel_size_hint)
+    )
     if size <= 0.0:
         return points, 0.0
     return voxel_downsample(points, size), size

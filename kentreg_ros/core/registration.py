@@ -169,6 +169,7 @@ def prepare_scan(
     config: KentRegConfig | None = None,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
     normals: ArrayLike | None = None,
+    voxel_size_hint: float = 0.0,
 ) -> PreparedScan:
     """Preprocess a scan once: crop, downsample, normals, outlier removal, clustering.
 
@@ -182,6 +183,10 @@ def prepare_scan(
     normals : array_like, shape (N, 3), optional
         Precomputed normals for ``points``; then ``points`` are used as given (no cropping or
         downsampling) and only the cosine outlier test and clustering run.
+    voxel_size_hint : float
+        With automatic voxel sizing (``preprocess.voxel_size = 0``), start the size search
+        here, e.g. at the previous scan's ``voxel_size``: usually one counting pass instead of
+        four.
 
     Raises
     ------
@@ -202,7 +207,10 @@ def prepare_scan(
         t0 = time.perf_counter()
         pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
         pts, voxel = downsample(
-            pts, voxel_size=cfg.preprocess.voxel_size, target_points=cfg.preprocess.target_points
+            pts,
+            voxel_size=cfg.preprocess.voxel_size,
+            target_points=cfg.preprocess.target_points,
+            voxel_size_hint=voxel_size_hint,
         )
         timings['downsample'] = _ms(t0)
         if len(pts) < max(k, MIN_POINTS):
