@@ -19,7 +19,7 @@ setup(
     python_requires='>=3.11',
     install_requires=['numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'setuptools'],
     extras_require={
-        'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60', 'python-lzf>=0.2.4'],
+        'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60', 'python-lzf>=0.2.4', 'matplotlib>=3.7'],
         'test': [
             'pytest>=7',
             'ruff>=0.5',
