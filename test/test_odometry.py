@@ -105,13 +105,16 @@ def test_odometry_recovers_known_trajectory(scans: tuple[np.ndarray, list[np.nda
 def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarray]],
                                           monkeypatch: pytest.MonkeyPatch) -> None:  # fmt: skip
     _, clouds = scans
-    prepared: list[int] = []
+    prepared: list[float] = []
     registered: list[tuple[object, object]] = []
+    hints: list[object] = []
     real_prepare, real_register = odometry_module.prepare_scan, odometry_module.register
 
     def counting_prepare(*args: object, **kwargs: object) -> PreparedScan:
-        prepared.append(1)
-        return real_prepare(*args, **kwargs)  # type: ignore[arg-type]
+        scan = real_prepare(*args, **kwargs)  # type: ignore[arg-type]
+        hints.append(kwargs.get('voxel_size_hint'))
+        prepared.append(scan.voxel_size)
+        return scan
 
     def checking_register(source: object, target: object, **kwargs: object) -> object:
         registered.append((source, target))
@@ -119,8 +122,10 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
 
     monkeypatch.setattr(odometry_module, 'prepare_scan', counting_prepare)
     monkeypatch.setattr(odometry_module, 'register', checking_register)
-    run(Odometry(), clouds[:4])
+    run(Odometry(KentRegConfig().with_updates({'preprocess.target_points': 5000})), clouds[:4])
     assert len(prepared) == 4
+    assert hints == [0.0, *prepared[:-1]]  # each voxel search starts at the last scan's size
+    assert min(prepared) > 0.0
     assert len(registered) == 3
     for (source, target), (next_source, next_target) in zip(registered, registered[1:],
                                                             strict=False):  # fmt: skip

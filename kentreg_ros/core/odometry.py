@@ -234,7 +234,8 @@ class Odometry:
     Notes
     -----
     Every scan is preprocessed exactly once: the :class:`PreparedScan` of the new scan is the
-    source of this registration and the target of the next one.
+    source of this registration and the target of the next one. With automatic voxel sizing
+    the search for each scan starts at the previous scan's voxel size.
 
     The constant-velocity prediction repeats the motion between the last two poses, stretched
     by the ratio of the time gaps when scans arrive irregularly (e.g. a dropped scan in the ROS
@@ -282,6 +283,7 @@ class Odometry:
         self._model_index = -1
         self._T_world_model = self._initial_pose.copy()
         self._cov_model = np.zeros((6, 6))
+        self._voxel_size_hint = 0.0
         self._poses: list[FloatArray] = []
         self._stamps: list[int] = []
         self._frame_id: str | None = None
@@ -417,7 +419,7 @@ class Odometry:
 
         t0 = time.perf_counter()
         try:
-            scan = prepare_scan(points, config=self._config)
+            scan = prepare_scan(points, config=self._config, voxel_size_hint=self._voxel_size_hint)
         except InvalidPointCloudError as exc:
             pending.timings['preprocess'] = _ms(t0)
             message = f'Rejected the scan: {exc} The pose is the prediction.'
@@ -425,6 +427,7 @@ class Odometry:
             return self._record(pending, T_world_pred, None, HEALTH_REJECTED, message, None)
         pending.timings['preprocess'] = _ms(t0)
         pending.n_prepared = len(scan)
+        self._voxel_size_hint = scan.voxel_size
         if self._model is None:
             message = 'First scan: it becomes the model.'
             return self._record(pending, T_world_pred, None, HEALTH_FIRST, message, scan)
