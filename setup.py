@@ -44,6 +44,7 @@ setup(
         'console_scripts': [
             'kentreg_register = kentreg_ros.cli_register:main',
             'kentreg_convert = kentreg_ros.convert:main',
+            'kentreg_replay = kentreg_ros.replay:main',
         ],
     },
 )

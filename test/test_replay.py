@@ -1,0 +1,362 @@
+"""Tests of the ``kentreg_replay`` CLI: real runs on the BALM sample bag and a scan folder.
+
+The metrics are checked against an independent computation from the written ``poses_tum.txt``
+and BALM's own pose file, parsed here with numpy only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kentreg_ros.core.config import KentRegConfig, dump_config, load_config
+from kentreg_ros.replay import associate, main
+
+pytest.importorskip('rosbags', reason='the replay CLI reads bags with rosbags')
+pytest.importorskip('mcap', reason='the output is checked with the mcap reader')
+
+SAMPLE_SCANS = 8
+
+
+def run_cli(argv: list[str]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (s) and poses (N, 4, 4) of a TUM file, with numpy and scipy only."""
+    rows = np.loadtxt(path, ndmin=2)
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
+    T[:, :3, 3] = rows[:, 1:4]
+    return rows[:, 0], T
+
+
+def read_balm_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (s) and ``T_world_lidar`` (N, 4, 4) of BALM's alidarPose.csv."""
+    values = np.array(
+        [[float(v) for v in line.split(',') if v.strip()] for line in path.read_text().split()]
+    ).reshape(-1, 4, 4)
+    stamps = values[:, 3, 3].copy()
+    values[:, 3] = [0.0, 0.0, 0.0, 1.0]
+    # The file prints rotations with 6 decimals: use the nearest rotation matrices.
+    values[:, :3, :3] = Rotation.from_matrix(values[:, :3, :3]).as_matrix()
+    return stamps, values
+
+
+def independent_pair_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, ...]:
+    rel_est = np.linalg.inv(T_est[:-1]) @ T_est[1:]
+    rel_gt = np.linalg.inv(T_gt[:-1]) @ T_gt[1:]
+    e_R = np.array([
+        np.degrees(np.arccos(np.clip((np.trace(g[:3, :3].T @ e[:3, :3]) - 1) / 2, -1, 1)))
+        for e, g in zip(rel_est, rel_gt, strict=True)
+    ])  # fmt: skip
+    e_t = np.linalg.norm(rel_est[:, :3, 3] - rel_gt[:, :3, 3], axis=1)
+    return e_R, e_t
+
+
+def mcap_messages(path: Path) -> dict[str, list[object]]:
+    """Deserialised messages per topic, read with rosbags from the standalone MCAP file."""
+    from rosbags.highlevel import AnyReader
+
+    out: dict[str, list[object]] = {}
+    with AnyReader([path]) as reader:
+        for connection, _, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            out.setdefault(connection.topic, []).append(msg)
+    return out
+
+
+def stamp_ns(msg: object) -> int:
+    stamp = msg.header.stamp  # type: ignore[attr-defined]
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+@pytest.fixture(scope='module')
+def sample_bag(repo_root: Path) -> Path:
+    bag = repo_root / 'bags' / 'balm_50'
+    if not bag.is_dir():
+        pytest.skip(f'sample bag {bag} is absent')
+    return bag
+
+
+@pytest.fixture(scope='module')
+def sample_run(sample_bag: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    out = tmp_path_factory.mktemp('replay') / 'run'
+    code, stdout, stderr = run_cli(
+        [str(sample_bag), '--max-scans', str(SAMPLE_SCANS), '--out', str(out), '--no-progress']
+    )
+    return {'code': code, 'stdout': stdout, 'stderr': stderr, 'out': out}
+
+
+def test_replay_sample_writes_every_output(sample_run: dict[str, object]) -> None:
+    assert sample_run['code'] == 0, sample_run['stderr']
+    out = sample_run['out']
+    assert isinstance(out, Path)
+    names = {p.name for p in out.iterdir()}
+    assert names == {
+        'odometry.mcap',
+        'poses_tum.txt',
+        'poses_kitti.txt',
+        'ground_truth_tum.txt',
+        'config.yaml',
+        'metrics.json',
+        'trajectory.png',
+    }
+    assert (out / 'trajectory.png').read_bytes().startswith(b'\x89PNG')
+    assert load_config(out / 'config.yaml') == KentRegConfig()
+    kitti = np.loadtxt(out / 'poses_kitti.txt', ndmin=2)
+    _, T_tum = read_tum(out / 'poses_tum.txt')
+    np.testing.assert_allclose(kitti.reshape(-1, 3, 4), T_tum[:, :3, :], atol=1e-6)
+    stdout = str(sample_run['stdout'])
+    for text in ('ms/scan', 'scans/s', 'pair e_R', 'ATE', 'KITTI'):
+        assert text in stdout
+
+
+def test_replay_sample_mcap_has_one_message_per_scan(
+    sample_run: dict[str, object], sample_bag: Path
+) -> None:
+    from mcap.reader import make_reader
+
+    out = sample_run['out']
+    assert isinstance(out, Path)
+    with (out / 'odometry.mcap').open('rb') as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    counts = {
+        summary.channels[cid].topic: n
+        for cid, n in summary.statistics.channel_message_counts.items()
+    }
+    n = SAMPLE_SCANS
+    assert counts == {'/kentreg/odometry': n, '/kentreg/pose': n, '/tf': n, '/kentreg/path': 1}
+    types = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert types['/kentreg/odometry'] == 'nav_msgs/msg/Odometry'
+    assert types['/kentreg/pose'] == 'geometry_msgs/msg/PoseStamped'
+    assert types['/kentreg/path'] == 'nav_msgs/msg/Path'
+
+    messages = mcap_messages(out / 'odometry.mcap')
+    input_stamps = [stamp_ns(m) for m in mcap_messages(sample_bag / 'balm_50.mcap')['/points']]
+    odometry = messages['/kentreg/odometry']
+    assert [stamp_ns(m) for m in odometry] == input_stamps[:n]
+    assert {m.header.frame_id for m in odometry} == {'odom'}  # type: ignore[attr-defined]
+    assert {m.child_frame_id for m in odometry} == {'lidar'}  # type: ignore[attr-defined]
+    path = messages['/kentreg/path'][0]
+    positions = [(p.pose.position.x, p.pose.position.y) for p in path.poses]  # type: ignore[attr-defined]
+    _, T_tum = read_tum(out / 'poses_tum.txt')
+    np.testing.assert_allclose(positions, T_tum[:, :2, 3], atol=1e-6)
+
+
+def test_replay_sample_metrics_match_independent_computation(
+    sample_run: dict[str, object], shared_data: Path
+) -> None:
+    out = sample_run['out']
+    assert isinstance(out, Path)
+    report = json.loads((out / 'metrics.json').read_text())
+    stamps, T_est = read_tum(out / 'poses_tum.txt')
+    gt_stamps, T_gt_all = read_balm_csv(shared_data / 'balm' / 'alidarPose.csv')
+    rows = [int(np.argmin(np.abs(gt_stamps - s))) for s in stamps]
+    assert np.max(np.abs(gt_stamps[rows] - stamps)) < 1e-4
+    e_R, e_t = independent_pair_errors(T_est, T_gt_all[rows])
+
+    pairs = report['ground_truth']['pairs']
+    np.testing.assert_allclose(pairs['e_R_deg'], e_R, atol=2e-4)
+    np.testing.assert_allclose(pairs['e_t_m'], e_t, atol=1e-6)
+    assert pairs['rotation_deg']['median'] == pytest.approx(np.median(e_R), abs=2e-4)
+    assert pairs['translation_m']['median'] == pytest.approx(np.median(e_t), abs=1e-6)
+    # The issue's bar on the real sample: <= 0.1 deg / 1 cm median, no failed pair.
+    assert np.median(e_R) <= 0.1 and np.median(e_t) <= 0.01
+    assert pairs['n_failed'] == 0 and np.all(e_R <= 2.0) and np.all(e_t <= 0.2)
+    assert report['ground_truth']['rpe']['translation_m']['rmse'] == pytest.approx(
+        np.sqrt(np.mean(e_t**2)), abs=1e-6
+    )
+    ate = report['ground_truth']['ate']
+    assert ate is not None and 0.0 <= ate['rmse'] < 0.05
+    assert report['ground_truth']['kitti'] is None  # a few metres cannot fill 100 m segments
+    assert report['health'] == {
+        'first': 1, 'ok': SAMPLE_SCANS - 1, 'degenerate': 0, 'fell_back': 0, 'rejected': 0,
+    }  # fmt: skip
+    speed = report['speed']
+    assert speed['n_scans'] == SAMPLE_SCANS and speed['scans_per_s'] > 0
+    assert speed['ms_per_scan']['p95'] >= speed['ms_per_scan']['median'] > 0
+    assert len(report['steps']) == SAMPLE_SCANS
+
+
+def test_replay_paper_mode_config_runs_end_to_end(sample_bag: Path, tmp_path: Path) -> None:
+    config = tmp_path / 'paper.yaml'
+    config.write_text(dump_config(KentRegConfig.paper()))
+    out = tmp_path / 'paper'
+    code, stdout, stderr = run_cli(
+        [str(sample_bag), '--config', str(config), '--max-scans', '3', '--out', str(out),
+         '--no-progress', '--no-plot']
+    )  # fmt: skip
+    assert code == 0, stderr
+    report = json.loads((out / 'metrics.json').read_text())
+    assert report['mode'] == 'paper' and 'mode paper' in stdout
+    assert load_config(out / 'config.yaml').mode == 'paper'
+    assert report['ground_truth']['pairs']['count'] == 2
+    assert report['speed']['n_scans'] == 3
+    assert not (out / 'trajectory.png').exists()
+
+
+def test_replay_scan_folder_uses_pose_file_beside_scans(shared_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / 'folder'
+    code, stdout, stderr = run_cli(
+        [str(shared_data / 'balm'), '--start', '20', '--max-scans', '3', '--out', str(out),
+         '--no-progress', '--no-plot', '--child-frame', 'base_link']
+    )  # fmt: skip
+    assert code == 0, stderr
+    report = json.loads((out / 'metrics.json').read_text())
+    assert [s['input_index'] for s in report['steps']] == [20, 21, 22]
+    assert report['ground_truth']['source'].endswith('alidarPose.csv')
+    assert report['ground_truth']['n_matched'] == 3
+    gt_stamps, _ = read_balm_csv(shared_data / 'balm' / 'alidarPose.csv')
+    stamps, _ = read_tum(out / 'poses_tum.txt')
+    np.testing.assert_allclose(stamps, gt_stamps[20:23], atol=1e-6)
+    assert report['odometry_mcap']['child_frame'] == 'base_link'
+
+
+def test_replay_counts_rejected_scan_of_synthetic_bag(tmp_path: Path) -> None:
+    from test_odometry import STEP_NS, observe, true_trajectory
+
+    from kentreg_ros.io.bags import BagWriter
+
+    rng = np.random.default_rng(11)
+    T_true = true_trajectory(4)
+    bag = tmp_path / 'synthetic'
+    with BagWriter(bag) as writer:
+        for i, T in enumerate(T_true):
+            points = observe(rng, T) if i != 2 else observe(rng, T)[:5]
+            writer.write_pointcloud('/cloud', (i + 1) * STEP_NS, points, frame_id='velodyne')
+            writer.write_pose('/ground_truth', (i + 1) * STEP_NS, T, frame_id='world')
+    out = tmp_path / 'out'
+    code, stdout, stderr = run_cli([str(bag), '--out', str(out), '--no-progress', '--no-plot'])
+    assert code == 0, stderr
+    report = json.loads((out / 'metrics.json').read_text())
+    assert [s['health'] for s in report['steps']] == ['first', 'ok', 'rejected', 'ok']
+    assert report['n_failed_steps'] == 1 and 'rejected 1' in stdout
+    assert 'Rejected the scan' in stderr  # logged as a warning, the run goes on
+    assert report['odometry_mcap']['child_frame'] == 'velodyne'
+    # Scan 2's pose is the prediction; scan 3 was registered against scan 1 and is accurate.
+    _, T_est = read_tum(out / 'poses_tum.txt')
+    rel_est = np.linalg.inv(T_est[1]) @ T_est[3]
+    rel_true = np.linalg.inv(T_true[1]) @ T_true[3]
+    e_R = Rotation.from_matrix(rel_true[:3, :3].T @ rel_est[:3, :3]).magnitude()
+    assert np.degrees(e_R) < 0.1
+    np.testing.assert_allclose(rel_est[:3, 3], rel_true[:3, 3], atol=0.01)
+
+
+def test_replay_default_out_dir_and_latest_link(
+    sample_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    code, stdout, stderr = run_cli(
+        [str(sample_bag), '--max-scans', '2', '--no-progress', '--no-plot']
+    )
+    assert code == 0, stderr
+    runs = [p for p in (tmp_path / 'results').iterdir() if p.name != 'latest']
+    assert len(runs) == 1
+    latest = tmp_path / 'results' / 'latest'
+    assert latest.is_symlink() and latest.resolve() == runs[0].resolve()
+    assert (latest / 'metrics.json').is_file()
+    assert f'{runs[0]}' in stdout or str(runs[0].relative_to(tmp_path)) in stdout
+
+
+def test_replay_interrupted_writes_scans_so_far(
+    sample_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from kentreg_ros.core.odometry import Odometry
+
+    real_step = Odometry.step
+
+    def step_then_ctrl_c(self: Odometry, *args: object, **kwargs: object) -> object:
+        if self.n_steps == 2:
+            raise KeyboardInterrupt
+        return real_step(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Odometry, 'step', step_then_ctrl_c)
+    out = tmp_path / 'out'
+    code, stdout, stderr = run_cli(
+        [str(sample_bag), '--out', str(out), '--no-progress', '--no-plot']
+    )
+    assert code == 130
+    assert 'interrupted after 2 scans' in stderr
+    report = json.loads((out / 'metrics.json').read_text())
+    assert report['complete'] is False and report['speed']['n_scans'] == 2
+    assert len(np.loadtxt(out / 'poses_tum.txt', ndmin=2)) == 2
+
+
+@pytest.mark.parametrize(
+    ('argv', 'match'),
+    [
+        (['{tmp}/missing.mcap'], 'no such file'),
+        (['{bag}', '--set', 'em.no_such_key=1'], 'Unknown configuration key'),
+        (['{bag}', '--config', '{tmp}/bad.yaml'], 'Unknown configuration key'),
+        (['{bag}', '--set', 'mode=fast'], 'mode'),
+        (['{bag}', '--start', '50'], 'only 50 scans'),
+        (['{bag}', '--max-scans', '0'], 'positive integer'),
+        (['{bag}', '--topic', '/ground_truth'], 'not sensor_msgs/msg/PointCloud2'),
+    ],
+)
+def test_replay_bad_input_exits_2_with_one_line(
+    argv: list[str], match: str, sample_bag: Path, tmp_path: Path
+) -> None:
+    (tmp_path / 'bad.yaml').write_text(
+        'kentreg_node:\n  ros__parameters:\n    em:\n      nope: 1\n'
+    )
+    args = [a.format(tmp=tmp_path, bag=sample_bag) for a in argv]
+    code, stdout, stderr = run_cli([*args, '--out', str(tmp_path / 'out'), '--no-progress'])
+    assert code == 2
+    assert stdout == ''
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('kentreg_replay: error: ')
+    assert match in lines[0]
+    assert not (tmp_path / 'out').exists()
+
+
+def test_replay_module_subprocess_bad_input(repo_root: Path, tmp_path: Path) -> None:
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
+    proc = subprocess.run(
+        [sys.executable, '-m', 'kentreg_ros.replay', str(tmp_path / 'nothing_here')],
+        capture_output=True, text=True, env=env, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f'kentreg_replay: error: {tmp_path / "nothing_here"}: no such file or folder'
+    ]
+
+
+def test_installed_console_script_runs_sample(sample_bag: Path, tmp_path: Path) -> None:
+    script = shutil.which('kentreg_replay')
+    if script is None:
+        pytest.skip('kentreg_replay is not installed (pip install -e .[io])')
+    proc = subprocess.run(
+        [script, str(sample_bag), '--max-scans', '2', '--out', str(tmp_path / 'o'),
+         '--no-progress', '--no-plot'],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / 'o' / 'odometry.mcap').is_file()
+
+
+def test_associate_by_stamp_and_by_index() -> None:
+    from kentreg_ros.io.poses import Trajectory
+
+    T = np.tile(np.eye(4), (4, 1, 1))
+    gt = Trajectory(np.array([100, 200, 300, 400]) * 10_000_000, T)
+    stamps = np.array([201, 299, 350, 401], dtype=np.int64) * 10_000_000
+    scan_rows, gt_rows = associate(stamps, [0, 1, 2, 3], gt)
+    assert scan_rows.tolist() == [0, 1, 3] and gt_rows.tolist() == [1, 2, 3]
+    scan_rows, gt_rows = associate(stamps, [2, 3, 4, 5], Trajectory(None, T))
+    assert scan_rows.tolist() == [0, 1] and gt_rows.tolist() == [2, 3]
