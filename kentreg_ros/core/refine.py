@@ -54,11 +54,6 @@ class RefineResult:
     kappa_normal: float
 
 
-def plane_covariances(normals: FloatArray, epsilon: float = PLANE_EPSILON) -> FloatArray:
-    """GICP's regularised planar covariances ``I - (1 - eps) n n^T``, shape (N, 3, 3)."""
-    return np.eye(3)[None] - (1.0 - epsilon) * np.einsum('ni,nj->nij', normals, normals)
-
-
 def inverse_3x3_symmetric(M: FloatArray) -> FloatArray:
     """Inverse of a stack of symmetric 3x3 matrices by the adjugate, shape (N, 3, 3)."""
     a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]

@@ -382,7 +382,14 @@ def _translation_gates(
     return max(cfg.refine.max_correspondence_distance, min_gate), min_gate
 
 
-def _rotation_covariance(H: FloatArray) -> FloatArray:
+def _rotation_degenerate(H: FloatArray, ratio: float) -> bool:
+    """True when the rotation information matrix has an eigenvalue below ``ratio`` x largest."""
+    evals = np.linalg.eigvalsh(0.5 * (H + H.T))
+    return bool(evals[0] < ratio * max(float(evals[-1]), 1e-300))
+
+
+def _information_to_covariance(H: FloatArray) -> FloatArray:
+    """Pseudo-inverse of an information matrix; null directions get a variance of 1e6."""
     Hs = 0.5 * (H + H.T)
     evals, evecs = np.linalg.eigh(Hs)
     inv = np.where(
@@ -482,24 +489,22 @@ def _register_robust(
         converged = ref.converged
         inlier = ref.inlier_fraction
         H6 = ref.hessian
-        info = np.zeros((6, 6))
         # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
         perm = [3, 4, 5, 0, 1, 2]
         info = H6[np.ix_(perm, perm)]
-        covariance = max(ref.sigma2, 1e-12) * _rotation_covariance(info)
+        covariance = max(ref.sigma2, 1e-12) * _information_to_covariance(info)
         H_trans = info[:3, :3]
     else:
         covariance = np.zeros((6, 6))
-        covariance[3:, 3:] = _rotation_covariance(em.hessian)
+        covariance[3:, 3:] = _information_to_covariance(em.hessian)
         if H_t is not None:
-            covariance[:3, :3] = max(sigma2_t, 1e-12) * _rotation_covariance(H_t)
+            covariance[:3, :3] = max(sigma2_t, 1e-12) * _information_to_covariance(H_t)
         else:
             covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
         H_trans = H_t if H_t is not None else np.eye(3)
     timings['refine'] = _ms(t0)
     deg_dirs = degenerate_directions(H_trans, tr_cfg.degeneracy_ratio)
-    rot_evals = np.linalg.eigvalsh(0.5 * (em.hessian + em.hessian.T))
-    rot_degenerate = bool(rot_evals[0] < tr_cfg.degeneracy_ratio * max(rot_evals[-1], 1e-300))
+    rot_degenerate = _rotation_degenerate(em.hessian, tr_cfg.degeneracy_ratio)
     degenerate = len(deg_dirs) > 0 or rot_degenerate
     return _finish(
         T,
@@ -629,13 +634,10 @@ def _register_paper(
     T = make_transform(R, t)
     H_rot = np.sum([r.hessian for r in results], axis=0)
     covariance = np.zeros((6, 6))
-    covariance[3:, 3:] = _rotation_covariance(H_rot)
+    covariance[3:, 3:] = _information_to_covariance(H_rot)
     cov_t = np.cov(tgt.points.T) / len(tgt) + R @ np.cov(src.points.T) @ R.T / len(src)
     covariance[:3, :3] = cov_t
-    rot_evals = np.linalg.eigvalsh(0.5 * (H_rot + H_rot.T))
-    rot_degenerate = bool(
-        rot_evals[0] < cfg.translation.degeneracy_ratio * max(rot_evals[-1], 1e-300)
-    )
+    rot_degenerate = _rotation_degenerate(H_rot, cfg.translation.degeneracy_ratio)
     em = EMResult(
         R=R,
         kappa=np.concatenate([r.kappa for r in results]),
