@@ -45,6 +45,8 @@ setup(
             'kentreg_register = kentreg_ros.cli_register:main',
             'kentreg_convert = kentreg_ros.convert:main',
             'kentreg_replay = kentreg_ros.replay:main',
+            'kentreg_node = kentreg_ros.node:main',
+            'kentreg_play = kentreg_ros.play:main',
         ],
     },
 )
