@@ -226,6 +226,40 @@ def test_odometry_reset_forgets_the_trajectory(
     assert odom.step(clouds[2], 5).health == 'first'
 
 
+def test_odometry_max_history_bounds_memory_but_keeps_counting(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    T_true, clouds = scans
+    full = Odometry(KentRegConfig(), initial_pose=T_true[0])
+    bounded = Odometry(KentRegConfig(), initial_pose=T_true[0], max_history=2)
+    steps_full, steps_bounded = run(full, clouds), run(bounded, clouds)
+    assert bounded.n_steps == 6 and bounded.poses.shape == (2, 4, 4)
+    assert [s.index for s in steps_bounded] == list(range(6))
+    np.testing.assert_array_equal(bounded.stamps_ns, [4 * STEP_NS, 5 * STEP_NS])
+    # The prediction needs only the last two poses: the trajectories are the same.
+    for a, b in zip(steps_full, steps_bounded, strict=True):
+        np.testing.assert_allclose(a.T_world_lidar, b.T_world_lidar, atol=1e-12)
+    with pytest.raises(ValueError, match='max_history'):
+        Odometry(max_history=1)
+
+
+def test_odometry_reconfigure_keeps_the_trajectory_going(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    T_true, clouds = scans
+    odom = Odometry(KentRegConfig(), initial_pose=T_true[0])
+    run(odom, clouds[:3])
+    odom.reconfigure(KentRegConfig().with_updates({'preprocess.target_points': 4000}))
+    steps = [odom.step(c, (i + 3) * STEP_NS) for i, c in enumerate(clouds[3:])]
+    assert [s.health for s in steps] == ['ok'] * 3
+    assert odom.config.preprocess.target_points == 4000
+    assert all(s.n_prepared < 5000 for s in steps)
+    errors = rpe(odom.poses, T_true)
+    assert errors['rotation_deg']['max'] < 0.1 and errors['translation_m']['max'] < 0.01
+    with pytest.raises(TypeError, match='KentRegConfig'):
+        odom.reconfigure({'mode': 'paper'})  # type: ignore[arg-type]
+
+
 def test_odometry_rejects_bad_arguments() -> None:
     with pytest.raises(TypeError, match='KentRegConfig'):
         Odometry({'mode': 'robust'})  # type: ignore[arg-type]

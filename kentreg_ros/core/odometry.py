@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -230,6 +231,10 @@ class Odometry:
         plausible step.
     initial_pose : array_like, shape (4, 4), optional
         ``T_world_lidar`` of the first scan (default identity).
+    max_history : int, optional
+        Keep only the last ``max_history`` poses and stamps (at least 2, which the prediction
+        needs) in :attr:`poses` / :attr:`stamps_ns`, so that a long-running node does not grow
+        without bound. None (default) keeps every pose, as offline replay wants.
 
     Notes
     -----
@@ -253,12 +258,20 @@ class Odometry:
     """
 
     def __init__(
-        self, config: KentRegConfig | None = None, *, initial_pose: ArrayLike | None = None
+        self,
+        config: KentRegConfig | None = None,
+        *,
+        initial_pose: ArrayLike | None = None,
+        max_history: int | None = None,
     ) -> None:
         cfg = config if config is not None else KentRegConfig()
         if not isinstance(cfg, KentRegConfig):
             raise TypeError(f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.')
+        if max_history is not None and (isinstance(max_history, bool) or max_history < 2):
+            raise ValueError(f'Expected `max_history` >= 2 or None, got {max_history!r}.')
+        self._max_history = max_history
         self._config = cfg
+        self._config_preprocess = cfg.preprocess
         self._initial_pose = (
             np.eye(4) if initial_pose is None else _check_pose(initial_pose, 'initial_pose')
         )
@@ -284,8 +297,9 @@ class Odometry:
         self._T_world_model = self._initial_pose.copy()
         self._cov_model = np.zeros((6, 6))
         self._voxel_size_hint = 0.0
-        self._poses: list[FloatArray] = []
-        self._stamps: list[int] = []
+        self._poses: deque[FloatArray] = deque(maxlen=self._max_history)
+        self._stamps: deque[int] = deque(maxlen=self._max_history)
+        self._n_steps = 0
         self._frame_id: str | None = None
         self._counts = dict.fromkeys(HEALTHS, 0)
 
@@ -294,16 +308,33 @@ class Odometry:
         """The settings in use."""
         return self._config
 
+    def reconfigure(self, config: KentRegConfig) -> None:
+        """Use ``config`` from the next scan on, keeping the trajectory and the model.
+
+        The model keeps the preprocessing it was prepared with; the next scan is prepared with
+        the new settings and registered against it, so the trajectory continues without a gap.
+        """
+        if not isinstance(config, KentRegConfig):
+            raise TypeError(
+                f'Expected `config` to be a KentRegConfig, got {type(config).__name__}.'
+            )
+        self._config = config
+        self._max_rotation = np.radians(config.odometry.max_step_rotation_deg)
+        self._max_translation = config.odometry.max_step_translation
+        if config.preprocess != self._config_preprocess:
+            self._voxel_size_hint = 0.0  # the previous size was searched for other settings
+        self._config_preprocess = config.preprocess
+
     @property
     def poses(self) -> FloatArray:
-        """``T_world_lidar`` of every scan so far, shape (N, 4, 4)."""
+        """``T_world_lidar`` of every scan so far (the last ``max_history``), shape (N, 4, 4)."""
         if not self._poses:
             return np.zeros((0, 4, 4))
         return np.array(self._poses)
 
     @property
     def stamps_ns(self) -> NDArray[np.int64]:
-        """Stamps of every scan so far, integer nanoseconds, shape (N,)."""
+        """Stamps of every scan so far (the last ``max_history``), integer ns, shape (N,)."""
         return np.array(self._stamps, dtype=np.int64)
 
     @property
@@ -313,8 +344,8 @@ class Odometry:
 
     @property
     def n_steps(self) -> int:
-        """Scans given to :meth:`step`."""
-        return len(self._poses)
+        """Scans given to :meth:`step` since the start or the last :meth:`reset`."""
+        return self._n_steps
 
     @property
     def n_failed(self) -> int:
@@ -393,7 +424,7 @@ class Odometry:
         """
         t_start = time.perf_counter()
         stamp = _as_stamp(stamp_ns)
-        index = len(self._poses)
+        index = self._n_steps
         if self._stamps and stamp <= self._stamps[-1]:
             logger.warning(
                 'Scan %d: stamp %d ns is not after the previous one (%d ns).',
@@ -490,6 +521,7 @@ class Odometry:
             self._cov_model = covariance
         self._poses.append(T_world_curr.copy())
         self._stamps.append(pending.stamp_ns)
+        self._n_steps += 1
         self._counts[health] += 1
         pending.timings['total'] = _ms(pending.t_start)
         return OdometryStep(
