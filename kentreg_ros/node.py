@@ -1,0 +1,687 @@
+"""``kentreg_node``: live LiDAR odometry from ``sensor_msgs/PointCloud2`` with rclpy.
+
+Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points``):
+
+============== ====================================== ==========================================
+``points``     sensor_msgs/PointCloud2 (subscribed)   sensor-data QoS by default
+``odom``       nav_msgs/Odometry                      odom_frame -> base_frame, twist, covariance
+``pose``       geometry_msgs/PoseStamped              base_frame pose in odom_frame
+``path``       nav_msgs/Path                          the last ``node.path_length`` poses
+``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures
+``/tf``        odom_frame -> base_frame               when tf2_ros is installed
+``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
+============== ====================================== ==========================================
+
+Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
+points) and puts the scan into a bounded queue; one worker thread runs
+:class:`~kentreg_ros.core.odometry.Odometry` and publishes. When the queue is full the oldest
+scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
+is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
+worker and applied between scans.
+
+Every output carries the stamp of the scan it was computed from. A stamp that goes backwards
+(a bag played again, a sensor restart) or a change of the sensor frame restarts the trajectory
+with a warning instead of corrupting it; a repeated stamp is dropped and counted.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+import rclpy.logging
+import rclpy.time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry as OdometryMsg
+from nav_msgs.msg import Path
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from kentreg_ros.core.config import NODE_NAME, KentRegConfig, iter_fields
+from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
+from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
+from kentreg_ros.node_params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
+
+try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
+    import tf2_ros
+except ImportError:  # pragma: no cover - depends on the installation
+    tf2_ros = None
+
+__all__ = ['NODE_PARAMETERS', 'KentRegNode', 'main']
+
+FloatArray = np.ndarray
+#: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
+ODOMETRY_HISTORY = 4
+#: Seconds between repeated warnings of the same kind (malformed input, drops).
+THROTTLE_S = 5.0
+#: Variance reported for unknown twist components (no motion measured yet).
+UNKNOWN_VARIANCE = 1e6
+#: Diagnostics turn WARN when no scan arrived for this many seconds.
+STALE_INPUT_S = 5.0
+
+
+class StartupError(Exception):
+    """The node cannot start with the given parameters (message says which and why)."""
+
+
+@dataclass
+class _Scan:
+    points: np.ndarray
+    stamp_ns: int
+    frame_id: str
+    received: float  # time.monotonic()
+    n_nonfinite: int
+
+
+class _Counters:
+    """Thread-safe event counters, cumulative and per diagnostics window."""
+
+    NAMES = (
+        'received',
+        'processed',
+        'published',
+        'dropped_queue',
+        'dropped_duplicate_stamp',
+        'dropped_waiting_for_tf',
+        'malformed',
+        'nonfinite_points',
+        'errors',
+        'resets',
+        *HEALTHS,
+    )
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.total = dict.fromkeys(self.NAMES, 0)
+        self.window = dict.fromkeys(self.NAMES, 0)
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.total[name] += n
+            self.window[name] += n
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.total)
+
+    def take_window(self) -> tuple[dict[str, int], dict[str, int]]:
+        with self._lock:
+            window, self.window = self.window, dict.fromkeys(self.NAMES, 0)
+            return dict(self.total), window
+
+
+def _descriptor(name: str, description: str, meta: dict[str, Any], read_only: bool) -> Any:
+    desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+    choices = meta.get('choices')
+    if choices:
+        desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
+    rng = meta.get('range')
+    default = meta.get('default')
+    if rng is not None and isinstance(default, int) and not isinstance(default, bool):
+        desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
+    elif rng is not None and isinstance(default, float):
+        desc.floating_point_range = [
+            FloatingPointRange(from_value=float(rng[0]), to_value=float(rng[1]), step=0.0)
+        ]
+    return desc
+
+
+def parameter_declarations() -> list[tuple[str, Any, Any]]:
+    """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
+    out = []
+    for name, value, f in iter_fields(KentRegConfig()):
+        meta = dict(f.metadata)
+        meta['default'] = value
+        out.append((name, value, _descriptor(name, meta.get('description', ''), meta, False)))
+    for p in NODE_PARAMETERS:
+        meta = {'range': p.range, 'choices': p.choices, 'default': p.default}
+        out.append((p.name, p.default, _descriptor(p.name, p.description, meta, p.read_only)))
+    return out
+
+
+def _transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler('xyz', values[3:6]).as_matrix()
+    T[:3, 3] = values[:3]
+    return T
+
+
+def _invert(T: FloatArray) -> FloatArray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pose_covariance_in_base(
+    cov_world_lidar: FloatArray, T_base_lidar: FloatArray, T_odom_base: FloatArray
+) -> FloatArray:
+    """Covariance of ``T_odom_base = T_bl T_world_lidar T_bl^-1`` from that of ``T_world_lidar``.
+
+    Both in the nav_msgs order (x, y, z, rot_x, rot_y, rot_z): position error and rotation
+    error about the fixed frame's axes. With ``p_ob = R_bl p_wl + t_bl - R_ob t_bl`` and
+    ``dtheta_ob = R_bl dtheta_wl``, the Jacobian is ``[[R_bl, [R_ob t_bl]x R_bl], [0, R_bl]]``.
+    """
+    R_bl = T_base_lidar[:3, :3]
+    J = np.zeros((6, 6))
+    J[:3, :3] = R_bl
+    J[3:, 3:] = R_bl
+    J[:3, 3:] = _skew(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
+    return J @ cov_world_lidar @ J.T
+
+
+def _pose_msg(T: FloatArray) -> Any:
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (
+        float(v) for v in q
+    )
+    return pose
+
+
+def _stamp_msg(stamp_ns: int) -> Any:
+    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
+    return rclpy.time.Time(seconds=sec, nanoseconds=nanosec).to_msg()
+
+
+class KentRegNode(Node):
+    """LiDAR odometry node; see the module docstring for topics and behaviour.
+
+    Raises
+    ------
+    StartupError
+        A parameter (from a parameter file or ``-p``) is of the wrong type, out of range, not
+        among its choices, unknown, or inconsistent with another.
+    """
+
+    def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._counters = _Counters()
+        self._config, self._settings = self._declare_and_read()
+        self._check_unknown_overrides()
+
+        self._lock = threading.Condition()
+        self._queue: collections.deque[_Scan] = collections.deque()
+        self._pending_config: KentRegConfig | None = None
+        self._pending_reset = False
+        self._stop = False
+
+        self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
+        self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
+        self._T_base_lidar: FloatArray | None = None
+        self._frame_id: str | None = None
+        self._last_stamp_ns: int | None = None
+        self._tf_wait_start: float | None = None
+        self._last_health = ''
+        self._last_message = ''
+        self._latencies_ms: collections.deque[float] = collections.deque(maxlen=1000)
+        self._step_ms: collections.deque[float] = collections.deque(maxlen=1000)
+        self._last_received = time.monotonic()
+        self._window_start = time.monotonic()
+
+        self._tf_broadcaster = None
+        self._tf_buffer = None
+        if tf2_ros is not None:
+            self._tf_broadcaster = tf2_ros.TransformBroadcaster(self)
+            if self._settings.use_tf:
+                self._tf_buffer = tf2_ros.Buffer()
+                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+        else:
+            self.get_logger().info(
+                'tf2_ros is not installed (pip-only rclpy): not broadcasting '
+                f'{self._settings.odom_frame}->{self._settings.base_frame} on /tf; the sensor '
+                'pose in the base frame comes from node.base_to_lidar. Install ROS 2 Jazzy '
+                '(ros-jazzy-tf2-ros) for TF.'
+            )
+
+        reliability = (
+            ReliabilityPolicy.RELIABLE
+            if self._settings.qos_reliability == 'reliable'
+            else ReliabilityPolicy.BEST_EFFORT
+        )
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self._settings.qos_depth,
+            reliability=reliability,
+            durability=qos_profile_sensor_data.durability,
+        )
+        self._pub_odom = self.create_publisher(OdometryMsg, 'odom', 10)
+        self._pub_pose = self.create_publisher(PoseStamped, 'pose', 10)
+        self._pub_path = self.create_publisher(Path, 'path', 1)
+        self._pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self._sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
+        self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
+        self._diag_timer = self.create_timer(
+            self._settings.diagnostics_period, self._publish_diagnostics
+        )
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._worker = threading.Thread(target=self._run_worker, name='kentreg_worker')
+        self._worker.daemon = True
+        self._worker.start()
+        self.get_logger().info(
+            f'kentreg_node ready: mode={self._config.mode}, listening on '
+            f'{self._sub.topic_name} ({self._settings.qos_reliability}, depth '
+            f'{self._settings.qos_depth}), publishing {self._pub_odom.topic_name} in '
+            f'{self._settings.odom_frame}->{self._settings.base_frame}.'
+        )
+
+    # ----------------------------------------------------------------------------------------
+    # Parameters
+
+    def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
+        try:
+            self.declare_parameters('', parameter_declarations())
+        except (
+            InvalidParameterTypeException,
+            InvalidParameterValueException,
+            ParameterException,
+        ) as exc:
+            hint = ''
+            if "expecting type 'DOUBLE'" in str(exc):
+                hint = ' (write floating-point values with a decimal point, e.g. 1.0)'
+            raise StartupError(f'{exc}{hint}') from exc
+        except TypeError as exc:  # e.g. an integer given where a list is declared
+            raise StartupError(f'a parameter has the wrong type: {exc}') from exc
+        config_values = {
+            name: self.get_parameter(name).value for name, _, _ in iter_fields(KentRegConfig())
+        }
+        node_values = {p.name: self.get_parameter(p.name).value for p in NODE_PARAMETERS}
+        try:
+            return KentRegConfig.from_dict(config_values), node_settings(node_values)
+        except ConfigError as exc:
+            raise StartupError(str(exc)) from exc
+
+    def _check_unknown_overrides(self) -> None:
+        """Parameters given for this node that it does not know are an error, not ignored."""
+        overrides = getattr(self, '_parameter_overrides', {}) or {}
+        known = {name for name, _, _ in parameter_declarations()} | {'use_sim_time'}
+        unknown = sorted(
+            n for n in overrides if n not in known and not n.startswith('qos_overrides.')
+        )
+        if unknown:
+            raise StartupError(
+                f'unknown parameter(s) {unknown}; valid ones are the keys of '
+                'config/kentreg.yaml (see README: parameter table).'
+            )
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        config_updates: dict[str, Any] = {}
+        node_updates: dict[str, Any] = {}
+        config_names = {name for name, _, _ in iter_fields(KentRegConfig())}
+        node_by_name: dict[str, NodeParameter] = {p.name: p for p in NODE_PARAMETERS}
+        for p in params:
+            if p.name in config_names:
+                config_updates[p.name] = p.value
+            elif p.name in node_by_name:
+                if node_by_name[p.name].read_only:
+                    return SetParametersResult(
+                        successful=False, reason=f'{p.name} takes effect only at startup'
+                    )
+                node_updates[p.name] = p.value
+        try:
+            config = self._config.with_updates(config_updates) if config_updates else None
+            current = {p.name: getattr(self._settings, p.name[5:]) for p in NODE_PARAMETERS}
+            current = {k: list(v) if isinstance(v, tuple) else v for k, v in current.items()}
+            settings = node_settings({**current, **node_updates}) if node_updates else None
+        except ConfigError as exc:
+            self.get_logger().warning(f'Rejected parameter change: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
+        with self._lock:
+            if config is not None:
+                self._config = config
+                self._pending_config = config
+            if settings is not None:
+                self._apply_settings(settings)
+        changed = ', '.join(f'{p.name}={p.value!r}' for p in params)
+        self.get_logger().info(f'Parameters changed: {changed}')
+        return SetParametersResult(successful=True)
+
+    def _apply_settings(self, settings: NodeSettings) -> None:
+        """Adopt new runtime node settings (called with the lock held)."""
+        old = self._settings
+        self._settings = settings
+        if settings.path_length != old.path_length:
+            self._path = collections.deque(self._path, maxlen=settings.path_length)
+        if settings.base_to_lidar != old.base_to_lidar or (
+            settings.odom_frame,
+            settings.base_frame,
+        ) != (old.odom_frame, old.base_frame):
+            self._pending_reset = True  # the published frame changed: start a new trajectory
+        while len(self._queue) > settings.queue_size:
+            self._queue.popleft()
+            self._counters.add('dropped_queue')
+
+    # ----------------------------------------------------------------------------------------
+    # Input (executor thread)
+
+    def _on_points(self, msg: PointCloud2) -> None:
+        received = time.monotonic()
+        self._last_received = received
+        self._counters.add('received')
+        try:
+            cloud = pointcloud2_to_array(msg, fields=())
+        except Exception as exc:  # noqa: BLE001 - any malformed message must not stop the node
+            self._counters.add('malformed')
+            self.get_logger().warning(
+                f'Skipped a malformed PointCloud2: {exc}', throttle_duration_sec=THROTTLE_S
+            )
+            return
+        if cloud.n_dropped:
+            self._counters.add('nonfinite_points', cloud.n_dropped)
+        scan = _Scan(
+            points=cloud.points,
+            stamp_ns=cloud.stamp_ns,
+            frame_id=cloud.frame_id or '',
+            received=received,
+            n_nonfinite=cloud.n_dropped,
+        )
+        with self._lock:
+            if len(self._queue) >= self._settings.queue_size:
+                self._counters.add('dropped_queue')
+                if self._settings.queue_policy == 'drop_newest':
+                    return
+                self._queue.popleft()
+            self._queue.append(scan)
+            self._lock.notify()
+
+    def _on_reset(self, request: Any, response: Any) -> Any:
+        with self._lock:
+            self._pending_reset = True
+            self._lock.notify()
+        response.success = True
+        response.message = 'The trajectory restarts at the next scan.'
+        self.get_logger().info('Reset requested: the trajectory restarts at the next scan.')
+        return response
+
+    # ----------------------------------------------------------------------------------------
+    # Worker thread
+
+    def _run_worker(self) -> None:
+        while True:
+            with self._lock:
+                while not self._queue and not self._stop:
+                    self._lock.wait(timeout=0.5)
+                if self._stop:
+                    return
+                scan = self._queue.popleft()
+                config, self._pending_config = self._pending_config, None
+                reset, self._pending_reset = self._pending_reset, False
+                settings = self._settings
+            try:
+                if config is not None:
+                    self._odometry.reconfigure(config)
+                if reset:
+                    self._reset('reset requested')
+                self._process(scan, settings)
+            except Exception as exc:  # noqa: BLE001 - keep the node alive, restart cleanly
+                self._counters.add('errors')
+                self.get_logger().error(
+                    f'Unexpected error while processing a scan ({type(exc).__name__}: {exc}); '
+                    'the trajectory restarts.'
+                )
+                logging.getLogger(__name__).debug('Worker error', exc_info=True)
+                self._reset('after an error')
+
+    def _reset(self, why: str) -> None:
+        self._odometry.reset()
+        self._path.clear()
+        self._frame_id = None
+        self._T_base_lidar = None
+        self._tf_wait_start = None
+        self._last_stamp_ns = None
+        self._counters.add('resets')
+        self.get_logger().info(f'Trajectory restarted ({why}).')
+
+    def _sensor_in_base(self, frame_id: str, settings: NodeSettings) -> FloatArray | None:
+        """``T_base_lidar`` for this sensor frame, or None while waiting for tf2."""
+        fallback = _transform_from_xyzrpy(settings.base_to_lidar)
+        if self._tf_buffer is None or frame_id == settings.base_frame or not frame_id:
+            return fallback
+        try:
+            tf = self._tf_buffer.lookup_transform(
+                settings.base_frame, frame_id, rclpy.time.Time()
+            ).transform
+        except Exception:  # noqa: BLE001 - tf2 raises several lookup exception types
+            now = time.monotonic()
+            if self._tf_wait_start is None:
+                self._tf_wait_start = now
+            if now - self._tf_wait_start < settings.tf_wait:
+                return None
+            self.get_logger().warning(
+                f'No tf2 transform {settings.base_frame}<-{frame_id} after {settings.tf_wait} s; '
+                f'using node.base_to_lidar={list(settings.base_to_lidar)}.'
+            )
+            return fallback
+        T = np.eye(4)
+        q = tf.rotation
+        T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        T[:3, 3] = [tf.translation.x, tf.translation.y, tf.translation.z]
+        return T
+
+    def _process(self, scan: _Scan, settings: NodeSettings) -> None:
+        log = self.get_logger()
+        if self._frame_id is not None and scan.frame_id != self._frame_id:
+            log.warning(
+                f'The sensor frame changed from {self._frame_id!r} to {scan.frame_id!r}: '
+                'restarting the trajectory.'
+            )
+            self._reset('sensor frame changed')
+        if self._last_stamp_ns is not None:
+            if scan.stamp_ns == self._last_stamp_ns:
+                self._counters.add('dropped_duplicate_stamp')
+                log.warning(
+                    'Dropped a scan with the same stamp as the previous one.',
+                    throttle_duration_sec=THROTTLE_S,
+                )
+                return
+            if scan.stamp_ns < self._last_stamp_ns:
+                log.warning(
+                    f'Time went backwards by {(self._last_stamp_ns - scan.stamp_ns) * 1e-9:.3f} s '
+                    '(bag replayed? sensor restarted?): restarting the trajectory.'
+                )
+                self._reset('time went backwards')
+        if self._T_base_lidar is None:
+            T_base_lidar = self._sensor_in_base(scan.frame_id, settings)
+            if T_base_lidar is None:
+                self._counters.add('dropped_waiting_for_tf')
+                return
+            self._T_base_lidar = T_base_lidar
+        self._frame_id = scan.frame_id
+        prev_stamp = self._last_stamp_ns
+        self._last_stamp_ns = scan.stamp_ns
+
+        step = self._odometry.step(scan.points, scan.stamp_ns, frame_id=scan.frame_id)
+        self._counters.add('processed')
+        self._counters.add(step.health)
+        self._last_health, self._last_message = step.health, step.message
+        self._publish(step, prev_stamp, settings)
+        self._counters.add('published')
+        self._latencies_ms.append((time.monotonic() - scan.received) * 1e3)
+        self._step_ms.append(step.timings.get('total', 0.0))
+
+    # ----------------------------------------------------------------------------------------
+    # Output
+
+    def _publish(self, step: OdometryStep, prev_stamp: int | None, settings: NodeSettings) -> None:
+        assert self._T_base_lidar is not None  # set before any step
+        T_bl = self._T_base_lidar
+        T_odom_base = T_bl @ step.T_world_lidar @ _invert(T_bl)
+        stamp = _stamp_msg(step.stamp_ns)
+        pose = _pose_msg(T_odom_base)
+
+        odom = OdometryMsg()
+        odom.header.stamp = stamp
+        odom.header.frame_id = settings.odom_frame
+        odom.child_frame_id = settings.base_frame
+        odom.pose.pose = pose
+        cov = pose_covariance_in_base(step.covariance, T_bl, T_odom_base)
+        odom.pose.covariance = [float(v) for v in cov.ravel()]
+        twist_cov = np.eye(6) * UNKNOWN_VARIANCE
+        if prev_stamp is not None and step.index > 0 and step.stamp_ns > prev_stamp:
+            dt = (step.stamp_ns - prev_stamp) * 1e-9
+            T_motion = T_bl @ step.T_prev_curr @ _invert(T_bl)  # current base in previous base
+            R = T_motion[:3, :3]
+            v = R.T @ T_motion[:3, 3] / dt  # in the current base frame (child_frame_id)
+            w = log_so3(R) / dt
+            odom.twist.twist.linear.x, odom.twist.twist.linear.y, odom.twist.twist.linear.z = (
+                float(x) for x in v
+            )
+            odom.twist.twist.angular.x, odom.twist.twist.angular.y, odom.twist.twist.angular.z = (
+                float(x) for x in w
+            )
+            if step.result is not None and step.ok:
+                J = np.zeros((6, 6))
+                J[:3, :3] = J[3:, 3:] = T_bl[:3, :3]
+                twist_cov = J @ np.asarray(step.result.covariance) @ J.T / dt**2
+        odom.twist.covariance = [float(v) for v in twist_cov.ravel()]
+        self._pub_odom.publish(odom)
+
+        pose_msg = PoseStamped()
+        pose_msg.header = odom.header
+        pose_msg.pose = pose
+        self._pub_pose.publish(pose_msg)
+
+        if settings.publish_path:
+            self._path.append(pose_msg)
+            path = Path()
+            path.header = odom.header
+            path.poses = list(self._path)
+            self._pub_path.publish(path)
+
+        if settings.publish_tf and self._tf_broadcaster is not None:
+            tf = TransformStamped()
+            tf.header = odom.header
+            tf.child_frame_id = settings.base_frame
+            tf.transform.translation.x = pose.position.x
+            tf.transform.translation.y = pose.position.y
+            tf.transform.translation.z = pose.position.z
+            tf.transform.rotation = pose.orientation
+            self._tf_broadcaster.sendTransform(tf)
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        period = max(now - self._window_start, 1e-6)
+        self._window_start = now
+        total, window = self._counters.take_window()
+        with self._lock:
+            queued = len(self._queue)
+            settings = self._settings
+        if not settings.publish_diagnostics:
+            return
+        latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
+        steps = list(self._step_ms)[-max(window['processed'], 1) :]
+        status = DiagnosticStatus()
+        status.name = f'{self.get_name()}: odometry'
+        status.hardware_id = self._frame_id or ''
+        level, message = DiagnosticStatus.OK, 'tracking'
+        problems = []
+        if window['fell_back'] or window['rejected'] or window['errors']:
+            problems.append(
+                f'{window["fell_back"] + window["rejected"]} scans fell back or were rejected'
+            )
+        if window['malformed']:
+            problems.append(f'{window["malformed"]} malformed messages')
+        if window['dropped_queue']:
+            problems.append(f'{window["dropped_queue"]} scans dropped (worker busy)')
+        if window['degenerate']:
+            problems.append(f'{window["degenerate"]} degenerate scans')
+        if problems:
+            level, message = DiagnosticStatus.WARN, '; '.join(problems)
+        if total['received'] == 0 or now - self._last_received > STALE_INPUT_S:
+            level = DiagnosticStatus.WARN
+            message = f'no scans on {self._sub.topic_name} for {now - self._last_received:.0f} s'
+        status.level = level
+        status.message = message
+        values = {
+            'input_rate_hz': f'{window["received"] / period:.2f}',
+            'output_rate_hz': f'{window["published"] / period:.2f}',
+            'latency_ms_mean': f'{np.mean(latencies):.1f}' if self._latencies_ms else 'nan',
+            'latency_ms_max': f'{np.max(latencies):.1f}' if self._latencies_ms else 'nan',
+            'step_ms_mean': f'{np.mean(steps):.1f}' if self._step_ms else 'nan',
+            'queue_length': str(queued),
+            'last_health': self._last_health,
+            'last_message': self._last_message,
+            'mode': self._config.mode,
+        }
+        values.update({f'total.{k}': str(v) for k, v in total.items()})
+        values.update({f'window.{k}': str(v) for k, v in window.items()})
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self._pub_diag.publish(msg)
+
+    # ----------------------------------------------------------------------------------------
+    # Lifecycle
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Cumulative event counts (received, processed, dropped_queue, malformed, ...)."""
+        return self._counters.snapshot()
+
+    def destroy_node(self) -> None:
+        """Stop and join the worker (it finishes the scan in hand), then destroy the node."""
+        with self._lock:
+            self._stop = True
+            self._lock.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
+
+    Returns 0 on a clean shutdown and 1 when the parameters are invalid (the reason is logged).
+    """
+    rclpy.init(args=args)
+    node: KentRegNode | None = None
+    try:
+        node = KentRegNode()
+        rclpy.spin(node)
+    except StartupError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'Invalid parameters: {exc}')
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
