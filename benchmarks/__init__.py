@@ -1,0 +1,1 @@
+"""Benchmarks of kentreg_ros against other registration methods (not part of the package)."""

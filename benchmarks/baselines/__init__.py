@@ -1,0 +1,1 @@
+"""Baselines with no maintained Python implementation: NDT (Magnusson) and correntropy ICP."""

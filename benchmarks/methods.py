@@ -1,0 +1,428 @@
+"""One registry of registration methods for the benchmarks: same input, same budget, same API.
+
+Every method gets the same voxel-downsampled clouds (:func:`voxel_downsample`, voxel centroids)
+and is wrapped as a :class:`Method` with two callables:
+
+- ``prepare(points) -> prep``: the per-scan work an odometry would cache (normals, covariances,
+  KD-trees, NDT grids, kentreg's :class:`~kentreg_ros.core.PreparedScan`). Each scan is
+  prepared once and used as source of one pair and target of the next.
+- ``register(source_prep, target_prep, init) -> T_target_source`` (4x4, maps source points into
+  the target frame).
+
+Shared settings, derived from the voxel edge ``v`` and never tuned per data set:
+
+- correspondence gate ``4 v`` for every method that has one (Open3D ICP, small_gicp GICP,
+  KISS-ICP, kentreg robust's translation and refinement gates); 1.0 m at the 0.25 m voxels that
+  give the paper's ~10,000 points on a BALM scan, which is kentreg's own default;
+- at most :data:`MAX_ITERATIONS` (50) iterations of the ICP family (Open3D, small_gicp,
+  KISS-ICP, CICP, kentreg's refinement) and per NDT resolution level;
+- :data:`NORMAL_NEIGHBORS` (15, the paper's) neighbours for normals and covariances;
+- NDT and CICP use the paper's own settings (grids 2/4/2/1 m; sigma 1 m decaying by 0.96).
+
+Libraries are imported inside the factories: a missing library removes only its methods (with a
+logged reason), and a process can load just one library. ``threads`` pins the process (CPU
+affinity, OpenMP/BLAS environment, Open3D's and small_gicp's thread counts); see
+:func:`limit_threads`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.core import KentRegConfig, prepare_scan, register
+from kentreg_ros.core import voxel_downsample as _core_voxel_downsample
+from kentreg_ros.core.preprocess import choose_voxel_size
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: Correspondence gate in voxel edges, shared by every method that gates correspondences.
+GATE_VOXELS = 4.0
+#: Iteration cap of the ICP family (and per NDT resolution level).
+MAX_ITERATIONS = 50
+#: Neighbours for normals / covariances (the paper's 15).
+NORMAL_NEIGHBORS = 15
+#: Points per scan the paper downsamples to ("about 10,000 points").
+PAPER_POINTS = 10_000
+
+#: Methods other than kentreg's ablations, in table order.
+BASE_METHODS: tuple[str, ...] = (
+    'icp_pt2pt',
+    'icp_pt2pl',
+    'cicp',
+    'gicp',
+    'ndt',
+    'kiss_icp',
+    'kentreg_paper',
+    'kentreg_robust',
+)
+
+#: kentreg robust ablations: one switch of the README's "robust vs paper" table each.
+ABLATIONS: dict[str, dict[str, Any]] = {
+    'vmf': {'em.kent_beta': False},
+    'averaged': {'em.rotation': 'averaged'},
+    'no_anneal': {'em.kappa_cap_start': 2000.0, 'em.kappa_cap_end': 2000.0},
+    'centroid': {'translation.method': 'centroid'},
+    'no_xcorr': {'translation.cross_correlation': False},
+    'pl2pl': {'refine.method': 'plane_to_plane'},
+    'no_normal_weight': {'refine.normal_weight': False},
+    'no_refine': {'refine.method': 'none'},
+}
+
+ALL_METHODS: tuple[str, ...] = BASE_METHODS + tuple(f'kentreg_robust-{a}' for a in ABLATIONS)
+
+_ALLOWED_CPUS: tuple[int, ...] = (
+    tuple(sorted(os.sched_getaffinity(0)))
+    if hasattr(os, 'sched_getaffinity')
+    else tuple(range(os.cpu_count() or 1))
+)
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registration method behind the benchmark API.
+
+    Attributes
+    ----------
+    name : str
+        e.g. ``'gicp'``, ``'kentreg_robust'``, ``'kentreg_robust-no_refine'``.
+    library : str
+        ``'open3d'``, ``'small_gicp'``, ``'kiss_icp'``, ``'kentreg'`` or ``'baseline'``
+        (this folder's own NDT and CICP).
+    prepare : callable
+        ``prepare(points (N, 3)) -> prep``, the per-scan work an odometry caches.
+    register : callable
+        ``register(source_prep, target_prep, init (4, 4)) -> T_target_source (4, 4)``.
+    params : dict
+        The settings used (for the results JSON).
+    """
+
+    name: str
+    library: str
+    prepare: Callable[[FloatArray], Any]
+    register: Callable[[Any, Any, FloatArray], FloatArray]
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+
+def voxel_downsample(points: FloatArray, voxel: float) -> FloatArray:
+    """The one downsampling every method gets: the centroid of each occupied voxel.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+    voxel : float
+        Voxel edge (m), > 0.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        float64 voxel centroids (kentreg_ros.core.voxel_downsample; the grid is anchored at the
+        origin, so downsampling the result again with the same voxel returns it unchanged).
+    """
+    return _core_voxel_downsample(points, voxel)
+
+
+def paper_voxel(
+    points: FloatArray, target_points: int = PAPER_POINTS, step: float = 0.05
+) -> float:
+    """Voxel edge giving about ``target_points`` points (the paper's ~10,000), rounded to ``step``.
+
+    Computed once per data set on its first scan, so every scan and method share one voxel.
+    """
+    size = choose_voxel_size(np.asarray(points, dtype=np.float64), target_points)
+    if size <= 0.0:
+        return step
+    return max(step, round(size / step) * step)
+
+
+def limit_threads(threads: int) -> None:
+    """Pin this process to ``threads`` CPUs (process-wide, call before heavy work).
+
+    Sets the CPU affinity to the first ``threads`` CPUs the process was allowed at import (this
+    bounds numpy/BLAS, scipy's ``workers=-1`` KD-tree queries and every native thread pool) and
+    ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` for libraries imported
+    afterwards. Open3D and small_gicp are additionally given the count directly by the
+    factories.
+    """
+    if threads < 1:
+        raise ValueError(f'Expected `threads` >= 1, got {threads}.')
+    for var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+        os.environ[var] = str(threads)
+    if hasattr(os, 'sched_setaffinity'):
+        cpus = set(_ALLOWED_CPUS[:threads])
+        os.sched_setaffinity(0, cpus)
+        logger.debug('CPU affinity set to %s', sorted(cpus))
+
+
+# --------------------------------------------------------------------------------------------
+# Open3D
+
+
+def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    if threads is not None:
+        os.environ['OMP_NUM_THREADS'] = str(threads)
+    import open3d as o3d  # noqa: PLC0415
+
+    if threads is not None:
+        o3d.utility.set_max_threads(threads)
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    reg = o3d.pipelines.registration
+    gate = GATE_VOXELS * voxel
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=MAX_ITERATIONS
+    )
+
+    def prepare_pt2pt(points: FloatArray) -> Any:
+        pcd = o3d.geometry.PointCloud()
+        pcd.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
+        return pcd
+
+    def prepare_pt2pl(points: FloatArray) -> Any:
+        pcd = prepare_pt2pt(points)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBORS))
+        return pcd
+
+    def make_register(estimation: Any) -> Callable[[Any, Any, FloatArray], FloatArray]:
+        def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
+            result = reg.registration_icp(source, target, gate, init, estimation, criteria)
+            return np.array(result.transformation, dtype=np.float64)
+
+        return run
+
+    params = {
+        'max_correspondence_distance': gate,
+        'max_iterations': MAX_ITERATIONS,
+        'relative_fitness': 1e-6,
+        'relative_rmse': 1e-6,
+        'open3d': o3d.__version__,
+    }
+    out = []
+    if 'icp_pt2pt' in names:
+        est = reg.TransformationEstimationPointToPoint()
+        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, make_register(est), params))
+    if 'icp_pt2pl' in names:
+        est = reg.TransformationEstimationPointToPlane()
+        out.append(
+            Method(
+                'icp_pt2pl',
+                'open3d',
+                prepare_pt2pl,
+                make_register(est),
+                {**params, 'normal_neighbors': NORMAL_NEIGHBORS},
+            )
+        )
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# small_gicp
+
+
+def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    import small_gicp  # noqa: PLC0415
+
+    n_threads = threads or 1
+    gate = GATE_VOXELS * voxel
+
+    def prepare(points: FloatArray) -> Any:
+        cloud = small_gicp.PointCloud(np.asarray(points, dtype=np.float64))
+        tree = small_gicp.KdTree(cloud, num_threads=n_threads)
+        small_gicp.estimate_covariances(cloud, tree, NORMAL_NEIGHBORS, n_threads)
+        return cloud, tree
+
+    def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        result = small_gicp.align(
+            target[0],
+            source[0],
+            target[1],
+            init_T_target_source=np.asarray(init, dtype=np.float64),
+            registration_type='GICP',
+            max_correspondence_distance=gate,
+            num_threads=n_threads,
+            max_iterations=MAX_ITERATIONS,
+        )
+        return np.array(result.T_target_source, dtype=np.float64)
+
+    params = {
+        'max_correspondence_distance': gate,
+        'max_iterations': MAX_ITERATIONS,
+        'covariance_neighbors': NORMAL_NEIGHBORS,
+        'convergence': 'small_gicp defaults (0.1 deg, 1 mm)',
+        'threads': n_threads,
+    }
+    return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
+
+
+# --------------------------------------------------------------------------------------------
+# KISS-ICP (its registration core on one target scan, not its whole odometry pipeline)
+
+
+def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    if 'kiss_icp' not in names:
+        return []
+    from kiss_icp.mapping import VoxelHashMap  # noqa: PLC0415
+    from kiss_icp.registration import Registration  # noqa: PLC0415
+
+    gate = GATE_VOXELS * voxel
+    map_voxel = 2.0 * voxel
+    registration = Registration(
+        max_num_iterations=MAX_ITERATIONS,
+        convergence_criterion=1e-4,
+        max_num_threads=threads or 0,
+    )
+
+    def prepare(points: FloatArray) -> Any:
+        pts = np.asarray(points, dtype=np.float64)
+        voxel_map = VoxelHashMap(voxel_size=map_voxel, max_distance=1e6, max_points_per_voxel=20)
+        voxel_map.add_points(pts)
+        return pts, voxel_map
+
+    def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        T = registration.align_points_to_map(
+            source[0], target[1], np.asarray(init, dtype=np.float64), gate, gate / 3.0
+        )
+        return np.array(T, dtype=np.float64)
+
+    params = {
+        'max_correspondence_distance': gate,
+        'kernel': gate / 3.0,
+        'map_voxel': map_voxel,
+        'max_iterations': MAX_ITERATIONS,
+        'convergence_criterion': 1e-4,
+        'note': "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
+        'KISS-ICP sets it) against a voxel hash map of the target scan',
+    }
+    return [Method('kiss_icp', 'kiss_icp', prepare, run, params)]
+
+
+# --------------------------------------------------------------------------------------------
+# This folder's baselines (numpy/scipy)
+
+
+def _baseline_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    out = []
+    if 'ndt' in names:
+        from benchmarks.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register  # noqa: PLC0415
+
+        out.append(Method('ndt', 'baseline', ndt_prepare, ndt_register, dict(NDT_DEFAULTS)))
+    if 'cicp' in names:
+        from benchmarks.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register  # noqa: PLC0415
+
+        out.append(Method('cicp', 'baseline', cicp_prepare, cicp_register, dict(CICP_DEFAULTS)))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# kentreg
+
+
+def kentreg_config(name: str, voxel: float) -> KentRegConfig:
+    """The :class:`KentRegConfig` of a kentreg method name at voxel edge ``voxel``."""
+    if name == 'kentreg_paper':
+        return KentRegConfig.paper().with_updates({'preprocess.voxel_size': voxel})
+    base, _, ablation = name.partition('-')
+    if base != 'kentreg_robust' or (ablation and ablation not in ABLATIONS):
+        raise ValueError(f'Unknown kentreg method {name!r}.')
+    gate = GATE_VOXELS * voxel
+    updates: dict[str, Any] = {
+        'preprocess.voxel_size': voxel,
+        'translation.max_correspondence_distance': gate,
+        'refine.max_correspondence_distance': gate,
+        'refine.max_iterations': MAX_ITERATIONS,
+    }
+    updates.update(ABLATIONS.get(ablation, {}))
+    return KentRegConfig().with_updates(updates)
+
+
+def _kentreg_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    out = []
+    for name in names:
+        if not name.startswith('kentreg'):
+            continue
+        cfg = kentreg_config(name, voxel)
+
+        def prep(points: FloatArray, cfg: KentRegConfig = cfg) -> Any:
+            return prepare_scan(points, config=cfg)
+
+        def run(
+            source: Any, target: Any, init: FloatArray, cfg: KentRegConfig = cfg
+        ) -> FloatArray:
+            result = register(source, target, init=init, config=cfg)
+            return np.array(result.T_target_source, dtype=np.float64)
+
+        changed = {
+            k: v
+            for k, v in cfg.to_flat_dict().items()
+            if KentRegConfig().to_flat_dict().get(k) != v
+        }
+        out.append(Method(name, 'kentreg', prep, run, {'config_changes': changed}))
+    return out
+
+
+_FACTORIES: tuple[tuple[str, tuple[str, ...], Callable[..., list[Method]]], ...] = (
+    ('open3d', ('icp_pt2pt', 'icp_pt2pl'), _open3d_methods),
+    ('small_gicp', ('gicp',), _small_gicp_methods),
+    ('kiss_icp', ('kiss_icp',), _kiss_icp_methods),
+    ('baseline', ('ndt', 'cicp'), _baseline_methods),
+    ('kentreg', tuple(n for n in ALL_METHODS if n.startswith('kentreg')), _kentreg_methods),
+)
+
+
+def make_methods(
+    names: Sequence[str] | None = None, *, voxel: float, threads: int | None = 1
+) -> list[Method]:
+    """Build the requested methods, in the order of ``names`` (default :data:`ALL_METHODS`).
+
+    Parameters
+    ----------
+    names : sequence of str, optional
+        Method names from :data:`ALL_METHODS`.
+    voxel : float
+        Voxel edge (m) of the shared downsampling; gates derive from it.
+    threads : int or None
+        Pin the process and the libraries to this many threads (:func:`limit_threads`);
+        None leaves every library at its default.
+
+    Returns
+    -------
+    list of Method
+        A method whose library cannot be imported is left out with a logged warning.
+
+    Raises
+    ------
+    ValueError
+        An unknown method name.
+    """
+    wanted = list(ALL_METHODS if names is None else names)
+    unknown = [n for n in wanted if n not in ALL_METHODS]
+    if unknown:
+        raise ValueError(f'Unknown method(s) {unknown}; valid names are {list(ALL_METHODS)}.')
+    if not voxel > 0.0:
+        raise ValueError(f'Expected `voxel` > 0, got {voxel!r}.')
+    if threads is not None:
+        limit_threads(threads)
+    built: dict[str, Method] = {}
+    for library, provided, factory in _FACTORIES:
+        mine = [n for n in wanted if n in provided]
+        if not mine:
+            continue
+        try:
+            methods = factory(mine, voxel, threads)
+        except ImportError as exc:
+            logger.warning(
+                'Skipping %s: %s cannot be imported (%s); `pip install -e .[bench]`.',
+                ', '.join(mine),
+                library,
+                exc,
+            )
+            continue
+        built.update({m.name: m for m in methods})
+    return [built[n] for n in wanted if n in built]
