@@ -1,11 +1,14 @@
-"""Shared pytest fixtures: where the repository and the real recorded data live."""
+"""Shared pytest fixtures: where the repository and the real recorded data live; ROS set-up."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+import ros_env  # test/ is on sys.path (rootdir conftest, default 'prepend' import mode)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Real scans (BALM, small_gicp pair) kept beside the repository, not inside it.
@@ -24,3 +27,35 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f'real data folder {SHARED_DATA} is absent (set KENTREG_SHARED_DATA)')
     return SHARED_DATA
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Keep DDS on loopback in a test-only domain before any test can call ``rclpy.init``.
+
+    Subprocesses started by tests inherit these variables (see ``test/ros_env.py``).
+    """
+    ros_env.apply_ros_env()
+
+
+@pytest.fixture(scope='session')
+def ros_env_vars() -> dict[str, str]:
+    """The DDS variables of this session (already in ``os.environ``)."""
+    return ros_env.ros_env()
+
+
+@pytest.fixture
+def rclpy_context() -> Iterator[Any]:
+    """A fresh, initialised ``rclpy`` context (not the default one), shut down afterwards.
+
+    Create nodes with ``Node(..., context=rclpy_context)`` and executors with
+    ``SingleThreadedExecutor(context=rclpy_context)``. Skips when rclpy is not installed.
+    """
+    rclpy = pytest.importorskip('rclpy', reason='rclpy is not installed (pip install -e .[ros])')
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)

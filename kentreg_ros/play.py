@@ -1,0 +1,611 @@
+"""``kentreg_play``: publish the point clouds of a bag or a scan folder on a ROS 2 topic.
+
+A stand-in for ``ros2 bag play`` where ros2cli is not installed (pip-only ROS 2): it feeds
+``kentreg_node`` (or anything else) with the PointCloud2 messages of a bag, or with the scans
+of a folder of ``.pcd``/``.ply``/``.bin``/``.csv`` files, through rclpy.
+
+Examples
+--------
+Feed the sample recording to a node subscribed to ``points``, at the recorded rate (2 Hz)::
+
+    kentreg_play bags/balm_50
+
+Four times faster, repeating, on another topic, waiting up to 10 s for a subscriber::
+
+    kentreg_play bags/balm_50 --rate 4 --loop --topic /velodyne_points --wait-subscribers 10
+
+Simulated time for nodes started with ``use_sim_time:=true``::
+
+    kentreg_play bags/balm_50 --clock
+
+Messages are decoded and re-encoded (:func:`~kentreg_ros.io.pointcloud2.array_to_pointcloud2`):
+x, y, z as float32 plus the other fields of the source (``--fields``), non-finite points
+dropped, organised clouds flattened into one row, as :func:`~kentreg_ros.io.open_scan_source`
+reads them. The topic ``--topic`` is relative by default (``points``), so it follows the
+namespace and ``--ros-args -r points:=...`` remapping.
+
+Timing: each scan is published when its stamp, relative to the first one, divided by
+``--rate``, has elapsed (a late scan goes out at once; none is skipped); ``--rate 0`` publishes
+as fast as possible and ``--hz`` at a fixed rate. ``--loop`` repeats; with ``--restamp bag``
+(default) every pass is shifted by the span of the previous one plus one scan period, so the
+stamps keep increasing. ``--restamp now`` stamps each message with the current time instead.
+
+Exit status: 0 when every scan was published, 2 on bad input (one line on stderr, including a
+bag that turns out to be damaged after some scans were published), 130 when interrupted (Ctrl-C,
+SIGTERM, or an external ROS shutdown).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import logging
+import math
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.io.errors import BagError
+
+logger = logging.getLogger('kentreg_ros.play')  # also when run as __main__
+
+PROG = 'kentreg_play'
+NODE_NAME = 'kentreg_play'
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+#: ``--clock`` without a value publishes at this rate (as ``ros2 bag play --clock`` does).
+DEFAULT_CLOCK_HZ = 40.0
+#: Gap between two passes of ``--loop`` when the source has a single scan (s, bag time).
+SINGLE_SCAN_PERIOD_S = 0.1
+#: Longest single sleep while waiting, so shutdown is noticed promptly (s).
+MAX_SLEEP_S = 0.05
+#: How long the end of a reliable run waits for subscribers to acknowledge the last messages.
+ACK_TIMEOUT_S = 5.0
+
+
+class InputError(Exception):
+    """Bad command-line input; shown as one line, exit status 2."""
+
+
+class _ArgumentParser(argparse.ArgumentParser):
+    def error(self, message: str) -> Any:
+        raise InputError(message)
+
+
+def _nonnegative_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value) or value < 0.0:
+        raise argparse.ArgumentTypeError(f'expected a finite number >= 0, got {text!r}')
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value) or value <= 0.0:
+        raise argparse.ArgumentTypeError(f'expected a finite number > 0, got {text!r}')
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
+    return value
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'expected an integer >= 1, got {text!r}')
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface of ``kentreg_play`` (ROS arguments are removed first)."""
+    parser = _ArgumentParser(
+        prog=PROG,
+        description='Publish the PointCloud2 messages of a bag (or the scans of a folder) on a '
+        'ROS 2 topic at the recorded rate, scaled, or fixed. ROS arguments go after '
+        '--ros-args (e.g. --ros-args -r points:=/velodyne_points).',
+    )
+    parser.add_argument(
+        'input',
+        metavar='BAG_OR_FOLDER',
+        help='rosbag2 folder or .mcap/.db3/.bag file, or a folder of scan files '
+        '(.pcd, .ply, .bin, .csv; stamped at 10 Hz)',
+    )
+    parser.add_argument(
+        '--topic', default='points', help='topic to publish on (default: points, relative)'
+    )
+    parser.add_argument(
+        '--bag-topic', help='PointCloud2 topic to read from the bag, when it has several'
+    )
+    parser.add_argument(
+        '--rate',
+        type=_nonnegative_float,
+        default=None,
+        help='playback speed as a multiple of the recorded rate (default 1; 0: as fast as '
+        'possible)',
+    )
+    parser.add_argument(
+        '--hz',
+        type=_positive_float,
+        help='publish at this fixed rate instead, whatever the recorded stamps',
+    )
+    parser.add_argument('--loop', action='store_true', help='repeat until interrupted')
+    parser.add_argument(
+        '--start', type=_nonnegative_int, default=0, help='skip this many scans (default 0)'
+    )
+    parser.add_argument(
+        '--max-scans', type=_positive_int, help='publish at most this many scans per pass'
+    )
+    parser.add_argument(
+        '--restamp',
+        choices=('bag', 'now'),
+        default='bag',
+        help='header stamps: the recorded ones (bag, default; shifted per --loop pass) or the '
+        'time of publishing (now)',
+    )
+    parser.add_argument(
+        '--clock',
+        type=_positive_float,
+        nargs='?',
+        const=DEFAULT_CLOCK_HZ,
+        metavar='HZ',
+        help='also publish the recorded time on /clock (rosgraph_msgs/Clock) for nodes with '
+        f'use_sim_time:=true, at HZ (default {DEFAULT_CLOCK_HZ:g}) and before every scan; '
+        'needs --restamp bag',
+    )
+    parser.add_argument(
+        '--reliability',
+        choices=('reliable', 'best_effort'),
+        default='reliable',
+        help='QoS reliability of the publisher (default reliable: matches reliable and '
+        'best-effort subscribers)',
+    )
+    parser.add_argument(
+        '--depth', type=_positive_int, default=10, help='QoS history depth (default 10)'
+    )
+    parser.add_argument(
+        '--wait-subscribers',
+        type=_nonnegative_float,
+        default=0.0,
+        metavar='SECONDS',
+        help='wait up to SECONDS for a subscriber before the first scan (default 0: do not '
+        'wait); playback starts anyway when none appears',
+    )
+    parser.add_argument(
+        '--frame-id', help="header frame of the clouds (default: the source's, e.g. lidar)"
+    )
+    parser.add_argument(
+        '--fields',
+        default='all',
+        help="point fields besides x, y, z: 'all' (default), 'none', or a comma-separated list "
+        '(e.g. intensity)',
+    )
+    parser.add_argument('-q', '--quiet', action='store_true', help='print only errors')
+    return parser
+
+
+@dataclass(frozen=True)
+class Timing:
+    """When to publish: ``rate`` × recorded rate, or fixed ``hz``; both None: no waiting."""
+
+    rate: float | None
+    hz: float | None
+
+    @classmethod
+    def from_options(cls, rate: float | None, hz: float | None) -> Timing:
+        """``--rate``/``--hz`` as given (None: not given); they exclude each other."""
+        if hz is not None and rate is not None:
+            raise InputError('--rate and --hz exclude each other; give one')
+        if hz is not None:
+            return cls(None, hz)
+        rate = 1.0 if rate is None else rate
+        return cls(rate if rate > 0.0 else None, None)
+
+    def gap_s(self, previous_stamp_ns: int, stamp_ns: int) -> float:
+        """Wall-clock seconds between publishing two consecutive scans.
+
+        Recorded stamps that go backwards give 0 (the scan goes out at once).
+        """
+        if self.hz is not None:
+            return 1.0 / self.hz
+        if self.rate is None:
+            return 0.0
+        return max(stamp_ns - previous_stamp_ns, 0) * 1e-9 / self.rate
+
+    def describe(self) -> str:
+        """Human-readable, for the log."""
+        if self.hz is not None:
+            return f'at {self.hz:g} Hz'
+        if self.rate is None:
+            return 'as fast as possible'
+        return f'at {self.rate:g}x the recorded rate'
+
+
+def _fields_option(text: str) -> Sequence[str] | None:
+    value = text.strip()
+    if value == 'all':
+        return None
+    if value == 'none':
+        return ()
+    names = [n.strip() for n in value.split(',') if n.strip()]
+    if not names:
+        raise InputError(f"--fields: expected 'all', 'none' or field names, got {text!r}")
+    return names
+
+
+@dataclass
+class PlaySummary:
+    """What a run published."""
+
+    published: int = 0
+    points: int = 0
+    passes: int = 0
+    first_publish_s: float | None = None
+    last_publish_s: float | None = None
+    first_stamp_ns: int | None = None
+    last_stamp_ns: int | None = None
+    subscribers_at_start: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        """Wall time from the first to the last publication."""
+        if self.first_publish_s is None or self.last_publish_s is None:
+            return 0.0
+        return self.last_publish_s - self.first_publish_s
+
+    @property
+    def rate_hz(self) -> float | None:
+        """Measured publishing rate (None with fewer than two messages)."""
+        if self.published < 2 or self.duration_s <= 0.0:
+            return None
+        return (self.published - 1) / self.duration_s
+
+    def format(self, topic: str) -> str:
+        """One line for the terminal."""
+        hz = self.rate_hz
+        rate = f'{hz:.2f} Hz' if hz is not None else 'one message'
+        mean = self.points / self.published if self.published else 0.0
+        return (
+            f'{PROG}: published {self.published} scan(s) on {topic} in {self.duration_s:.2f} s '
+            f'({rate}; {mean:.0f} points per scan; {self.passes} pass(es))'
+        )
+
+
+def _ros() -> Any:
+    """Import rclpy and the message packages, or raise InputError naming what to install."""
+    try:
+        import rclpy
+        import rclpy.executors
+        import rclpy.qos
+        import rclpy.utilities
+        from builtin_interfaces.msg import Time
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import PointCloud2, PointField
+        from std_msgs.msg import Header
+    except ImportError as exc:
+        raise InputError(
+            f'{PROG} needs rclpy and the ROS 2 message packages ({exc.name} is missing): '
+            "source a ROS 2 Jazzy installation or pip install -e '.[ros]'"
+        ) from exc
+    import types
+
+    return types.SimpleNamespace(
+        rclpy=rclpy,
+        ExternalShutdownException=rclpy.executors.ExternalShutdownException,
+        qos=rclpy.qos,
+        remove_ros_args=rclpy.utilities.remove_ros_args,
+        Time=Time,
+        Clock=Clock,
+        PointCloud2=PointCloud2,
+        PointField=PointField,
+        Header=Header,
+    )
+
+
+class Player:
+    """Publishes the scans of a source with one rclpy node (no executor needed).
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node that owns the publishers.
+    source : kentreg_ros.io.ScanSource
+        Scans to publish.
+    options : argparse.Namespace
+        Parsed ``kentreg_play`` options.
+    ros : namespace
+        What :func:`_ros` returns.
+    """
+
+    def __init__(self, node: Any, source: Any, options: argparse.Namespace, ros: Any) -> None:
+        from kentreg_ros.io.pointcloud2 import rclpy_factory
+
+        self.node = node
+        self.source = source
+        self.options = options
+        self.ros = ros
+        self.timing = Timing.from_options(options.rate, options.hz)
+        self.factory = rclpy_factory(ros.PointCloud2, ros.PointField, ros.Header, ros.Time)
+        qos = ros.qos
+        reliability = (
+            qos.ReliabilityPolicy.RELIABLE
+            if options.reliability == 'reliable'
+            else qos.ReliabilityPolicy.BEST_EFFORT
+        )
+        profile = qos.QoSProfile(
+            history=qos.HistoryPolicy.KEEP_LAST,
+            depth=options.depth,
+            reliability=reliability,
+            durability=qos.DurabilityPolicy.VOLATILE,
+        )
+        self.publisher = node.create_publisher(ros.PointCloud2, options.topic, profile)
+        #: Resolved name of the PointCloud2 topic (after namespace and remapping).
+        self.topic = str(self.publisher.topic_name)
+        self.clock_publisher = (
+            node.create_publisher(ros.Clock, '/clock', qos.QoSProfile(depth=1))
+            if options.clock is not None
+            else None
+        )
+        self.summary = PlaySummary()
+
+    def _check_ok(self) -> None:
+        if not self.node.context.ok():
+            raise self.ros.ExternalShutdownException()
+
+    def _publish_clock(self, stamp_ns: int) -> None:
+        if self.clock_publisher is None:
+            return
+        msg = self.ros.Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        self.clock_publisher.publish(msg)
+
+    def wait_for_subscribers(self, timeout_s: float) -> int:
+        """Wait up to ``timeout_s`` for a subscription on the topic; return the count."""
+        deadline = time.monotonic() + timeout_s
+        count = int(self.publisher.get_subscription_count())
+        while count == 0 and time.monotonic() < deadline:
+            self._check_ok()
+            time.sleep(MAX_SLEEP_S)
+            count = int(self.publisher.get_subscription_count())
+        if count == 0 and timeout_s > 0.0:
+            logger.warning(
+                'No subscriber on %s after %.1f s; publishing anyway.', self.topic, timeout_s
+            )
+        return count
+
+    def _wait_until(
+        self, due_s: float, clock_from: tuple[float, int] | None, stamp_ns: int
+    ) -> None:
+        """Sleep until ``due_s`` (monotonic), ticking /clock between the two stamps."""
+        clock_period = 1.0 / self.options.clock if self.options.clock is not None else None
+        next_tick = time.monotonic()
+        while True:
+            self._check_ok()
+            now = time.monotonic()
+            if now >= due_s:
+                return
+            if clock_period is not None and clock_from is not None and now >= next_tick:
+                start_s, start_ns = clock_from
+                span = due_s - start_s
+                fraction = (now - start_s) / span if span > 0.0 else 1.0
+                fraction = min(max(fraction, 0.0), 1.0)
+                self._publish_clock(start_ns + int(round(fraction * (stamp_ns - start_ns))))
+                next_tick = now + clock_period
+            wake = due_s if clock_period is None else min(due_s, next_tick)
+            time.sleep(max(min(wake - now, MAX_SLEEP_S), 0.0))
+
+    def _scans(self) -> Iterator[tuple[int, Any]]:
+        """Yield ``(output_stamp_ns, scan)`` over every pass, stamps shifted per pass."""
+        offset_ns = 0
+        n_pass = 0
+        while True:
+            first_ns: int | None = None
+            last_out_ns: int | None = None
+            period_ns = 0
+            stop = (
+                None
+                if self.options.max_scans is None
+                else (self.options.start + self.options.max_scans)
+            )
+            n_in_pass = 0
+            for scan in itertools.islice(self.source, self.options.start, stop):
+                if first_ns is None:
+                    first_ns = scan.stamp_ns
+                out_ns = int(scan.stamp_ns) + offset_ns
+                if last_out_ns is not None and out_ns > last_out_ns:
+                    period_ns = out_ns - last_out_ns
+                last_out_ns = out_ns
+                n_in_pass += 1
+                yield out_ns, scan
+            if n_in_pass == 0:
+                raise InputError(
+                    f'{self.options.input}: no scan to publish after --start {self.options.start}'
+                )
+            n_pass += 1
+            self.summary.passes = n_pass
+            if not self.options.loop or first_ns is None or last_out_ns is None:
+                return
+            if period_ns == 0:
+                period_ns = int(SINGLE_SCAN_PERIOD_S * 1e9)
+            # The next pass starts one period after this one ended, in the same timeline.
+            offset_ns = last_out_ns + period_ns - first_ns
+
+    def run(self) -> PlaySummary:
+        """Publish every scan on schedule; return what was published.
+
+        Raises
+        ------
+        rclpy.executors.ExternalShutdownException
+            The ROS context was shut down (Ctrl-C, SIGTERM).
+        BagError, KentRegError
+            The source failed part-way (the summary so far stays in :attr:`summary`).
+        """
+        opts = self.options
+        summary = self.summary
+        summary.subscribers_at_start = self.wait_for_subscribers(opts.wait_subscribers)
+        frame_override = opts.frame_id
+        due_s: float | None = None
+        previous: tuple[float, int] | None = None
+        previous_stamp_ns: int | None = None
+        for stamp_ns, scan in self._scans():
+            msg = self.ros_message(scan, stamp_ns, frame_override)
+            if due_s is None or previous_stamp_ns is None:
+                due_s = time.monotonic()
+            else:
+                due_s += self.timing.gap_s(previous_stamp_ns, stamp_ns)
+                self._wait_until(due_s, previous, stamp_ns)
+            self._check_ok()
+            if opts.restamp == 'now':
+                msg.header.stamp = self.node.get_clock().now().to_msg()
+            else:
+                self._publish_clock(stamp_ns)
+            self.publisher.publish(msg)
+            now = time.monotonic()
+            summary.published += 1
+            summary.points += len(scan.points)
+            if summary.first_publish_s is None:
+                summary.first_publish_s = now
+                summary.first_stamp_ns = stamp_ns
+            summary.last_publish_s = now
+            summary.last_stamp_ns = stamp_ns
+            # A late scan resets the schedule: the next gap is measured from now, never
+            # compressed to catch up.
+            due_s = max(due_s, now)
+            previous = (due_s, stamp_ns)
+            previous_stamp_ns = stamp_ns
+        return summary
+
+    def ros_message(self, scan: Any, stamp_ns: int, frame_id: str | None) -> Any:
+        """An rclpy PointCloud2 of ``scan`` (x, y, z float32 and its extra fields)."""
+        from kentreg_ros.io.pointcloud2 import array_to_pointcloud2
+
+        return array_to_pointcloud2(
+            scan.points,
+            extra=scan.extras,
+            frame_id=frame_id if frame_id is not None else (scan.frame_id or 'lidar'),
+            stamp_ns=stamp_ns,
+            factory=self.factory,
+        )
+
+    def flush(self, timeout_s: float = ACK_TIMEOUT_S) -> bool:
+        """Wait until reliable subscribers acknowledged every message (or ``timeout_s``)."""
+        from rclpy.duration import Duration
+
+        if self.options.reliability != 'reliable' or self.summary.published == 0:
+            return True
+        return bool(self.publisher.wait_for_all_acked(Duration(seconds=timeout_s)))
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return ' '.join(text.split())
+
+
+def _configure_logging(quiet: bool) -> logging.Handler:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f'{PROG}: %(message)s'))
+    package_logger = logging.getLogger('kentreg_ros')
+    package_logger.addHandler(handler)
+    package_logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    return handler
+
+
+def _open_source(options: argparse.Namespace) -> Any:
+    import numpy as np
+
+    from kentreg_ros.io import open_scan_source
+
+    if not Path(options.input).exists():
+        raise InputError(f'{options.input}: no such file or folder')
+    source = open_scan_source(
+        options.input,
+        topic=options.bag_topic,
+        fields=_fields_option(options.fields),
+        dtype=np.float32,
+    )
+    if options.start >= len(source):
+        raise InputError(f'--start {options.start} is past the last scan ({source.description})')
+    return source
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Entry point of ``kentreg_play``; returns the exit status (see the module docstring).
+
+    Parameters
+    ----------
+    args : sequence of str, optional
+        Command-line arguments without the program name (default ``sys.argv[1:]``); ROS
+        arguments follow ``--ros-args``.
+    """
+    argv = list(sys.argv[1:] if args is None else args)
+    handler: logging.Handler | None = None
+    try:
+        ros = _ros()
+        options = build_parser().parse_args(ros.remove_ros_args([PROG, *argv])[1:])
+        handler = _configure_logging(options.quiet)
+        Timing.from_options(options.rate, options.hz)
+        if options.clock is not None and options.restamp != 'bag':
+            raise InputError('--clock publishes the recorded time; use it with --restamp bag')
+        source = _open_source(options)
+        return _play(ros, source, options, argv)
+    except (InputError, KentRegError, BagError, ValueError, OSError) as exc:
+        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f'{PROG}: interrupted before publishing', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if handler is not None:
+            logging.getLogger('kentreg_ros').removeHandler(handler)
+
+
+def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -> int:
+    rclpy = ros.rclpy
+    rclpy.init(args=[PROG, *argv])
+    node = None
+    player: Player | None = None
+    status = EXIT_OK
+    error: str | None = None
+    try:
+        node = rclpy.create_node(NODE_NAME)
+        player = Player(node, source, options, ros)
+        logger.info(
+            'Publishing %s on %s (%s, depth %d) %s%s.',
+            source.description,
+            player.topic,
+            options.reliability,
+            options.depth,
+            player.timing.describe(),
+            ', looping' if options.loop else '',
+        )
+        player.run()
+        if not player.flush():
+            logger.warning('Not every subscriber acknowledged the last messages in time.')
+    except (KeyboardInterrupt, ros.ExternalShutdownException):
+        status = EXIT_INTERRUPTED
+    except (InputError, KentRegError, BagError, ValueError, OSError) as exc:
+        status, error = EXIT_BAD_INPUT, _one_line(exc)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if player is not None and not options.quiet:
+        print(player.summary.format(player.topic))
+    if error is not None:
+        print(f'{PROG}: error: {error}', file=sys.stderr)
+    elif status == EXIT_INTERRUPTED:
+        published = player.summary.published if player is not None else 0
+        print(f'{PROG}: interrupted after {published} scan(s)', file=sys.stderr)
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

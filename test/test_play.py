@@ -1,0 +1,261 @@
+"""kentreg_play: real rclpy publishing of the sample bag, received by a subscriber in this process.
+
+DDS stays on loopback in a test-only domain (``conftest.py`` / ``ros_env.py``); every test uses
+its own topic name, so parallel test runs on one machine cannot see each other's messages.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_env import ros_env, unique_topic
+
+from kentreg_ros.play import Timing, main
+
+pytest.importorskip('rclpy', reason='rclpy is not installed (pip install -e .[ros])')
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+
+from kentreg_ros.io import open_scan_source, pointcloud2_to_array  # noqa: E402
+
+TIMEOUT_S = 60.0
+
+
+@pytest.fixture(scope='module')
+def sample_bag(repo_root: Path) -> Path:
+    bag = repo_root / 'bags' / 'balm_50'
+    if not bag.is_dir():
+        pytest.skip(f'{bag} is absent')
+    return bag
+
+
+@pytest.fixture(scope='module')
+def bag_scans(sample_bag: Path) -> list[Any]:
+    """The first 13 scans of the sample bag as kentreg_play reads them (float32)."""
+    scans = []
+    for scan in open_scan_source(sample_bag, dtype=np.float32):
+        scans.append(scan)
+        if len(scans) == 13:
+            break
+    return scans
+
+
+class Receiver:
+    """A subscriber node in this process that keeps every message it gets."""
+
+    def __init__(self, context: Any, topic: str, msg_type: type = PointCloud2) -> None:
+        self.node = Node('kentreg_test_receiver', context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.messages: list[Any] = []
+        self.node.create_subscription(
+            msg_type,
+            topic,
+            self.messages.append,
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
+        )
+
+    def spin_until(self, done: Any, timeout_s: float = TIMEOUT_S) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self.executor.remove_node(self.node)
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+@pytest.fixture
+def make_receiver(rclpy_context: Any) -> Iterator[Any]:
+    receivers: list[Receiver] = []
+
+    def make(topic: str, msg_type: type = PointCloud2) -> Receiver:
+        receivers.append(Receiver(rclpy_context, topic, msg_type))
+        return receivers[-1]
+
+    yield make
+    for r in receivers:
+        r.close()
+
+
+def _start_play(repo_root: Path, *args: str) -> subprocess.Popen[str]:
+    env = {
+        **os.environ,
+        **ros_env(),
+        'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path]),
+    }
+    return subprocess.Popen(
+        [sys.executable, '-m', 'kentreg_ros.play', *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+
+def _play_and_receive(
+    receiver: Receiver, proc: subprocess.Popen[str], expected: int
+) -> tuple[int, str, str]:
+    receiver.spin_until(lambda: proc.poll() is not None and len(receiver.messages) >= expected)
+    # Everything was acknowledged before the player exited; one more short spin for stragglers.
+    receiver.spin_until(lambda: False, timeout_s=0.3)
+    try:
+        stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, stdout, stderr
+
+
+def _ns(t: Any) -> int:
+    """``builtin_interfaces/Time`` in integer nanoseconds."""
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def test_play_publishes_bag_scans_in_order_with_their_stamps_and_points(
+    repo_root: Path, sample_bag: Path, bag_scans: list[Any], make_receiver: Any
+) -> None:
+    topic = unique_topic('points')
+    receiver = make_receiver(topic)
+    proc = _start_play(
+        repo_root, str(sample_bag), '--max-scans', '5', '--rate', '0', '--topic', topic,
+        '--wait-subscribers', '30',
+    )  # fmt: skip
+    code, stdout, stderr = _play_and_receive(receiver, proc, 5)
+    assert code == 0, stderr
+    got = receiver.messages
+    assert len(got) == 5
+    assert [m.header.frame_id for m in got] == ['lidar'] * 5
+    assert [m.width * m.height for m in got] == [len(s.points) for s in bag_scans[:5]]
+    stamps = [_ns(m.header.stamp) for m in got]
+    assert stamps == [s.stamp_ns for s in bag_scans[:5]]
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
+    assert [f.name for f in got[0].fields] == ['x', 'y', 'z', 'intensity']
+    decoded = pointcloud2_to_array(got[3])
+    np.testing.assert_array_equal(decoded.points, bag_scans[3].points.astype(np.float64))
+    np.testing.assert_array_equal(decoded.extras['intensity'], bag_scans[3].extras['intensity'])
+    assert f'published 5 scan(s) on {topic}' in stdout
+
+
+def test_play_start_hz_and_restamp_now_pace_and_stamp_with_the_current_time(
+    repo_root: Path, sample_bag: Path, bag_scans: list[Any], make_receiver: Any
+) -> None:
+    topic = unique_topic('points')
+    receiver = make_receiver(topic)
+    before_ns = time.time_ns()
+    proc = _start_play(
+        repo_root, str(sample_bag), '--start', '10', '--max-scans', '3', '--hz', '10',
+        '--restamp', 'now', '--fields', 'none', '--frame-id', 'velodyne', '--topic', topic,
+        '--wait-subscribers', '30',
+    )  # fmt: skip
+    code, stdout, stderr = _play_and_receive(receiver, proc, 3)
+    assert code == 0, stderr
+    got = receiver.messages
+    assert [m.width for m in got] == [len(s.points) for s in bag_scans[10:13]]
+    assert [m.header.frame_id for m in got] == ['velodyne'] * 3
+    assert [f.name for f in got[0].fields] == ['x', 'y', 'z']
+    stamps = [_ns(m.header.stamp) for m in got]
+    assert stamps[0] >= before_ns and all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
+    # 10 Hz: the three messages span at least two periods of the player's own clock.
+    duration = float(re.search(r'in ([0-9.]+) s', stdout).group(1))  # type: ignore[union-attr]
+    assert 0.2 <= duration < 10.0
+    # The stamps were taken at publishing, so they are at least ~one period apart too.
+    assert (stamps[2] - stamps[0]) * 1e-9 >= 0.19
+
+
+def test_play_loop_with_clock_keeps_stamps_increasing_across_passes(
+    repo_root: Path, sample_bag: Path, bag_scans: list[Any], make_receiver: Any
+) -> None:
+    topic = unique_topic('points')
+    clock_topic = unique_topic('clock')
+    receiver = make_receiver(topic)
+    clocks = make_receiver(clock_topic, Clock)
+    proc = _start_play(
+        repo_root, str(sample_bag), '--max-scans', '2', '--loop', '--rate', '20', '--clock',
+        '--topic', topic, '--wait-subscribers', '30', '--ros-args', '-r',
+        f'/clock:={clock_topic}',
+    )  # fmt: skip
+    try:
+        receiver.spin_until(lambda: len(receiver.messages) >= 5)
+        clocks.spin_until(lambda: len(clocks.messages) >= 3, timeout_s=5.0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+    code, _, stderr = _play_and_receive(receiver, proc, 0)
+    assert code == 130, stderr
+    assert 'Traceback' not in stderr
+    assert re.search(r'interrupted after \d+ scan\(s\)', stderr)
+    stamps = [_ns(m.header.stamp) for m in receiver.messages]
+    assert len(stamps) >= 5
+    first, second = (s.stamp_ns for s in bag_scans[:2])
+    period = second - first
+    # Pass k is shifted by k * (span + one period) = 2k periods.
+    assert stamps[:5] == [
+        first,
+        second,
+        first + 2 * period,
+        second + 2 * period,
+        first + 4 * period,
+    ]
+    clock_ns = [_ns(c.clock) for c in clocks.messages]
+    assert clock_ns == sorted(clock_ns) and clock_ns[0] >= first
+
+
+def test_play_bad_input_exits_2_with_one_line(
+    sample_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cases = [
+        ([str(tmp_path / 'missing_bag')], 'no such file or folder'),
+        ([str(sample_bag), '--bag-topic', '/nope'], "no topic '/nope'"),
+        ([str(sample_bag), '--start', '50'], '--start 50 is past the last scan'),
+        ([str(sample_bag), '--rate', '2', '--hz', '5'], '--rate and --hz exclude each other'),
+        ([str(sample_bag), '--clock', '--restamp', 'now'], 'use it with --restamp bag'),
+        ([str(sample_bag), '--rate', '-1'], 'expected a finite number >= 0'),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        out, err = capsys.readouterr()
+        lines = err.strip().splitlines()
+        assert out == ''
+        assert len(lines) == 1 and lines[0].startswith('kentreg_play: error: '), err
+        assert message in lines[0]
+
+
+def test_installed_console_script_reports_bad_input(tmp_path: Path) -> None:
+    import shutil
+
+    script = shutil.which('kentreg_play')
+    if script is None:
+        pytest.skip('kentreg_play is not installed (pip install -e .[ros])')
+    proc = subprocess.run(
+        [script, str(tmp_path / 'nothing')],
+        capture_output=True, text=True, timeout=TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (
+        f'kentreg_play: error: {tmp_path / "nothing"}: no such file or folder'
+    )
+
+
+def test_timing_gaps_follow_rate_hz_or_nothing() -> None:
+    second = 1_000_000_000
+    assert Timing.from_options(None, None).gap_s(0, second // 2) == pytest.approx(0.5)
+    assert Timing.from_options(4.0, None).gap_s(0, second) == pytest.approx(0.25)
+    assert Timing.from_options(0.0, None).gap_s(0, second) == 0.0
+    assert Timing.from_options(None, 20.0).gap_s(0, 5 * second) == pytest.approx(0.05)
+    # Stamps that go backwards never make the player wait.
+    assert Timing.from_options(1.0, None).gap_s(second, 0) == 0.0
