@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -664,9 +665,14 @@ class KentRegNode(Node):
 def main(args: Sequence[str] | None = None) -> int:
     """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
 
-    Returns 0 on a clean shutdown and 1 when the parameters are invalid (the reason is logged).
+    Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid
+    (the reason is logged, in one line).
     """
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # noqa: BLE001 - rcl raises RCLError for bad --ros-args / files
+        print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
+        return 1
     node: KentRegNode | None = None
     try:
         node = KentRegNode()

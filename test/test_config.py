@@ -43,6 +43,15 @@ def test_plain_and_dotted_yaml_forms(tmp_path: Path) -> None:
     assert parameters_from_yaml(path) == {'em.max_iterations': 9, 'normals.k_neighbors': 20}
 
 
+@pytest.mark.parametrize('key', ['kentreg_node', '/kentreg_node', '/robot1/kentreg_node',
+                                 '/**/kentreg_node', '/**'])  # fmt: skip
+def test_ros_parameter_file_node_keys(tmp_path: Path, key: str) -> None:
+    path = tmp_path / 'c.yaml'
+    other = 'other_node:\n  ros__parameters:\n    em:\n      max_iterations: 3\n'
+    path.write_text(f'{other}{key!r}:\n  ros__parameters:\n    em:\n      max_iterations: 9\n')
+    assert parameters_from_yaml(path) == {'em.max_iterations': 9}
+
+
 def test_unknown_key_lists_the_valid_ones() -> None:
     with pytest.raises(ConfigError, match=r"Unknown configuration key\(s\) \['em.max_iter'\]"):
         KentRegConfig.from_dict({'em': {'max_iter': 3}})

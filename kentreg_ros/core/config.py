@@ -366,8 +366,9 @@ def _coerce(name: str, value: Any, hint: Any) -> Any:
 def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
     """Read a parameter file and return its flat ``{dotted_name: value}`` mapping.
 
-    Accepts the ROS 2 form ``<node_name>: {ros__parameters: {...}}`` (also under ``/**``) and
-    a plain mapping of the same keys, nested or dotted.
+    Accepts the ROS 2 form ``<node_name>: {ros__parameters: {...}}`` (the node key may carry
+    a namespace, ``/ns/<node_name>`` or ``/**/<node_name>``, or be ``/**``) and a plain mapping
+    of the same keys, nested or dotted.
     """
     import yaml  # noqa: PLC0415  (keep the core importable without PyYAML for library users)
 
@@ -384,7 +385,13 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
         raise ConfigError(f'Configuration file {str(path)!r} is not valid YAML: {exc}.') from exc
     if not isinstance(data, dict):
         raise ConfigError(f'Expected a mapping at the top of {str(path)!r}, got {type(data)}.')
-    for key in (node_name, '/' + node_name, '/**'):
+    # ROS keys name the node: `kentreg_node`, `/kentreg_node`, `/robot1/kentreg_node`,
+    # `/**/kentreg_node` (any namespace) or `/**` (every node).
+    keys = [k for k in data if isinstance(k, str)]
+    candidates = [k for k in keys if k in (node_name, '/' + node_name)]
+    candidates += [k for k in keys if k.endswith('/' + node_name) and k not in candidates]
+    candidates += [k for k in keys if k == '/**']
+    for key in candidates:
         section = data.get(key)
         if isinstance(section, dict) and 'ros__parameters' in section:
             data = section['ros__parameters'] or {}

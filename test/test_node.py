@@ -1,0 +1,496 @@
+"""kentreg_node with real rclpy over DDS: a node subprocess, a publisher and subscribers here.
+
+Every test starts ``python -m kentreg_ros.node`` with the shipped parameter file, talks to it
+over Fast DDS kept on loopback (``test/fastdds_localhost.xml``,
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in a ROS domain of its own (test-only ids, so that
+tests never hear each other), and stops it with SIGINT, checking that it exits cleanly. The
+node keeps its default name and namespace: the parameter file's ``kentreg_node:`` key only
+applies to ``/kentreg_node``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
+
+import yaml  # noqa: E402
+from builtin_interfaces.msg import Time  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from nav_msgs.msg import Odometry as OdometryMsg  # noqa: E402
+from nav_msgs.msg import Path as PathMsg  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from kentreg_ros.core import metrics  # noqa: E402
+from kentreg_ros.io.bags import open_scan_source, read_ground_truth  # noqa: E402
+from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
+from kentreg_ros.replay import GroundTruth  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / 'bags' / 'balm_50'
+PARAMS = REPO / 'config' / 'kentreg.yaml'
+DDS_PROFILE = REPO / 'test' / 'fastdds_localhost.xml'
+FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
+_DOMAINS = itertools.count()
+#: Test-only ROS domain ids (Fast DDS on Linux: 0..101 keep clear of ephemeral ports).
+DOMAIN_BASE, DOMAIN_COUNT = 80, 20
+#: Reliable input, and queue and history deep enough that a burst of test messages is kept.
+QUEUE_ALL = (
+    '-p',
+    'node.qos_reliability:=reliable',
+    '-p',
+    'node.queue_size:=20',
+    '-p',
+    'node.qos_depth:=50',
+)
+
+
+def ros_environment(domain_id: int) -> dict[str, str]:
+    """DDS on loopback only, in the test-only domain ``domain_id``."""
+    return {
+        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+        'FASTRTPS_DEFAULT_PROFILES_FILE': str(DDS_PROFILE),
+        'ROS_DOMAIN_ID': str(domain_id),
+    }
+
+
+def cloud_msg(points: np.ndarray, stamp_ns: int, frame_id: str = 'lidar') -> Any:
+    return array_to_pointcloud2(points, stamp_ns=stamp_ns, frame_id=frame_id, factory=FACTORY)
+
+
+def stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def pose_matrix(pose: Any) -> np.ndarray:
+    T = np.eye(4)
+    q = pose.orientation
+    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    T[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return T
+
+
+class NodeProcess:
+    """``kentreg_node`` in a subprocess, with its log kept for failure messages."""
+
+    def __init__(self, domain_id: int, args: list[str], log_path: Path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open('w')
+        cmd = [sys.executable, '-m', 'kentreg_ros.node', '--ros-args']
+        self.proc = subprocess.Popen(
+            cmd + args,
+            env={**os.environ, **ros_environment(domain_id), 'PYTHONUNBUFFERED': '1'},
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def rss_mb(self) -> float:
+        for line in Path(f'/proc/{self.proc.pid}/status').read_text().splitlines():
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1]) / 1024.0
+        return float('nan')
+
+    def stop(self) -> int:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+
+class Harness:
+    """A test-side rclpy node: publishes scans, collects outputs, calls services."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmp_path = tmp_path
+        self.domain_id = DOMAIN_BASE + next(_DOMAINS) % DOMAIN_COUNT
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.node = rclpy.create_node(f'kentreg_test_{os.getpid()}', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.processes: list[NodeProcess] = []
+
+    def start_node(self, *extra: str, params: Path | None = PARAMS) -> NodeProcess:
+        args = (['--params-file', str(params)] if params is not None else []) + list(extra)
+        log = self.tmp_path / f'kentreg_node_{len(self.processes)}.log'
+        proc = NodeProcess(self.domain_id, args, log)
+        self.processes.append(proc)
+        return proc
+
+    def connect(self, proc: NodeProcess, *, reliable: bool = True) -> Outputs:
+        out = Outputs(self, reliable=reliable)
+        ok = self.spin_until(
+            lambda: (
+                self.node.count_subscribers('/points') >= 1
+                and self.node.count_publishers('/odom') >= 1
+                and out.pub.get_subscription_count() >= 1
+            ),
+            timeout=30.0,
+            proc=proc,
+        )
+        assert ok, f'kentreg_node did not come up:\n{proc.log()}'
+        return out
+
+    def spin_until(
+        self, done: Callable[[], bool], timeout: float, proc: NodeProcess | None = None
+    ) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if done():
+                return True
+            if proc is not None and not proc.alive():
+                return done()
+            self.executor.spin_once(timeout_sec=0.02)
+        return done()
+
+    def close(self) -> None:
+        for proc in self.processes:
+            proc.stop()
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+class Outputs:
+    """Subscriptions to one kentreg_node's outputs and a publisher to its input."""
+
+    def __init__(self, harness: Harness, *, reliable: bool) -> None:
+        node = harness.node
+        qos_in = QoSProfile(
+            depth=10,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        )
+        self.pub = node.create_publisher(PointCloud2, '/points', qos_in)
+        self.odom: list[Any] = []
+        self.pose: list[Any] = []
+        self.path: list[Any] = []
+        self.diag: list[Any] = []
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        node.create_subscription(OdometryMsg, '/odom', self.odom.append, qos)
+        node.create_subscription(PoseStamped, '/pose', self.pose.append, qos)
+        node.create_subscription(PathMsg, '/path', self.path.append, qos)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self.diag.append, qos)
+        self.reset = node.create_client(Trigger, '/kentreg_node/reset')
+        self.params = AsyncParameterClient(node, '/kentreg_node')
+
+    def diagnostics(self) -> dict[str, str]:
+        """Key/values of the latest diagnostics message."""
+        return {kv.key: kv.value for kv in self.diag[-1].status[0].values}
+
+
+@pytest.fixture
+def harness(tmp_path: Path) -> Iterator[Harness]:
+    # The test process's own participant must stay on loopback too.
+    monkeypatch = pytest.MonkeyPatch()
+    for key, value in ros_environment(DOMAIN_BASE).items():
+        monkeypatch.setenv(key, value)
+    h = Harness(tmp_path)
+    try:
+        yield h
+    finally:
+        h.close()
+        monkeypatch.undo()
+
+
+@pytest.fixture(scope='module')
+def bag_scans() -> list[Any]:
+    return list(open_scan_source(BAG))
+
+
+def wait_diagnostics(h: Harness, out: Outputs, proc: NodeProcess, predicate: Callable) -> dict:
+    """Wait for a diagnostics message whose values satisfy ``predicate``."""
+    ok = h.spin_until(
+        lambda: bool(out.diag) and predicate(out.diagnostics()), timeout=20.0, proc=proc
+    )
+    assert ok, f'diagnostics never satisfied the check: {out.diag and out.diagnostics()}'
+    return out.diagnostics()
+
+
+def test_node_tracks_the_sample_bag_like_replay(
+    harness: Harness, bag_scans: list[Any], tmp_path: Path
+) -> None:
+    # Reliable input so that the lockstep publication below loses nothing.
+    proc = harness.start_node('-p', 'node.qos_reliability:=reliable')
+    out = harness.connect(proc)
+    for i, scan in enumerate(bag_scans):
+        out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
+        ok = harness.spin_until(lambda i=i: len(out.odom) > i, timeout=30.0, proc=proc)
+        assert ok, f'no odom for scan {i}:\n{proc.log()}'
+    harness.spin_until(lambda: len(out.pose) == len(bag_scans), timeout=5.0)
+    assert len(out.odom) == len(out.pose) == len(bag_scans)
+
+    stamps = [s.stamp_ns for s in bag_scans]
+    assert [stamp_ns(m.header.stamp) for m in out.odom] == stamps
+    assert [stamp_ns(m.header.stamp) for m in out.pose] == stamps
+    assert {m.header.frame_id for m in out.odom} == {'odom'}
+    assert {m.child_frame_id for m in out.odom} == {'base_link'}
+    assert {m.header.frame_id for m in out.pose} == {'odom'}
+    np.testing.assert_allclose(pose_matrix(out.odom[0].pose.pose), np.eye(4), atol=1e-12)
+
+    # The same bounds as the replay on the same bag.
+    gt = GroundTruth(read_ground_truth(BAG), 'bag')
+    by_stamp = dict(
+        zip(gt.trajectory.stamps_ns.tolist(), gt.trajectory.T_world_sensor, strict=True)
+    )
+    T_gt = np.array([by_stamp[s] for s in stamps])
+    T_est = np.array([pose_matrix(m.pose.pose) for m in out.odom])
+    e_R, e_t = metrics.pair_errors(metrics.relative_poses(T_est), metrics.relative_poses(T_gt))
+    assert np.median(e_R) <= 0.1 and np.median(e_t) <= 0.01
+    assert np.all(e_R <= 2.0) and np.all(e_t <= 0.2)
+    np.testing.assert_allclose([pose_matrix(m.pose) for m in out.pose], T_est, atol=1e-9)
+
+    # Twist: the motion of the last step over its time gap, in the base frame.
+    last, prev = out.odom[-1], out.odom[-2]
+    dt = (stamps[-1] - stamps[-2]) * 1e-9
+    T_step = np.linalg.inv(T_est[-2]) @ T_est[-1]
+    v = T_step[:3, :3].T @ T_step[:3, 3] / dt
+    lin = last.twist.twist.linear
+    np.testing.assert_allclose([lin.x, lin.y, lin.z], v, atol=1e-6)
+    assert prev.pose.covariance[0] > 0 and np.all(np.isfinite(last.pose.covariance))
+
+    # Path and diagnostics.
+    harness.spin_until(lambda: len(out.path[-1].poses) == len(stamps) if out.path else False, 5.0)
+    assert [stamp_ns(p.header.stamp) for p in out.path[-1].poses] == stamps
+    diag = wait_diagnostics(harness, out, proc, lambda d: d['total.processed'] == '50')
+    assert diag['total.received'] == '50' and diag['total.dropped_queue'] == '0'
+    assert diag['total.fell_back'] == '0' and diag['total.malformed'] == '0'
+    assert proc.stop() == 0, proc.log()
+
+
+def test_node_overload_drops_oldest_counts_and_stays_responsive(
+    harness: Harness, bag_scans: list[Any]
+) -> None:
+    proc = harness.start_node('-p', 'node.qos_reliability:=reliable')
+    out = harness.connect(proc)
+    # Let the first scan become the model, then measure memory.
+    out.pub.publish(cloud_msg(bag_scans[0].points, 1_000_000_000))
+    assert harness.spin_until(lambda: len(out.odom) == 1, timeout=30.0, proc=proc), proc.log()
+    rss_start = proc.rss_mb()
+    # 150 scans at 40 Hz: several times what the node can register.
+    n, period = 150, 0.025
+    sent = []
+    reset_future = None
+    t0 = time.monotonic()
+    for k in range(1, n + 1):
+        stamp = 1_000_000_000 + k * 100_000_000
+        sent.append(stamp)
+        out.pub.publish(cloud_msg(bag_scans[k % len(bag_scans)].points, stamp))
+        if k == n // 2:
+            assert out.reset.wait_for_service(timeout_sec=5.0)
+            reset_future = out.reset.call_async(Trigger.Request())
+        harness.spin_until(lambda k=k: time.monotonic() - t0 >= k * period, timeout=1.0)
+    # The node stays responsive under load: the service answered during the flood.
+    assert reset_future is not None
+    assert harness.spin_until(reset_future.done, timeout=5.0), 'reset did not answer'
+    assert reset_future.result().success
+    # The newest scan always gets processed (latest wins).
+    assert harness.spin_until(
+        lambda: bool(out.odom) and stamp_ns(out.odom[-1].header.stamp) == sent[-1],
+        timeout=30.0,
+        proc=proc,
+    ), proc.log()
+    rss_end = proc.rss_mb()
+
+    diag = wait_diagnostics(
+        harness,
+        out,
+        proc,
+        # Every scan received is accounted for: processed or dropped (none left in flight).
+        lambda d: (
+            int(d['total.received'])
+            == n + 1
+            == int(d['total.processed']) + int(d['total.dropped_queue'])
+        ),
+    )
+    received = int(diag['total.received'])
+    processed = int(diag['total.processed'])
+    dropped = int(diag['total.dropped_queue'])
+    assert dropped > 0 and processed < received == processed + dropped
+    assert int(diag['total.resets']) == 1
+    # Outputs stay consistent: increasing stamps, all of them sent, finite poses.
+    got = [stamp_ns(m.header.stamp) for m in out.odom]
+    assert got == sorted(got) and len(set(got)) == len(got) and set(got[1:]) <= set(sent)
+    assert len(out.odom) == processed
+    assert all(np.isfinite(pose_matrix(m.pose.pose)).all() for m in out.odom)
+    # Memory stays bounded: no growth with the number of scans queued.
+    assert rss_end - rss_start < 60.0, (rss_start, rss_end)
+    assert proc.stop() == 0, proc.log()
+
+
+def _bad_clouds(points: np.ndarray) -> list[tuple[str, Any]]:
+    truncated = cloud_msg(points, 2_000_000_000)
+    truncated.data = truncated.data[:-7]
+    no_z = cloud_msg(points, 3_000_000_000)
+    no_z.fields = [f for f in no_z.fields if f.name != 'z']
+    beyond = cloud_msg(points, 4_000_000_000)
+    beyond.point_step = 8  # the z field lies beyond the point
+    beyond.row_step = beyond.width * 8
+    return [('truncated data', truncated), ('no z field', no_z), ('field beyond', beyond)]
+
+
+def test_node_survives_bad_input_and_counts_it(harness: Harness, bag_scans: list[Any]) -> None:
+    proc = harness.start_node(*QUEUE_ALL)
+    out = harness.connect(proc)
+    points = bag_scans[0].points
+    out.pub.publish(cloud_msg(points, 1_000_000_000))
+    assert harness.spin_until(lambda: len(out.odom) == 1, 30.0, proc), proc.log()
+    for _, msg in _bad_clouds(points):
+        out.pub.publish(msg)
+    with_nan = bag_scans[1].points.copy()
+    with_nan[::10] = np.nan
+    out.pub.publish(cloud_msg(with_nan, 5_000_000_000))
+    out.pub.publish(cloud_msg(np.zeros((0, 3)), 6_000_000_000))  # empty
+    out.pub.publish(cloud_msg(np.full((50, 3), np.inf), 7_000_000_000))  # nothing finite
+    out.pub.publish(cloud_msg(points[:3], 8_000_000_000))  # too few points
+    out.pub.publish(cloud_msg(bag_scans[2].points, 9_000_000_000))
+    assert harness.spin_until(
+        lambda: bool(out.odom) and stamp_ns(out.odom[-1].header.stamp) == 9_000_000_000,
+        timeout=30.0,
+        proc=proc,
+    ), proc.log()
+    assert proc.alive()
+    diag = wait_diagnostics(
+        harness, out, proc, lambda d: (d['total.received'], d['total.processed']) == ('9', '6')
+    )
+    assert diag['total.malformed'] == '3'
+    assert int(diag['total.nonfinite_points']) == len(with_nan[::10]) + 50
+    assert diag['total.rejected'] == '3'
+    # Every usable or merely unusable scan got an output; malformed ones did not.
+    assert len(out.odom) == 6
+    log = proc.log()
+    assert 'malformed PointCloud2' in log and 'Rejected the scan' in log
+    assert proc.stop() == 0, log
+
+
+def test_node_validates_runtime_parameter_changes(
+    harness: Harness, bag_scans: list[Any], tmp_path: Path
+) -> None:
+    params = _write_params(tmp_path, em__max_iterations=33, node__path_length=7)
+    proc = harness.start_node(*QUEUE_ALL, params=params)
+    out = harness.connect(proc)
+    assert out.params.wait_for_services(timeout_sec=10.0)
+    # The parameter file applies (not just the defaults, which would be 50 and 1000).
+    future = out.params.get_parameters(['em.max_iterations', 'node.path_length'])
+    assert harness.spin_until(future.done, 10.0, proc)
+    assert [parameter_value_to_python(v) for v in future.result().values] == [33, 7]
+
+    def set_params(*params: Parameter) -> list[Any]:
+        future = out.params.set_parameters(list(params))
+        assert harness.spin_until(future.done, 10.0, proc)
+        return future.result().results
+
+    rejected = [
+        Parameter('em.max_iterations', value=0),  # below its range
+        Parameter('mode', value='fast'),  # not a choice
+        Parameter('node.qos_depth', value=3),  # read-only after startup
+        Parameter('node.odom_frame', value='base_link'),  # same as the base frame
+        Parameter('em.tolerance', value='small'),  # wrong type
+    ]
+    for param in rejected:
+        (result,) = set_params(param)
+        assert not result.successful and result.reason, param.name
+    (ok,) = set_params(Parameter('em.max_iterations', value=30))
+    assert ok.successful
+    future = out.params.get_parameters(['em.max_iterations', 'mode', 'node.qos_depth'])
+    assert harness.spin_until(future.done, 10.0, proc)
+    values = [parameter_value_to_python(v) for v in future.result().values]
+    assert values == [30, 'robust', 50]  # nothing rejected was applied
+    # The node still works after the accepted change.
+    for k in range(2):
+        out.pub.publish(cloud_msg(bag_scans[k].points, (k + 1) * 1_000_000_000))
+    assert harness.spin_until(lambda: len(out.odom) == 2, 30.0, proc), proc.log()
+    assert proc.stop() == 0
+
+
+def test_node_restarts_when_time_goes_back_or_frame_changes(
+    harness: Harness, bag_scans: list[Any]
+) -> None:
+    proc = harness.start_node(*QUEUE_ALL)
+    out = harness.connect(proc)
+    plan = [(0, 1, 'lidar'), (1, 2, 'lidar'), (2, 2, 'lidar'), (3, 1, 'lidar'), (4, 3, 'other')]
+    for scan_index, second, frame in plan:
+        out.pub.publish(cloud_msg(bag_scans[scan_index].points, second * 10**9, frame))
+    assert harness.spin_until(lambda: len(out.odom) == 4, 30.0, proc), proc.log()
+    diag = wait_diagnostics(
+        harness, out, proc, lambda d: (d['total.received'], d['total.processed']) == ('5', '4')
+    )
+    # The repeated stamp is dropped; going back and the frame change each restart at identity.
+    assert diag['total.dropped_duplicate_stamp'] == '1' and diag['total.resets'] == '2'
+    assert [stamp_ns(m.header.stamp) for m in out.odom] == [10**9, 2 * 10**9, 10**9, 3 * 10**9]
+    for i in (0, 2, 3):
+        np.testing.assert_allclose(pose_matrix(out.odom[i].pose.pose), np.eye(4), atol=1e-12)
+    assert not np.allclose(pose_matrix(out.odom[1].pose.pose), np.eye(4), atol=1e-3)
+    log = proc.log()
+    assert 'Time went backwards' in log and 'sensor frame changed' in log
+    assert proc.stop() == 0
+
+
+def _write_params(tmp_path: Path, **updates: Any) -> Path:
+    data = yaml.safe_load(PARAMS.read_text())
+    params = data['kentreg_node']['ros__parameters']
+    for dotted, value in updates.items():
+        section, _, key = dotted.rpartition('__')
+        (params[section] if section else params)[key] = value
+    path = tmp_path / 'params.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    ('how', 'expected'),
+    [
+        (['-p', 'em.max_iterations:=0'], 'em.max_iterations out of range'),
+        (['-p', 'mode:=fast'], "Expected `mode` to be one of ['robust', 'paper']"),
+        (['-p', 'preprocess.voxel_size:=1'], 'with a decimal point'),
+        (['-p', 'node.odom_frame:=base_link'], 'must differ'),
+        ({'em__bogus': 3}, "unknown parameter(s) ['em.bogus']"),
+        ({'node__queue_policy': 'fifo'}, 'Expected `node.queue_policy` to be one of'),
+        (['--params-file', '/nonexistent/params.yaml'], "Couldn't parse params file"),
+    ],
+)
+def test_node_exits_1_with_the_reason_on_bad_startup_parameters(
+    harness: Harness, tmp_path: Path, how: Any, expected: str
+) -> None:
+    if isinstance(how, dict):
+        proc = harness.start_node(params=_write_params(tmp_path, **how))
+    else:
+        proc = harness.start_node(*how, params=None if how[0] == '--params-file' else PARAMS)
+    try:
+        code = proc.proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f'kentreg_node kept running with bad parameters:\n{proc.log()}')
+    log = proc.log()
+    assert code == 1, log
+    assert expected in log, log
+    assert 'Traceback' not in log
