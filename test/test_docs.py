@@ -1,0 +1,101 @@
+"""The README's parameter tables are the rendering of the configuration and node parameters."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from kentreg_ros import docs
+from kentreg_ros.core.config import NODE_NAME, KentRegConfig, iter_fields
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+README = REPO_ROOT / 'README.md'
+
+
+def _readme_block() -> str:
+    text = README.read_text(encoding='utf-8')
+    return text.split(docs.BEGIN + '\n', 1)[1].split(docs.END, 1)[0]
+
+
+def test_readme_parameter_tables_equal_the_rendering() -> None:
+    assert _readme_block() == docs.render_parameters() + '\n', (
+        'README.md is stale: run python3 -m kentreg_ros.docs --write README.md'
+    )
+    assert docs.main(['--check', str(README)]) == 0
+
+
+def test_rendering_has_one_row_per_config_field_with_default_and_range() -> None:
+    block = docs.render_parameters()
+    for name, value, f in iter_fields(KentRegConfig()):
+        rows = [line for line in block.splitlines() if line.startswith(f'| `{name}` |')]
+        assert len(rows) == 1, name
+        assert f.metadata['description'].split()[0] in rows[0]
+    row = next(r for r in block.splitlines() if r.startswith('| `em.max_iterations` |'))
+    assert row.startswith('| `em.max_iterations` | integer | `50` | 1 … 10000 | ')
+    row = next(r for r in block.splitlines() if r.startswith('| `refine.method` |'))
+    assert '`plane_to_plane`, `point_to_plane`, `none`' in row
+
+
+def test_rendering_lists_the_node_parameters_when_the_node_defines_them() -> None:
+    params = docs._load_node_parameters()
+    if params is None:
+        pytest.skip('no NODE_PARAMETERS in kentreg_ros.node_params / kentreg_ros.node')
+    block = docs.render_parameters()
+    for p in params:
+        name = p[0] if isinstance(p, tuple) else p.name
+        assert name.startswith('node.')
+        assert sum(line.startswith(f'| `{name}` |') for line in block.splitlines()) == 1
+
+
+def test_every_key_of_the_shipped_parameter_file_is_documented() -> None:
+    data = yaml.safe_load((REPO_ROOT / 'config' / 'kentreg.yaml').read_text(encoding='utf-8'))
+    params = data[NODE_NAME]['ros__parameters']
+
+    def flatten(d: dict[str, object], prefix: str = '') -> list[str]:
+        out: list[str] = []
+        for key, value in d.items():
+            if isinstance(value, dict):
+                out += flatten(value, f'{prefix}{key}.')
+            else:
+                out.append(f'{prefix}{key}')
+        return out
+
+    documented = {r.name for r in docs.config_parameters() + docs.node_parameters()}
+    missing = sorted(set(flatten(params)) - documented - {'use_sim_time'})
+    assert missing == []
+
+
+def test_tuple_node_parameters_render_with_ros_types() -> None:
+    rows = docs.node_parameters(
+        [('node.a', 3, 'An integer.'), ('node.b', 'odom', 'A | frame.'), ('node.c', 0.5, 'x')]
+    )
+    table = docs.render_table(rows)
+    assert '| `node.a` | integer | `3` | any | An integer. |' in table
+    assert '| `node.b` | string | `odom` | any | A \\| frame. |' in table
+    assert '| `node.c` | double | `0.5` |' in table
+
+
+def test_write_then_check_round_trip_and_stale_file_is_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    readme = tmp_path / 'README.md'
+    readme.write_text(f'# x\n\nbefore\n{docs.BEGIN}\nold table\n{docs.END}\nafter\n')
+    assert docs.main(['--check', str(readme)]) == 1
+    assert 'out of date' in capsys.readouterr().err
+    assert docs.main(['--write', str(readme)]) == 0
+    text = readme.read_text()
+    assert text.startswith(f'# x\n\nbefore\n{docs.BEGIN}\n')
+    assert text.endswith(f'{docs.END}\nafter\n')
+    assert 'old table' not in text and '| `mode` |' in text
+    assert docs.main(['--check', str(readme)]) == 0
+
+
+def test_missing_markers_are_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    readme = tmp_path / 'README.md'
+    readme.write_text(f'# x\n{docs.END}\n{docs.BEGIN}\n')
+    assert docs.main(['--check', str(readme)]) == 2
+    assert 'expected one line' in capsys.readouterr().err
+    with pytest.raises(ValueError, match='found 0 and 0'):
+        docs.replace_block('no markers', 'table')
