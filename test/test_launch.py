@@ -178,3 +178,35 @@ def test_installed_package_has_marker_manifest_config_launch_and_executable(
         e.kwargs['default_value'] for e in entities if e.args and e.args[0] == 'config_file'
     )
     assert Path(config_default) == share / 'config' / 'kentreg.yaml'
+
+
+#: Top-level imports that are not ROS packages (standard library, kentreg_ros, pip packages).
+_NOT_ROS = {'kentreg_ros', 'numpy', 'scipy', 'yaml', 'rosbags', 'mcap', 'tqdm', 'matplotlib'}
+
+
+def _top_level_imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding='utf-8'))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split('.')[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split('.')[0])
+    return names - set(sys.stdlib_module_names) - _NOT_ROS
+
+
+def test_package_xml_declares_every_ros_package_the_node_player_and_launch_import() -> None:
+    import xml.etree.ElementTree as ET
+
+    manifest = ET.parse(REPO_ROOT / 'package.xml').getroot()
+    assert manifest.get('format') == '3'
+    assert manifest.findtext('name') == 'kentreg_ros'
+    assert manifest.findtext('export/build_type') == 'ament_python'
+    exec_depends = {e.text for e in manifest.findall('exec_depend')}
+    imported = set()
+    for module in ('kentreg_ros/node.py', 'kentreg_ros/play.py', 'launch/kentreg.launch.py'):
+        if (REPO_ROOT / module).is_file():
+            imported |= _top_level_imports(REPO_ROOT / module)
+    assert {'rclpy', 'sensor_msgs', 'launch_ros', 'rosgraph_msgs'} <= imported
+    assert sorted(imported - exec_depends) == []
+    assert {e.text for e in manifest.findall('test_depend')} == {'python3-pytest'}
