@@ -238,13 +238,17 @@ def machine_info() -> dict[str, Any]:
             versions[mod] = version(dist.get(mod, mod))
         except Exception:  # noqa: BLE001  (a missing library is reported as such)
             versions[mod] = None
+    commit = os.environ.get('KENTREG_GIT_COMMIT', '')  # set when running from a `git archive`
     try:
-        commit = subprocess.run(
-            ['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'],
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
+        commit = (
+            commit
+            or subprocess.run(
+                ['git', '-C', str(ROOT), 'rev-parse', '--short', 'HEAD'],
+                capture_output=True,
+                text=True,
+                check=False,
+            ).stdout.strip()
+        )
     except OSError:
         commit = ''
     return {
