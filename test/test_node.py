@@ -2,10 +2,10 @@
 
 Every test starts ``python -m kentreg_ros.node`` with the shipped parameter file, talks to it
 over Fast DDS kept on loopback (``test/fastdds_localhost.xml``,
-``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in a ROS domain of its own (test-only ids, so that
-tests never hear each other), and stops it with SIGINT, checking that it exits cleanly. The
-node keeps its default name and namespace: the parameter file's ``kentreg_node:`` key only
-applies to ``/kentreg_node``.
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, see ``test/ros_env.py``) in a ROS domain of its
+own (test-only ids, so that tests never hear each other), and stops it with SIGINT, checking
+that it exits cleanly. The node keeps its default name and namespace: the parameter file's
+``kentreg_node:`` key only applies to ``/kentreg_node``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
 
+import ros_env  # noqa: E402  (test/ is on sys.path)
 import yaml  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -48,11 +49,8 @@ from kentreg_ros.replay import GroundTruth  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / 'bags' / 'balm_50'
 PARAMS = REPO / 'config' / 'kentreg.yaml'
-DDS_PROFILE = REPO / 'test' / 'fastdds_localhost.xml'
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
 _DOMAINS = itertools.count()
-#: Test-only ROS domain ids (Fast DDS on Linux: 0..101 keep clear of ephemeral ports).
-DOMAIN_BASE, DOMAIN_COUNT = 80, 20
 #: Reliable input, and queue and history deep enough that a burst of test messages is kept.
 QUEUE_ALL = (
     '-p',
@@ -64,13 +62,16 @@ QUEUE_ALL = (
 )
 
 
+def next_domain_id() -> int:
+    """A test-only domain for the next test: this session's domain, then the following ones."""
+    span = ros_env.DOMAIN_ID_MAX - ros_env.DOMAIN_ID_MIN + 1
+    offset = ros_env.domain_id() - ros_env.DOMAIN_ID_MIN + next(_DOMAINS)
+    return ros_env.DOMAIN_ID_MIN + offset % span
+
+
 def ros_environment(domain_id: int) -> dict[str, str]:
-    """DDS on loopback only, in the test-only domain ``domain_id``."""
-    return {
-        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-        'FASTRTPS_DEFAULT_PROFILES_FILE': str(DDS_PROFILE),
-        'ROS_DOMAIN_ID': str(domain_id),
-    }
+    """DDS on loopback only (``test/ros_env.py``), in the test-only domain ``domain_id``."""
+    return {**ros_env.ros_env(), 'ROS_DOMAIN_ID': str(domain_id)}
 
 
 def cloud_msg(points: np.ndarray, stamp_ns: int, frame_id: str = 'lidar') -> Any:
@@ -133,7 +134,7 @@ class Harness:
 
     def __init__(self, tmp_path: Path) -> None:
         self.tmp_path = tmp_path
-        self.domain_id = DOMAIN_BASE + next(_DOMAINS) % DOMAIN_COUNT
+        self.domain_id = next_domain_id()
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.node = rclpy.create_node(f'kentreg_test_{os.getpid()}', context=self.context)
@@ -211,16 +212,12 @@ class Outputs:
 
 @pytest.fixture
 def harness(tmp_path: Path) -> Iterator[Harness]:
-    # The test process's own participant must stay on loopback too.
-    monkeypatch = pytest.MonkeyPatch()
-    for key, value in ros_environment(DOMAIN_BASE).items():
-        monkeypatch.setenv(key, value)
+    # conftest.py has put the loopback DDS settings into os.environ for this process.
     h = Harness(tmp_path)
     try:
         yield h
     finally:
         h.close()
-        monkeypatch.undo()
 
 
 @pytest.fixture(scope='module')
