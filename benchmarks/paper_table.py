@@ -96,43 +96,41 @@ def motion_stats(seq: Sequence, pairs: Seq[int]) -> dict[str, float]:
     }
 
 
-def run_method(
+def run_pair(
     method: Method,
+    cache: dict[int, tuple[Any, float]],
     seq: Sequence,
     clouds: dict[int, np.ndarray],
-    pairs: Seq[int],
+    pair: int,
     starts: Seq[str],
-) -> dict[str, list[dict[str, Any]]]:
-    """Per-pair records ``{start: [{pair, e_R_deg, e_t_m, ms, register_ms, prepare_ms}]}``."""
-    cache: dict[int, tuple[Any, float]] = {}
+) -> dict[str, dict[str, Any]]:
+    """One pair with one method from every start: ``{start: record}``.
 
-    def prepared(i: int) -> tuple[Any, float]:
+    ``cache`` holds the method's prepared scans (index -> (prep, ms)); the target of a pair is
+    usually the previous pair's source, prepared once as in odometry.
+    """
+    for old in [k for k in cache if k < pair]:
+        del cache[old]
+    for i in (pair, pair + 1):
         if i not in cache:
             cache[i] = timed(method.prepare, clouds[i])
-        return cache[i]
-
-    out: dict[str, list[dict[str, Any]]] = {s: [] for s in starts}
-    for pair in pairs:
-        for old in [k for k in cache if k < pair]:
-            del cache[old]
-        target, _ = prepared(pair)
-        source, prep_ms = prepared(pair + 1)
-        truth = seq.truth(pair)
-        for start in starts:
-            init = np.eye(4) if start == 'identity' else seq.constant_velocity(pair)
-            record: dict[str, Any] = {'pair': pair, 'prepare_ms': prep_ms}
-            try:
-                T, reg_ms = timed(method.register, source, target, init)
-                e_R, e_t = errors(T, truth)
-            except Exception as exc:  # noqa: BLE001  (a method that raises is a failed pair)
-                logger.warning(
-                    '%s on %s pair %d (%s): %s', method.name, seq.name, pair, start, exc
-                )
-                T, reg_ms, e_R, e_t = None, float('nan'), float('nan'), float('nan')
-                record['error'] = f'{type(exc).__name__}: {exc}'
-            record.update({'e_R_deg': e_R, 'e_t_m': e_t, 'register_ms': reg_ms})
-            record['ms'] = prep_ms + reg_ms
-            out[start].append(record)
+    target, _ = cache[pair]
+    source, prep_ms = cache[pair + 1]
+    truth = seq.truth(pair)
+    out = {}
+    for start in starts:
+        init = np.eye(4) if start == 'identity' else seq.constant_velocity(pair)
+        record: dict[str, Any] = {'pair': pair, 'prepare_ms': prep_ms}
+        try:
+            T, reg_ms = timed(method.register, source, target, init)
+            e_R, e_t = errors(T, truth)
+        except Exception as exc:  # noqa: BLE001  (a method that raises is a failed pair)
+            logger.warning('%s on %s pair %d (%s): %s', method.name, seq.name, pair, start, exc)
+            reg_ms, e_R, e_t = float('nan'), float('nan'), float('nan')
+            record['error'] = f'{type(exc).__name__}: {exc}'
+        record.update({'e_R_deg': e_R, 'e_t_m': e_t, 'register_ms': reg_ms})
+        record['ms'] = prep_ms + reg_ms
+        out[start] = record
     return out
 
 
@@ -161,20 +159,33 @@ def run_sequence(
         'reference_motion': motion_stats(seq, pairs),
         'starts': {s: {} for s in starts},
     }
+    # Pairs outer, methods inner: every method sees the same stretch of machine load.
+    caches: dict[str, dict[int, tuple[Any, float]]] = {m.name: {} for m in methods}
+    records: dict[str, dict[str, list[dict[str, Any]]]] = {
+        m.name: {s: [] for s in starts} for m in methods
+    }
+    t0 = time.perf_counter()
+    for k, pair in enumerate(pairs):
+        for method in methods:
+            for start, rec in run_pair(
+                method, caches[method.name], seq, clouds, pair, starts
+            ).items():
+                records[method.name][start].append(rec)
+        logger.info(
+            '%s: pair %d/%d (%.0f s)', seq.name, k + 1, len(pairs), time.perf_counter() - t0
+        )
     for method in methods:
-        t0 = time.perf_counter()
-        records = run_method(method, seq, clouds, pairs, starts)
-        for start, rows in records.items():
-            block['starts'][start][method.name] = {'summary': summarize(rows), 'pairs': rows}
         parts = []
-        for s in starts:
-            summ = block['starts'][s][method.name]['summary']
+        for start in starts:
+            rows = records[method.name][start]
+            summ = summarize(rows)
+            block['starts'][start][method.name] = {'summary': summ, 'pairs': rows}
             parts.append(
-                f'{s}: {fmt(summ["e_R_deg"]["median"], ".3f")} deg / '
-                f'{fmt(summ["e_t_m"]["median"], ".4f")} m median, {summ["failures"]} fail'
+                f'{start}: {fmt(summ["e_R_deg"]["median"], ".3f")} deg / '
+                f'{fmt(summ["e_t_m"]["median"], ".4f")} m median, {summ["failures"]} fail, '
+                f'{fmt(summ["ms"]["median"], ".0f")} ms'
             )
-        line = ', '.join(parts)
-        logger.info('%s %-32s %s (%.0f s)', seq.name, method.name, line, time.perf_counter() - t0)
+        logger.info('%s %-32s %s', seq.name, method.name, ', '.join(parts))
     return block
 
 
