@@ -39,33 +39,41 @@ def goals_block(paper: dict[str, Any] | None, outliers: dict[str, Any] | None) -
     if paper is None and outliers is None:
         return None
     rows = []
-    if paper is not None and 'balm' in paper['datasets']:
-        balm = paper['datasets']['balm']['starts']
-        for start, by in balm.items():
-            k = by.get('kentreg_robust', {}).get('summary')
-            g = by.get('gicp', {}).get('summary')
-            if not (k and g):
-                continue
-            where = f'BALM 49 pairs, {start.replace("_", " ")} start'
-            for key, label, spec in (('e_R_deg', 'e_R (°)', '.3f'), ('e_t_m', 'e_t (m)', '.4f')):
-                for stat in ('mean', 'median'):
-                    kv, gv = k[key][stat], g[key][stat]
-                    ok = None if kv is None or gv is None else kv <= gv
+    if paper is not None:
+        for dataset, block in paper['datasets'].items():
+            for start, by in block['starts'].items():
+                k = by.get('kentreg_robust', {}).get('summary')
+                g = by.get('gicp', {}).get('summary')
+                if not (k and g):
+                    continue
+                plural = 's' if k['n'] != 1 else ''
+                where = f'{dataset} ({k["n"]} pair{plural}), {start.replace("_", " ")} start'
+                for key, label, spec in (('e_R_deg', 'e_R', '.3f'), ('e_t_m', 'e_t', '.4f')):
+                    pairs = [(k[key][st], g[key][st]) for st in ('mean', 'median')]
+                    if any(a is None or b is None for a, b in pairs):
+                        ok: bool | None = None
+                        verdict = '–'
+                    else:
+                        wins = [a <= b for a, b in pairs]
+                        ok = all(wins)
+                        verdict = _verdict(ok) if all(wins) or not any(wins) else 'mixed'
                     rows.append(
-                        f'| kentreg robust {stat} {label} ≤ GICP | {where} '
-                        f'| {_num(kv, spec)} vs {_num(gv, spec)} | {_verdict(ok)} |'
+                        f'| kentreg robust {label} ≤ GICP (mean; median) | {where} '
+                        f'| {_num(pairs[0][0], spec)} vs {_num(pairs[0][1], spec)}; '
+                        f'{_num(pairs[1][0], spec)} vs {_num(pairs[1][1], spec)} | {verdict} |'
                     )
-            rate = k['failure_rate']
-            rows.append(
-                f'| kentreg robust failure rate ≤ 2 % | {where} | {k["failures"]}/{k["n"]} '
-                f'({100 * rate:.1f} %) | {_verdict(rate <= 0.02)} |'
-            )
-            ratio = k['ms']['median'] / g['ms']['median']
-            rows.append(
-                f'| kentreg robust time ≤ 1.5× GICP (~10k points, 1 thread) | {where} '
-                f'| {k["ms"]["median"]:.0f} vs {g["ms"]["median"]:.0f} ms median '
-                f'({ratio:.1f}×) | {_verdict(ratio <= 1.5)} |'
-            )
+                rate = k['failure_rate']
+                rows.append(
+                    f'| kentreg robust failure rate ≤ 2 % | {where} | {k["failures"]}/{k["n"]} '
+                    f'({100 * rate:.1f} %) | {_verdict(rate <= 0.02)} |'
+                )
+                if k['n'] >= 10:
+                    ratio = k['ms']['median'] / g['ms']['median']
+                    rows.append(
+                        f'| kentreg robust time ≤ 1.5× GICP (~10k points, 1 thread) | {where} '
+                        f'| {k["ms"]["median"]:.0f} vs {g["ms"]["median"]:.0f} ms median '
+                        f'({ratio:.1f}×) | {_verdict(ratio <= 1.5)} |'
+                    )
     if outliers is not None:
         levels = outliers['levels']
         lo, hi = min(levels, key=float), max(levels, key=float)
@@ -86,8 +94,10 @@ def goals_block(paper: dict[str, Any] | None, outliers: dict[str, Any] | None) -
                 )
     head = '| goal | where | measured | verdict |\n|---|---|---|---|\n'
     note = (
-        '\n"Several-fold" is read as ≥ 3×. Time is from paper_table (new scan prepared + '
-        'registered, median per pair); `speed.py` measures speed in detail.\n'
+        '\n"Several-fold" is read as ≥ 3×; "mixed": met for one of mean and median. Time is '
+        'from paper_table (new scan prepared + registered, median per pair, a loaded machine); '
+        "`speed.py` measures speed in detail. The small_gicp pair's reference is small_gicp's "
+        'own GICP result (good to ~0.2° / 2 cm), which favours GICP there.\n'
     )
     return head + '\n'.join(rows) + '\n' + note
 
