@@ -12,6 +12,8 @@ from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
 from kentreg_ros.core.preprocess import (
     as_points,
     choose_voxel_size,
+    count_voxels,
+    downsample,
     drop_nonfinite,
     voxel_downsample,
 )
@@ -31,6 +33,17 @@ def test_automatic_voxel_size_reaches_the_target_count() -> None:
     )
     size = choose_voxel_size(pts, 10000)
     assert abs(len(voxel_downsample(pts, size)) - 10000) < 1500
+
+
+def test_voxel_count_and_automatic_downsampling_agree_with_a_direct_computation() -> None:
+    rng = np.random.default_rng(5)
+    pts = rng.normal(scale=[10.0, 10.0, 2.0], size=(30000, 3)) - [3.0, -7.0, 1.0]
+    for size in (0.05, 0.3, 1.7):
+        keys = np.floor(pts / size).astype(np.int64)
+        assert count_voxels(pts, size) == len(np.unique(keys, axis=0))
+    out, size = downsample(pts, target_points=5000)
+    assert size == choose_voxel_size(pts, 5000)
+    np.testing.assert_array_equal(out, voxel_downsample(pts, size))
 
 
 def test_points_validation_messages() -> None:
