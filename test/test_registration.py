@@ -124,6 +124,8 @@ def test_paper_mode_runs_end_to_end_on_synthetic_room() -> None:
         {'refine.method': 'plane_to_plane'},
         {'refine.method': 'none'},
         {'refine.normal_weight': False},
+        {'refine.max_step_scale': 1.0},
+        {'translation.max_iterations': 20},
     ],
 )
 def test_every_ablation_switch_runs(ablation: dict) -> None:
@@ -214,6 +216,30 @@ def test_robust_mode_on_real_small_gicp_pair(real_pair: tuple, start: str) -> No
         init = T_ref @ P
         assert pose_errors(init, T_ref)[0] > 9.9
     result = register(source, target, init=init)
+    e_r, e_t = pose_errors(result.T_target_source, T_ref)
+    assert e_r < 0.3 and e_t < 0.03, (e_r, e_t)
+
+
+@needs_pair
+@pytest.mark.parametrize('seed', [5, 6])
+def test_real_pair_accuracy_holds_under_micrometre_perturbations(seed: int) -> None:
+    """The bounds of the test above must not hinge on rounding: 1 um of noise on the raw scans.
+
+    Measured before the refinement followed its creep to the fixed point (tolerance 5e-4,
+    no step lengthening): 0.246 deg / 22 mm on the exact data but about 0.27 deg / 31 mm with
+    such noise in 5 of 6 seeds tried (seed 5 here among them): where the iteration stopped
+    along a slow creep decided the outcome. Now 0.245-0.267 deg / 16-22 mm over the exact data
+    and 4 noise seeds.
+    """
+    rng = np.random.default_rng(seed)
+    cfg = KentRegConfig()
+    scans = []
+    for name in ('source', 'target'):
+        raw = read_ply_xyz(SMALL_GICP_PAIR / f'{name}.ply')
+        scans.append(prepare_scan(raw + rng.normal(scale=1e-6, size=raw.shape), config=cfg))
+    T_ref = np.loadtxt(SMALL_GICP_PAIR / 'T_target_source.txt')
+    result = register(scans[0], scans[1], config=cfg)
+    assert result.status == 'converged', result.message
     e_r, e_t = pose_errors(result.T_target_source, T_ref)
     assert e_r < 0.3 and e_t < 0.03, (e_r, e_t)
 

@@ -132,7 +132,13 @@ class TranslationConfig:
     cross_correlation: bool = _f(
         True, 'Start from a per-direction cross-correlation of plane offsets.'
     )
-    max_iterations: int = _f(20, 'Iterations of the 3-DOF solve.', range=(1, 1000))
+    max_iterations: int = _f(
+        3,
+        'Iterations of the 3-DOF solve. The joint refinement re-solves all 6 DOF, so this '
+        'stage only places it in its basin; 3 lets the default gate reach its floor (20 '
+        'changed no measured result by more than 0.007 deg / 0.2 mm and cost ~10 ms).',
+        range=(1, 1000),
+    )
     tolerance: float = _f(
         1e-3, 'Stop when the translation update is below this (m).', range=(0.0, 1.0)
     )
@@ -161,18 +167,32 @@ class RefineConfig:
     normal_weight: bool = _f(
         True, 'Weight correspondences by the Kent likelihood of their normals (hybrid).'
     )
-    max_iterations: int = _f(30, 'Gauss-Newton iterations.', range=(1, 1000))
+    max_iterations: int = _f(
+        50,
+        'Gauss-Newton iterations (following a creep to the tolerance took up to ~35 on the '
+        'real small_gicp pair).',
+        range=(1, 1000),
+    )
     max_correspondence_distance: float = _f(
         1.0,
         'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
     tolerance: float = _f(
-        5e-4,
-        'Stop when the update is below this (rad and m). Nearest-neighbour correspondences on '
-        'voxelised scans make Gauss-Newton creep by ~0.1-0.5 mm per iteration along weakly '
-        'constrained directions, so much smaller values only spend iterations.',
+        5e-5,
+        'Stop when the update is below this (rad and m). Nearest-neighbour correspondences make '
+        'Gauss-Newton creep (~0.1-0.5 mm per iteration) along weakly constrained directions; '
+        'with max_step_scale the creep is followed to its fixed point, so the result no longer '
+        'depends on where it stops (BALM median e_R 0.034 deg, against 0.043 deg at 5e-4 '
+        'without lengthening).',
         range=(0.0, 1.0),
+    )
+    max_step_scale: float = _f(
+        16.0,
+        'Largest factor by which consecutive refinement steps in the same direction are '
+        'lengthened (doubled per step once the gate is at its floor; reversing steps are '
+        'halved); 1 disables it.',
+        range=(1.0, 1024.0),
     )
 
 

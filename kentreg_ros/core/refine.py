@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kentreg_ros.core.correspondence import NearestNeighborCache
 from kentreg_ros.core.rotations import exp_so3, hat, project_to_so3
 from kentreg_ros.core.translation import geman_mcclure_weights, robust_scale
 
@@ -95,6 +96,8 @@ def refine_joint(
     tolerance: float = 1e-5,
     noise_floor: float = 0.005,
     kappa_range: tuple[float, float] = (5.0, 500.0),
+    neighbors: NearestNeighborCache | None = None,
+    max_step_scale: float = 16.0,
 ) -> RefineResult:
     """Refine ``T_target_source`` by robust, normal-weighted Gauss-Newton.
 
@@ -112,9 +115,27 @@ def refine_joint(
         re-estimated from the current normal residuals (clipped to ``kappa_range``).
     max_distance, min_distance : float
         The correspondence gate shrinks geometrically from the first to the second.
+    neighbors : NearestNeighborCache, optional
+        Correspondence cache over ``target_tree`` and ``source`` (e.g. the translation
+        stage's); the nearest neighbours are exact either way.
+    max_step_scale : float
+        Largest factor by which consecutive steps in the same direction are lengthened once
+        the gate is at ``min_distance`` (1 disables it; see Notes).
+
+    Notes
+    -----
+    Step control. Nearest-neighbour correspondences make Gauss-Newton alternate between two
+    correspondence sets, or creep: converge linearly, by many small steps in one direction,
+    along weakly constrained directions (on the real small_gicp pair ~0.15 mrad per iteration
+    for 100+ iterations). When consecutive steps reverse, the step is halved, so a cycle
+    collapses onto its midpoint; when they keep their direction (cosine > 0.9, rotations
+    weighted by the RMS radius of the source so both parts count as displacements), it is
+    doubled, up to ``max_step_scale``. A fixed tolerance on the step then stops close to the
+    fixed point instead of at an arbitrary point of a creep.
     """
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
+    nn = neighbors or NearestNeighborCache(target_tree, target, len(source))
     gate = max_distance
     H = np.zeros((6, 6))
     sigma2 = 0.0
@@ -123,18 +144,21 @@ def refine_joint(
     converged = False
     prev_delta: FloatArray | None = None
     step_scale = 1.0
+    centred = source - source.mean(axis=0)
+    radius = float(np.sqrt(np.einsum('ij,ij->', centred, centred) / max(len(source), 1)))
+    step_metric = np.array([radius] * 3 + [1.0] * 3)  # (omega, v) -> displacement
     it = 0
     for it in range(1, max_iterations + 1):
         x = source @ R.T + t
-        dist, idx = target_tree.query(x, k=1, distance_upper_bound=gate, workers=-1)
+        dist, idx = nn.query(x, gate)
         ok = np.flatnonzero(np.isfinite(dist))
         if len(ok) < 12:
             break
         j = idx[ok]
-        xo = x[ok]
-        e = target[j] - xo  # residual vector, (n, 3)
-        nq = target_normals[j]
-        np_rot = source_normals[ok] @ R.T
+        xo = np.take(x, ok, axis=0)  # np.take: several times faster than fancy indexing
+        e = np.take(target, j, axis=0) - xo  # residual vector, (n, 3)
+        nq = np.take(target_normals, j, axis=0)
+        np_rot = np.take(source_normals, ok, axis=0) @ R.T
         r_plane = np.einsum('ij,ij->i', nq, e)
         sigma = robust_scale(r_plane, noise_floor)
         w = geman_mcclure_weights(r_plane, sigma)
@@ -165,16 +189,22 @@ def refine_joint(
             g = np.concatenate([-np.einsum('nab,nb->a', hx, We), -We.sum(axis=0)])
             sigma2 = float(np.einsum('na,na->', e, We) / max(float(w.sum()), 1e-12))
         else:
-            Jn = np.concatenate([np.cross(nq, xo), -nq], axis=1)  # n^T [hat(x), -I]
-            H = (Jn * w[:, None]).T @ Jn
-            g = (Jn * w[:, None]).T @ r_plane
+            Jn = np.empty((len(ok), 6))  # n^T [hat(x), -I]
+            Jn[:, :3] = np.cross(nq, xo)
+            np.negative(nq, out=Jn[:, 3:])
+            Jw = Jn * w[:, None]
+            H = Jw.T @ Jn
+            g = Jw.T @ r_plane
             sigma2 = float(np.sum(w * r_plane**2) / max(float(w.sum()), 1e-12))
         delta = -_solve_spd(H, g)
-        # Nearest-neighbour correspondences can make Gauss-Newton alternate between two
-        # correspondence sets; when consecutive steps reverse, halve the step so the cycle
-        # collapses onto its midpoint instead of stopping at an arbitrary end of it.
-        if prev_delta is not None and float(delta @ prev_delta) < 0.0:
-            step_scale *= 0.5
+        # Step control (see Notes): halve on reversal, lengthen while creeping.
+        if prev_delta is not None:
+            if float(delta @ prev_delta) < 0.0:
+                step_scale *= 0.5
+            elif gate <= min_distance and step_scale < max_step_scale:
+                a, b = delta * step_metric, prev_delta * step_metric
+                if float(a @ b) > 0.9 * float(np.linalg.norm(a) * np.linalg.norm(b)):
+                    step_scale = min(2.0 * step_scale, max_step_scale)
         prev_delta = delta
         delta = step_scale * delta
         dR = exp_so3(delta[:3])

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from kentreg_ros.core.clustering import spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.correspondence import NearestNeighborCache
 from kentreg_ros.core.em import EMResult, ModelClusters, paper_cluster_em, shared_rotation_em
 from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
 from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
@@ -430,6 +431,9 @@ def _register_robust(
     tr_cfg = cfg.translation
     H_t: FloatArray | None = None
     sigma2_t = 0.0
+    # One correspondence cache for the translation and refinement loops (same source points,
+    # same target tree): points that moved less than their certified radius skip the query.
+    neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
     inlier = em.inlier_fraction
     if tr_cfg.method == 'centroid':
         t = centroid_translation(R, src.points, tgt.points)
@@ -459,6 +463,7 @@ def _register_robust(
             min_distance=min_gate,
             degeneracy_ratio=tr_cfg.degeneracy_ratio,
             tolerance=tr_cfg.tolerance,
+            neighbors=neighbors,
         )
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
         inlier = tres.inlier_fraction
@@ -482,6 +487,8 @@ def _register_robust(
             max_distance=max_gate,
             min_distance=min_gate,
             tolerance=cfg.refine.tolerance,
+            neighbors=neighbors,
+            max_step_scale=cfg.refine.max_step_scale,
         )
         T = ref.T
         stages['refine'] = T

@@ -18,6 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kentreg_ros.core.correspondence import NearestNeighborCache
+
 FloatArray = NDArray[np.float64]
 
 
@@ -177,13 +179,17 @@ def point_to_plane_translation(
     noise_floor: float = 0.005,
     degeneracy_ratio: float = 0.02,
     tolerance: float = 1e-3,
+    neighbors: NearestNeighborCache | None = None,
 ) -> TranslationResult:
     """Robust 3-DOF point-to-plane least squares for ``t`` with ``R`` fixed.
 
     The correspondence gate shrinks geometrically from ``max_distance`` toward
     ``min_distance``; residuals are weighted by Geman-McClure with a robust (MAD) scale.
+    ``neighbors`` (a cache over ``target_tree`` and ``source``) can be shared with a following
+    refinement; correspondences are exact nearest neighbours either way.
     """
     src = source @ R.T
+    nn = neighbors or NearestNeighborCache(target_tree, target, len(source))
     t = np.array(t0, dtype=np.float64)
     gate = max_distance
     H = np.zeros((3, 3))
@@ -192,17 +198,19 @@ def point_to_plane_translation(
     it = 0
     for it in range(1, max_iterations + 1):
         moved = src + t
-        dist, idx = target_tree.query(moved, k=1, distance_upper_bound=gate, workers=-1)
+        dist, idx = nn.query(moved, gate)
         ok = np.isfinite(dist)
         if ok.sum() < 10:
             break
-        q = target[idx[ok]]
-        nq = target_normals[idx[ok]]
+        j = idx[ok]
+        q = np.take(target, j, axis=0)
+        nq = np.take(target_normals, j, axis=0)
         r = np.einsum('ij,ij->i', nq, moved[ok] - q)
         sigma = robust_scale(r, noise_floor)
         w = geman_mcclure_weights(r, sigma)
-        H = (nq * w[:, None]).T @ nq
-        g = (nq * w[:, None]).T @ r
+        nw = nq * w[:, None]
+        H = nw.T @ nq
+        g = nw.T @ r
         reg = 1e-9 * max(float(np.trace(H)), 1e-12)
         dt = -np.linalg.solve(H + reg * np.eye(3), g)
         t = t + dt
