@@ -87,6 +87,40 @@ def test_kent_rotation_solver_gradient_matches_finite_differences() -> None:
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
 
 
+def test_kent_rotation_hessian_matches_second_differences_of_the_objective() -> None:
+    """The closed-form Riemannian Hessian against second differences along random directions
+    and the symmetrised central difference of the gradient."""
+    rng = np.random.default_rng(4)
+    parts = [_random_problem(rng, beta, 15.0) for beta in (7.0, 2.0, 5.0)]  # K = 3 components
+    problem = KentRotationProblem(
+        np.concatenate([p.A for p in parts]),
+        np.concatenate([p.B for p in parts]),
+        sum(p.C for p in parts),
+    )
+    for R in _random_rotations(rng, 5):
+        H = problem.hessian(R)
+        np.testing.assert_allclose(H, H.T, atol=1e-12)
+        h = 1e-4
+        for w in rng.normal(size=(4, 3)):
+            d2 = (
+                problem.value(R @ exp_so3(h * w))
+                - 2.0 * problem.value(R)
+                + problem.value(R @ exp_so3(-h * w))
+            ) / h**2
+            assert abs(d2 - w @ H @ w) < 1e-5 * max(1.0, abs(d2)), (d2, w @ H @ w)
+        fd = np.column_stack(
+            [
+                (
+                    problem.gradient(R @ exp_so3(1e-6 * e))
+                    - problem.gradient(R @ exp_so3(-1e-6 * e))
+                )
+                / 2e-6
+                for e in np.eye(3)
+            ]
+        )
+        np.testing.assert_allclose(H, 0.5 * (fd + fd.T), rtol=1e-6, atol=1e-6 * np.abs(H).max())
+
+
 @pytest.mark.parametrize('spread_deg', [1.0, 20.0, 60.0])
 def test_average_matches_scipy_rotation_mean(spread_deg: float) -> None:
     rng = np.random.default_rng(4)

@@ -150,32 +150,36 @@ def shared_rotation_em(
     history: list[float] = []
     converged = False
     it = 0
-    tau = np.zeros((n, k))
+    # Arrays are laid out (component, point): reductions over the K + 1 components then run
+    # along the leading axis, vectorised over points (reducing a short trailing axis is slow).
+    tau = np.zeros((k, n))
     problem = KentRotationProblem(np.zeros((k, 3, 3)), np.zeros((k, 3, 3)), np.zeros((3, 3)))
+    xt = np.ascontiguousarray(x.T)  # (3, N)
     xx = np.einsum('ni,nj->nij', x, x).reshape(n, 9)  # fixed across iterations
-    gamma_flat = gamma.transpose(1, 0, 2).reshape(3, 3 * k)  # columns (k, c)
+    gamma_rows = gamma.transpose(0, 2, 1).reshape(3 * k, 3)  # rows (k, c): gamma[k][:, c]
     A_shape = np.einsum('ki,kj->kij', g2, g2) - np.einsum('ki,kj->kij', g1, g1)
+    logits = np.empty((k + 1, n))
     for it in range(1, max_iterations + 1):
-        # E-step.
-        u = (x @ (R.T @ gamma_flat)).reshape(n, k, 3)
-        logits = np.empty((n, k + 1))
-        logits[:, :k] = (
-            log_pi
-            - kent_log_normalizer(kappa, beta)
-            + kappa * u[:, :, 0]
-            + beta * (u[:, :, 1] ** 2 - u[:, :, 2] ** 2)
+        # E-step. u[k, c, n] = gamma_kc . (R x_n). einsum, not matmul: OpenBLAS threads this
+        # skinny product from ~10k points on, and on a loaded machine waking its threads costs
+        # milliseconds per call (measured 25 ms per iteration at 22k normals; 0.2 ms here).
+        u = np.einsum('ci,in->cn', gamma_rows @ R, xt).reshape(k, 3, n)
+        logits[:k] = (
+            (log_pi - kent_log_normalizer(kappa, beta))[:, None]
+            + kappa[:, None] * u[:, 0]
+            + beta[:, None] * (u[:, 1] ** 2 - u[:, 2] ** 2)
         )
-        logits[:, k] = log_out
-        top = logits.max(axis=1, keepdims=True)
+        logits[k] = log_out
+        top = logits.max(axis=0)
         ex = np.exp(logits - top)
-        total = ex.sum(axis=1, keepdims=True)
-        log_p = top[:, 0] + np.log(total[:, 0])
-        tau = ex[:, :k] / total * pw[:, None]
-        history.append(float(np.sum(pw * log_p)))
+        total = ex.sum(axis=0)
+        log_p = top + np.log(total)
+        tau = ex[:k] * (pw / total)
+        history.append(float(np.sum(pw * log_p)))  # not pw @ log_p: a threaded BLAS dot
         # M-step, rotation.
-        C = x.T @ (tau * kappa) @ mu
+        C = ((xt @ tau.T) * kappa) @ mu
         A = beta[:, None, None] * A_shape
-        Bm = (tau.T @ xx).reshape(k, 3, 3)
+        Bm = (tau @ xx).reshape(k, 3, 3)
         problem = KentRotationProblem(A, Bm, C)
         if rotation == 'shared':
             starts = [R, procrustes(C)]
@@ -183,19 +187,19 @@ def shared_rotation_em(
             R_new, _ = solve_kent_rotation(problem, start)
         else:
             Rs = []
-            mass = tau.sum(axis=0)
+            mass = tau.sum(axis=1)
             for j in range(k):
                 pj = KentRotationProblem(
                     A[j : j + 1],
                     Bm[j : j + 1],
-                    x.T @ (tau[:, j : j + 1] * kappa[j]) @ mu[j : j + 1],
+                    (xt @ tau[j] * kappa[j])[:, None] @ mu[j : j + 1],
                 )
                 Rj, _ = solve_kent_rotation(pj, R)
                 Rs.append(Rj)
             R_new = average_rotations(np.array(Rs), mass + 1e-12)
         # M-step, Kent parameters from residuals about the model directions:
         # E[(g1.z)^2] = g1^T R B R^T g1 / sum(tau), no pass over the points needed.
-        w = tau.sum(axis=0)
+        w = tau.sum(axis=1)
         wsafe = np.maximum(w, 1e-12)
         RB = np.einsum('ij,kjl,ml->kim', R_new, Bm, R_new)
         v1 = np.maximum(np.einsum('ki,kij,kj->k', g1, RB, g1) / wsafe, 1e-12)
