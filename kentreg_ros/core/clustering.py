@@ -112,17 +112,19 @@ def _lloyd(
     xs: FloatArray, w: FloatArray, centers: FloatArray, max_iterations: int
 ) -> tuple[NDArray[np.intp], FloatArray]:
     k = len(centers)
-    labels = np.full(len(xs), -1, dtype=np.intp)
+    n = len(xs)
+    labels = np.full(n, -1, dtype=np.intp)
+    weighted = [xs[:, axis] * w for axis in range(3)]  # fixed across iterations
     for _ in range(max_iterations):
         sims = xs @ centers.T
         new_labels = np.argmax(sims, axis=1)
         sums = np.zeros((k, 3))
         for axis in range(3):
-            sums[:, axis] = np.bincount(new_labels, weights=xs[:, axis] * w, minlength=k)
+            sums[:, axis] = np.bincount(new_labels, weights=weighted[axis], minlength=k)
         norms = np.linalg.norm(sums, axis=1)
         empty = norms < 1e-12
         if empty.any():
-            fit = sims[np.arange(len(xs)), new_labels]
+            fit = sims[np.arange(n), new_labels]
             worst = np.argsort(fit)[: int(empty.sum())]
             sums[empty] = xs[worst]
             new_labels[worst] = np.flatnonzero(empty)
