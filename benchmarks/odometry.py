@@ -469,8 +469,7 @@ def _jsonable(value: Any) -> Any:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        description='kentreg odometry vs KISS-ICP and GICP scan-to-scan on one input: RPE, ATE, '
-        'per-pair errors and ms per scan, measured in one run.',
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
         '--input',
