@@ -62,6 +62,7 @@ def spherical_kmeans(
     rng: np.random.Generator | int | None = 0,
     weights: ArrayLike | None = None,
     restarts: int = 3,
+    sample_size: int = 0,
 ) -> tuple[NDArray[np.intp], FloatArray]:
     """Cluster unit vectors by spherical k-means.
 
@@ -81,6 +82,10 @@ def spherical_kmeans(
     weights : array_like, shape (N,), optional
     restarts : int
         Independent seeded initialisations.
+    sample_size : int
+        When positive and smaller than N, the restarts run on a seeded random subset of this
+        many vectors and only the best one is continued on all of them (0: every restart on
+        all vectors).
 
     Returns
     -------
@@ -98,13 +103,20 @@ def spherical_kmeans(
     w = np.ones(len(xs)) if weights is None else np.asarray(weights, dtype=np.float64)
     k = min(k, len(xs))
     gen = _rng(rng)
+    subset = 0 < sample_size < len(xs) and k <= sample_size
+    xr, wr = xs, w
+    if subset:
+        pick = np.sort(gen.choice(len(xs), size=sample_size, replace=False))
+        xr, wr = xs[pick], w[pick]
     best: tuple[float, NDArray[np.intp], FloatArray] | None = None
     for _ in range(max(1, restarts)):
-        labels, centers = _lloyd(xs, w, kmeanspp_sphere(xs, k, gen, w), max_iterations)
-        score = float(np.sum(w * np.einsum('ij,ij->i', xs, centers[labels])))
+        labels, centers = _lloyd(xr, wr, kmeanspp_sphere(xr, k, gen, wr), max_iterations)
+        score = float(np.sum(wr * np.einsum('ij,ij->i', xr, centers[labels])))
         if best is None or score > best[0]:
             best = (score, labels, centers)
     assert best is not None
+    if subset:
+        return _lloyd(xs, w, best[2], max_iterations)
     return best[1], best[2]
 
 

@@ -262,6 +262,7 @@ def prepare_scan(
         max_iterations=cfg.clustering.max_iterations,
         rng=cfg.clustering.seed,
         restarts=cfg.clustering.restarts,
+        sample_size=cfg.clustering.restart_sample,
     )
     clusters = ModelClusters.from_labels(nrm, labels, len(centers))
     timings['clustering'] = _ms(t0)
