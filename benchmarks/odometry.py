@@ -53,6 +53,7 @@ import json
 import logging
 import os
 import platform
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -134,7 +135,18 @@ def machine_info() -> dict[str, Any]:
             versions[name] = md.version(name)
         except md.PackageNotFoundError:
             versions[name] = None
+    try:
+        commit = subprocess.run(
+            ['git', 'describe', '--always', '--dirty'],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        commit = ''
     return {
+        'git': commit or None,
         'cpu': cpu,
         'cores_online': os.cpu_count(),
         'cores_used': len(os.sched_getaffinity(0)),

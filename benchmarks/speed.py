@@ -475,7 +475,18 @@ def machine_info() -> dict[str, Any]:
             versions[name] = md.version(name)
         except md.PackageNotFoundError:
             continue
+    try:
+        commit = subprocess.run(
+            ['git', 'describe', '--always', '--dirty'],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        commit = ''
     return {
+        'git': commit or None,
         'cpu': cpu,
         'cores_online': os.cpu_count(),
         'machine': platform.machine(),
