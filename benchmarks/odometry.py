@@ -29,7 +29,9 @@ or ``e_t > 0.2 m``), RPE per frame (rotation and translation rmse), RPE per metr
 in %, rotation in deg/m, rmse over pairs that moved at least 5 cm), ATE rmse after SE(3) (Umeyama)
 alignment, and milliseconds per scan (mean, p95: everything a pipeline does with one scan,
 preprocessing included, reading excluded). Each pipeline first processes the first two scans
-once, untimed, on a throwaway instance (imports, allocator and cache warm-up).
+once, untimed, on a throwaway instance (imports, allocator and cache warm-up). The pipelines run
+``--rounds`` times (default 3) in rotated order, and each scan's time is its median over the
+rounds, so a change in the machine's load (it is shared) does not land on one pipeline only.
 
 Threads: ``--threads N`` (default 1) sets ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` and
 ``MKL_NUM_THREADS`` (the script re-executes itself once so that they apply before numpy loads),
@@ -338,6 +340,32 @@ def run_gicp(scans: list[Scan], voxel: float, threads: int) -> PipelineRun:
     )
 
 
+def combine_rounds(runs: list[PipelineRun]) -> PipelineRun:
+    """One run from several rounds: first round's poses, per-scan median of the times.
+
+    Every pipeline is deterministic, so later rounds repeat the first one's poses; the largest
+    difference is recorded in ``health['pose_spread_between_rounds_m']``.
+    """
+    first = runs[0]
+    spread = max(
+        (float(np.abs(r.poses[:, :3, 3] - first.poses[:, :3, 3]).max()) for r in runs[1:]),
+        default=0.0,
+    )
+    return PipelineRun(
+        name=first.name,
+        poses=first.poses,
+        ms_per_scan=np.median(np.stack([r.ms_per_scan for r in runs]), axis=0),
+        points_used=first.points_used,
+        settings=first.settings,
+        health={
+            **first.health,
+            'rounds': len(runs),
+            'pose_spread_between_rounds_m': spread,
+            'mean_ms_per_scan_per_round': [float(r.ms_per_scan.mean()) for r in runs],
+        },
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # Evaluation and outputs
 
@@ -376,7 +404,8 @@ def format_tables(report: dict[str, Any]) -> str:
     n_pairs = next((m['metrics']['pairs']['count'] for m in rows.values() if 'metrics' in m), 0)
     lines = [
         f'Input: {report["input"]["description"]}, {report["input"]["n_scans"]} scans, '
-        f'{n_pairs} consecutive pairs; {report["threads"]} thread(s).',
+        f'{n_pairs} consecutive pairs; {report["threads"]} thread(s); ms per scan: per-scan '
+        f'median over {report["rounds"]} rounds.',
         '',
         '| method | median e_R [deg] | median e_t [m] | max e_R [deg] | max e_t [m] '
         '| failures (e_R>2 deg or e_t>0.2 m) |',
@@ -520,6 +549,13 @@ def build_parser() -> argparse.ArgumentParser:
         help='override one kentreg parameter (repeatable), as for kentreg_replay',
     )
     parser.add_argument(
+        '--rounds',
+        type=int,
+        default=3,
+        help='runs of every pipeline, in rotated order; ms per scan is the per-scan median '
+        'over rounds (default 3)',
+    )
+    parser.add_argument(
         '--max-scans', type=int, metavar='N', help='use the first N scans only (development)'
     )
     parser.add_argument(
@@ -534,8 +570,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    if args.threads < 1:
-        raise SystemExit('--threads must be >= 1')
+    if args.threads < 1 or args.rounds < 1:
+        raise SystemExit('--threads and --rounds must be >= 1')
     pin_threads(args.threads, argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(levelname)s: %(message)s')
     cfg = effective_config(args.config, args.overrides)
@@ -567,20 +603,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         },
         'ms_per_scan_measures': 'wall time of everything a pipeline does with one scan '
         '(preprocessing included, reading excluded), every scan including the first, '
-        'after an untimed two-scan warm-up',
+        'after an untimed two-scan warm-up; per scan the median over --rounds rounds, which '
+        'run the pipelines in rotated order',
+        'rounds': args.rounds,
         'methods': {},
     }
     aligned: dict[str, FloatArray] = {}
     errors: dict[str, Any] = {}
     T_gt_plot = None
+    runs: dict[str, list[PipelineRun]] = {name: [] for name in args.methods}
+    failed: dict[str, str] = {}
+    for r in range(args.rounds):
+        k = r % len(args.methods)
+        for name in args.methods[k:] + args.methods[:k]:  # rotated: load changes hit everyone
+            if name in failed:
+                continue
+            t0 = time.perf_counter()
+            try:
+                runs[name].append(runners[name]())
+            except Exception as exc:  # a peer crashing is a result to report, not a stop
+                logger.exception('%s failed', name)
+                failed[name] = f'{type(exc).__name__}: {exc}'
+            logger.info('%s round %d done in %.1f s', name, r, time.perf_counter() - t0)
     for name in args.methods:
-        t0 = time.perf_counter()
-        try:
-            run = runners[name]()
-        except Exception as exc:  # a peer crashing is a result to report, not a reason to stop
-            logger.exception('%s failed', name)
-            report['methods'][name] = {'error': f'{type(exc).__name__}: {exc}'}
+        if name in failed:
+            report['methods'][name] = {'error': failed[name]}
             continue
+        run = combine_rounds(runs[name])
         result, rows, T_gt = evaluate_pipeline(run, scans, gt)
         T_gt_plot = T_gt
         if result['ate'] is not None:
@@ -589,11 +638,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         report['methods'][name] = {
             'settings': run.settings,
             'health': run.health,
-            'wall_s': time.perf_counter() - t0,
             'metrics': result,
             'poses_T_world_lidar': run.poses,
         }
-        logger.info('%s done in %.1f s', name, time.perf_counter() - t0)
     report['machine']['load_avg_at_end'] = list(os.getloadavg())
     args.out.mkdir(parents=True, exist_ok=True)
     table = format_tables(report)

@@ -35,8 +35,10 @@ Processes and threads: the main process builds the clouds once and saves them to
 with ``--worker``), one after the other, with ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` and
 ``MKL_NUM_THREADS`` set to ``--threads`` (default 1) in its environment, its CPU affinity limited
 to that many cores and the library's own thread argument set (:func:`benchmarks.methods.
-make_methods`). small_gicp runs first and again last: the ratio uses both runs' samples, and the
-JSON records how much the machine's speed drifted between them.
+make_methods`). The libraries run in ``--rounds`` rounds (default 2), each round in a rotated
+order, and every cell pools its rounds' samples, so a change in the machine's load (other jobs)
+does not land on one library only; the JSON records how much GICP's own time varied between
+rounds.
 
 Usage::
 
@@ -77,7 +79,6 @@ DEFAULT_INPUT = ROOT.parent / 'shared' / 'data' / 'balm'
 RESULTS = ROOT / 'benchmarks' / 'results'
 SIZES = (3000, 10000, 30000, 100000)
 REFERENCE = 'gicp'
-REFERENCE_LIBRARY = 'small_gicp'
 #: Which library each method of :mod:`benchmarks.methods` loads (one process per library).
 LIBRARY_OF = {
     'gicp': 'small_gicp',
@@ -322,13 +323,17 @@ def run_worker(
 
 
 def summarize_cell(samples: list[dict[str, Any]]) -> dict[str, Any]:
-    """Medians of one method at one size, over every pair and repeat of ``samples``."""
+    """Medians of one method at one size, over every pair, repeat and round of ``samples``.
+
+    The pair errors are those of the first round (the same pairs again in later rounds).
+    """
     prep = np.concatenate([s['prepare_ms'] for s in samples])
     reg = np.concatenate([s['register_ms'] for s in samples])
-    e_R = np.concatenate([s['e_R_deg'] for s in samples])
-    e_t = np.concatenate([s['e_t_m'] for s in samples])
+    e_R = np.asarray(samples[0]['e_R_deg'])
+    e_t = np.asarray(samples[0]['e_t_m'])
     return {
         'n_samples': int(prep.size),
+        'n_rounds': len(samples),
         'total_ms': float(np.median(prep + reg)),
         'prepare_ms': float(np.median(prep)),
         'register_ms': float(np.median(reg)),
@@ -350,7 +355,8 @@ def format_table(report: dict[str, Any]) -> str:
     lines = [
         f'Median ms per pair (source preparation + registration) and ratio to small_gicp GICP; '
         f'{report["threads"]} thread(s), {report["pairs"]} pairs x {report["repeats"]} repeats '
-        'per cell.',
+        f'x {report["rounds"]} rounds per cell; failures (e_R > 2 deg or e_t > 0.2 m) out of '
+        f'{report["pairs"]} pairs.',
         '',
         f'| method | {head} |',
         '|---|' + '---|' * len(sizes),
@@ -382,7 +388,7 @@ def format_table(report: dict[str, Any]) -> str:
         f'{name} N≈{int(s) // 1000}k ({c["n_samples"]})'
         for name, cells in results.items()
         for s, c in cells.items()
-        if c['n_samples'] < c['n_pairs'] * report['repeats']
+        if c['n_samples'] < c['n_pairs'] * c['n_rounds'] * report['repeats']
     ]
     if reduced:
         lines += [
@@ -402,9 +408,9 @@ def format_table(report: dict[str, Any]) -> str:
     ]
     if report.get('gicp_drift') is not None:
         lines.append(
-            f'GICP measured first and last: last/first time ratio '
-            f'{report["gicp_drift"]["min"]:.2f}-{report["gicp_drift"]["max"]:.2f} over the sizes '
-            '(machine-speed drift during the run).'
+            f"GICP's own median time varied by up to "
+            f'{report["gicp_drift"]["max"]:.2f}× between rounds (slowest / fastest round, over '
+            'the sizes): the machine was shared.'
         )
     return '\n'.join(lines) + '\n'
 
@@ -521,7 +527,7 @@ def run_library(
         '--repeats',
         str(args.repeats),
         '--cell-budget',
-        str(args.cell_budget),
+        str(args.cell_budget / args.rounds),
     ]
     t0 = time.perf_counter()
     print(f'[{library}] {" ".join(methods)} ...', file=sys.stderr, flush=True)
@@ -583,9 +589,10 @@ def build_parser() -> argparse.ArgumentParser:
         '--threads', type=int, default=1, help='threads per library process (default 1)'
     )
     parser.add_argument(
-        '--no-recheck',
-        action='store_true',
-        help='run GICP only first, not again at the end (no drift check)',
+        '--rounds',
+        type=int,
+        default=2,
+        help='rounds over the libraries, in rotated order, pooled (default 2)',
     )
     parser.add_argument(
         '--out',
@@ -602,8 +609,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(levelname)s: %(message)s')
-    if args.threads < 1 or args.pairs < 1 or args.repeats < 1:
-        raise SystemExit('--threads, --pairs and --repeats must be >= 1')
+    if min(args.threads, args.pairs, args.repeats, args.rounds) < 1:
+        raise SystemExit('--threads, --pairs, --repeats and --rounds must be >= 1')
     if args.worker is not None:
         result = run_worker(args.data, args.methods, args.threads, args.repeats, args.cell_budget)
         args.worker.write_text(json.dumps(result))
@@ -624,6 +631,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         'threads': args.threads,
         'pairs': args.pairs,
         'repeats': args.repeats,
+        'rounds': args.rounds,
         'input': str(args.input),
         'timing': 'per pair: prepare(source) + register(source, target, init), target prepared '
         'once untimed; median over pairs x repeats (fewer repeats when a cell would exceed '
@@ -639,9 +647,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         data_path = tmp / 'clouds.npz'
         voxels = {size: info['voxel'] for size, info in clouds.items()}
         np.savez(data_path, voxels=json.dumps(voxels), **arrays)
-        order = [(library, names, 'first') for library, names in libraries.items()]
-        if not args.no_recheck and len(order) > 1:
-            order.append((REFERENCE_LIBRARY, libraries[REFERENCE_LIBRARY], 'last'))
+        groups = list(libraries.items())
+        order = [
+            (library, names, f'round{r}')
+            for r in range(args.rounds)
+            for library, names in groups[r % len(groups) :] + groups[: r % len(groups)]
+        ]
         for library, names, tag in order:
             result = run_library(library, names, data_path, args, tmp, tag)
             report['workers'][f'{library}-{tag}'] = {
@@ -671,14 +682,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 cell['register_ms'] / ref['register_ms'] if ref else None
             )
     ref_samples = samples.get(REFERENCE, {})
-    drift = [
-        float(np.median(np.add(c[1]['prepare_ms'], c[1]['register_ms'])))
-        / float(np.median(np.add(c[0]['prepare_ms'], c[0]['register_ms'])))
-        for c in ref_samples.values()
-        if len(c) == 2
-    ]
+    drift = {}
+    for size, cell in ref_samples.items():
+        per_round = [float(np.median(np.add(c['prepare_ms'], c['register_ms']))) for c in cell]
+        if len(per_round) > 1:
+            drift[size] = max(per_round) / min(per_round)
     report['gicp_drift'] = (
-        {'min': min(drift), 'max': max(drift), 'per_size': drift} if drift else None
+        {'max': max(drift.values()), 'per_size': drift, 'measure': 'slowest / fastest round'}
+        if drift
+        else None
     )
     report['results'] = results
     report['load_avg_at_end'] = list(os.getloadavg())
