@@ -38,7 +38,7 @@ def as_points(
         raise InvalidPointCloudError(f'Expected `{name}` to be numeric, got {exc}.') from exc
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidPointCloudError(f'Expected `{name}` to have shape (N, 3), got {arr.shape}.')
-    if not allow_nonfinite:
+    if not allow_nonfinite and not np.isfinite(arr).all():  # fast path: one flat pass
         bad = ~np.isfinite(arr).all(axis=1)
         if bad.any():
             raise InvalidPointCloudError(
