@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         scans = synthetic_scans(args.pairs + 1)
         source = 'synthetic room (../shared/data/balm not found)'
+    load_before = os.getloadavg()[0]
     rows = []
     for size in args.sizes:
         cfg = KentRegConfig().with_updates({'preprocess.target_points': size})
@@ -93,9 +94,12 @@ def main(argv: list[str] | None = None) -> int:
         + ['reg.total', 'prep+reg']
     )
     print(f'kentreg per-stage median ms over {args.pairs} pairs of {source}')
+    load_after = os.getloadavg()[0]
     print(
         f'machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, '
-        f'python {platform.python_version()}, numpy {np.__version__}'
+        f'python {platform.python_version()}, numpy {np.__version__}, '
+        f'1-min load average {load_before:.1f} before / {load_after:.1f} after (other processes '
+        'share the cpus)'
     )
     header = f'{"stage":<22}' + ''.join(f'{int(r["target_points"]):>10}' for r in rows)
     print(header)
@@ -105,7 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(
         json.dumps(
-            {'source': source, 'pairs': args.pairs, 'rows': rows, 'cpus': os.cpu_count()}, indent=2
+            {
+                'source': source,
+                'pairs': args.pairs,
+                'rows': rows,
+                'cpus': os.cpu_count(),
+                'load_average_1min': [load_before, load_after],
+            },
+            indent=2,
         )
     )
     print(f'wrote {args.json}')
