@@ -118,6 +118,21 @@ def pin_threads(threads: int, argv: Sequence[str]) -> None:
     os.sched_setaffinity(0, allowed[:threads])
 
 
+def git_describe() -> str | None:
+    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
+    try:
+        out = subprocess.run(
+            ['git', 'describe', '--always', '--dirty'],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        return None
+    return out or None
+
+
 def machine_info() -> dict[str, Any]:
     """CPU, core counts, Python and library versions of this run."""
     import importlib.metadata as md
@@ -137,18 +152,8 @@ def machine_info() -> dict[str, Any]:
             versions[name] = md.version(name)
         except md.PackageNotFoundError:
             versions[name] = None
-    try:
-        commit = subprocess.run(
-            ['git', 'describe', '--always', '--dirty'],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
-    except OSError:
-        commit = ''
     return {
-        'git': commit or None,
+        'git': git_describe(),
         'cpu': cpu,
         'cores_online': os.cpu_count(),
         'cores_used': len(os.sched_getaffinity(0)),
@@ -642,6 +647,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             'poses_T_world_lidar': run.poses,
         }
     report['machine']['load_avg_at_end'] = list(os.getloadavg())
+    report['machine']['git_at_end'] = git_describe()
+    if report['machine']['git_at_end'] != report['machine']['git']:
+        logger.warning(
+            'The checkout changed during the run (%s -> %s): rerun for consistent numbers.',
+            report['machine']['git'],
+            report['machine']['git_at_end'],
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     table = format_tables(report)
     (args.out / 'odometry.md').write_text(table)

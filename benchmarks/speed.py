@@ -420,7 +420,7 @@ def plot(path: Path, report: dict[str, Any]) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(12, 5), layout='constrained')
+    fig = Figure(figsize=(13.5, 5), layout='constrained')
     FigureCanvasAgg(fig)
     ax_t, ax_r = fig.subplots(1, 2)
     failed_label_owner = next(
@@ -459,8 +459,23 @@ def plot(path: Path, report: dict[str, Any]) -> None:
     ax_r.set_title('ratio to small_gicp GICP (same run)')
     for ax in (ax_t, ax_r):
         ax.grid(True, which='both', alpha=0.3)
-    ax_r.legend(fontsize=8, loc='best')
+    ax_r.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     fig.savefig(path, dpi=100)
+
+
+def git_describe() -> str | None:
+    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
+    try:
+        out = subprocess.run(
+            ['git', 'describe', '--always', '--dirty'],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        return None
+    return out or None
 
 
 def machine_info() -> dict[str, Any]:
@@ -481,18 +496,8 @@ def machine_info() -> dict[str, Any]:
             versions[name] = md.version(name)
         except md.PackageNotFoundError:
             continue
-    try:
-        commit = subprocess.run(
-            ['git', 'describe', '--always', '--dirty'],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
-    except OSError:
-        commit = ''
     return {
-        'git': commit or None,
+        'git': git_describe(),
         'cpu': cpu,
         'cores_online': os.cpu_count(),
         'machine': platform.machine(),
@@ -694,6 +699,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     report['results'] = results
     report['load_avg_at_end'] = list(os.getloadavg())
+    report['git_at_end'] = git_describe()
+    if report['git_at_end'] != report['machine']['git']:
+        logger.warning(
+            'The checkout changed during the run (%s -> %s): rerun for consistent numbers.',
+            report['machine']['git'],
+            report['git_at_end'],
+        )
     report['wall_s'] = time.perf_counter() - t_start
     args.out.mkdir(parents=True, exist_ok=True)
     table = format_table(report)
