@@ -9,6 +9,7 @@ Usage::
 
     python3 benchmarks/render_readme.py          # rewrite the README
     python3 benchmarks/render_readme.py --check  # exit 1 if the README is out of date
+    python3 benchmarks/render_readme.py --only paper_table goals   # just these blocks
 """
 
 from __future__ import annotations
@@ -125,6 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--check', action='store_true', help='exit 1 if the README is stale')
     parser.add_argument('--readme', type=Path, default=README)
     parser.add_argument('--results', type=Path, default=RESULTS)
+    parser.add_argument('--only', nargs='+', metavar='NAME', help='render only these blocks')
     args = parser.parse_args(argv)
     blocks = {p.stem: p.read_text() for p in sorted(args.results.glob('*.md'))}
     goals = goals_block(
@@ -132,6 +134,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if goals is not None:
         blocks['goals'] = goals
+    if args.only:
+        blocks = {k: v for k, v in blocks.items() if k in args.only}
     old = args.readme.read_text()
     new, missing = render(old, blocks)
     for name in missing:
