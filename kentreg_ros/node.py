@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+import rclpy.clock
 import rclpy.logging
 import rclpy.time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -283,8 +284,11 @@ class KentRegNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self._sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
+        # A steady timer: diagnostics keep coming when simulated time is paused or absent.
         self._diag_timer = self.create_timer(
-            self._settings.diagnostics_period, self._publish_diagnostics
+            self._settings.diagnostics_period,
+            self._publish_diagnostics,
+            clock=rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME),
         )
         self.add_on_set_parameters_callback(self._on_set_parameters)
 

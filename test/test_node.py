@@ -491,3 +491,31 @@ def test_node_exits_1_with_the_reason_on_bad_startup_parameters(
     assert code == 1, log
     assert expected in log, log
     assert 'Traceback' not in log
+
+
+def test_node_honours_use_sim_time(harness: Harness, bag_scans: list[Any]) -> None:
+    from rosgraph_msgs.msg import Clock
+
+    proc = harness.start_node('-p', 'use_sim_time:=true', *QUEUE_ALL)
+    out = harness.connect(proc)
+    clock_pub = harness.node.create_publisher(Clock, '/clock', 10)
+    sim_ns = 1_000_000 * 10**9  # simulated time: day 12 of 1970
+    sim = {'now': sim_ns}
+
+    def tick() -> None:
+        sim['now'] += 50_000_000
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(sim['now'], 10**9)
+        clock_pub.publish(msg)
+
+    timer = harness.node.create_timer(0.05, tick)
+    out.pub.publish(cloud_msg(bag_scans[0].points, sim_ns))
+    assert harness.spin_until(lambda: len(out.odom) == 1, 30.0, proc), proc.log()
+    # Diagnostics are stamped with the node's clock: the simulated one, not the wall clock.
+    n_diag = len(out.diag)
+    assert harness.spin_until(lambda: len(out.diag) > n_diag + 1, 20.0, proc), proc.log()
+    assert sim_ns < stamp_ns(out.diag[-1].header.stamp) <= sim['now']
+    # Outputs carry the scan's stamp whatever the clock says.
+    assert stamp_ns(out.odom[0].header.stamp) == sim_ns
+    harness.node.destroy_timer(timer)
+    assert proc.stop() == 0
