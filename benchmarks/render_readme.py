@@ -81,17 +81,25 @@ def goals_block(paper: dict[str, Any] | None, outliers: dict[str, Any] | None) -
         for name, goal in (('kentreg_robust', 'at most 1.5×'), ('icp_pt2pl', 'several-fold')):
             if name not in levels[lo]['methods']:
                 continue
-            for key, label in (('e_R_deg', 'e_R'), ('e_t_m', 'e_t')):
-                a = levels[lo]['methods'][name]['summary'][key]['mean']
-                b = levels[hi]['methods'][name]['summary'][key]['mean']
-                ratio = b / a if a else None
-                ok = None
-                if ratio is not None:
-                    ok = ratio <= 1.5 if name == 'kentreg_robust' else ratio >= 3.0
+            for key, label in (('e_R_deg', 'e_R (°)'), ('e_t_m', 'e_t (m)')):
+                cells, oks = [], []
+                for stat in ('mean', 'median'):
+                    a = levels[lo]['methods'][name]['summary'][key][stat]
+                    b = levels[hi]['methods'][name]['summary'][key][stat]
+                    ratio = b / a if a else None
+                    cells.append(f'{stat} {a:.3g} → {b:.3g} ({_num(ratio, ".2f")}×)')
+                    if ratio is not None:
+                        oks.append(ratio <= 1.5 if name == 'kentreg_robust' else ratio >= 3.0)
+                if len(oks) < 2:
+                    verdict = '–'
+                elif all(oks) or not any(oks):
+                    verdict = _verdict(all(oks))
+                else:
+                    verdict = 'mixed'
                 rows.append(
-                    f'| {name} mean {label} at {float(hi) * 100:.0f} % outliers: {goal} its '
+                    f'| {name} {label} at {float(hi) * 100:.0f} % outliers: {goal} its '
                     f'outlier-free value | BALM, {outliers["meta"]["trials"]} trials '
-                    f'| {a:.4g} → {b:.4g} ({_num(ratio, ".2f")}×) | {_verdict(ok)} |'
+                    f'| {"; ".join(cells)} | {verdict} |'
                 )
     head = '| goal | where | measured | verdict |\n|---|---|---|---|\n'
     note = (
