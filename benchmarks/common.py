@@ -219,6 +219,21 @@ def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     return out, (time.perf_counter() - t0) * 1e3
 
 
+def git_describe() -> str | None:
+    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
+    try:
+        out = subprocess.run(
+            ['git', 'describe', '--always', '--dirty'],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        return None
+    return out or None
+
+
 def machine_info() -> dict[str, Any]:
     """CPU, cores, Python and library versions, git commit, date (for every results file)."""
     cpu = platform.processor() or ''
@@ -252,8 +267,11 @@ def machine_info() -> dict[str, Any]:
     except OSError:
         commit = ''
     return {
+        'git': git_describe(),
         'cpu': cpu,
         'cores': os.cpu_count(),
+        'cores_used': len(os.sched_getaffinity(0)),
+        'load_avg_at_start': list(os.getloadavg()),
         'machine': platform.machine(),
         'system': f'{platform.system()} {platform.release()}',
         'python': platform.python_version(),

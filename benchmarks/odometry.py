@@ -51,11 +51,8 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import logging
 import os
-import platform
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -69,6 +66,7 @@ from numpy.typing import NDArray
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.common import git_describe, machine_info, write_json  # noqa: E402
 from kentreg_ros.core import metrics  # noqa: E402
 from kentreg_ros.core.config import KentRegConfig  # noqa: E402
 from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: E402
@@ -116,52 +114,6 @@ def pin_threads(threads: int, argv: Sequence[str]) -> None:
         os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *argv], env)
     allowed = sorted(os.sched_getaffinity(0))
     os.sched_setaffinity(0, allowed[:threads])
-
-
-def git_describe() -> str | None:
-    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
-    try:
-        out = subprocess.run(
-            ['git', 'describe', '--always', '--dirty'],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
-    except OSError:
-        return None
-    return out or None
-
-
-def machine_info() -> dict[str, Any]:
-    """CPU, core counts, Python and library versions of this run."""
-    import importlib.metadata as md
-
-    cpu = platform.processor() or ''
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as fh:
-            for line in fh:
-                if line.startswith('model name'):
-                    cpu = line.split(':', 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    versions = {}
-    for name in ('numpy', 'scipy', 'kiss-icp', 'small_gicp', 'kentreg_ros'):
-        try:
-            versions[name] = md.version(name)
-        except md.PackageNotFoundError:
-            versions[name] = None
-    return {
-        'git': git_describe(),
-        'cpu': cpu,
-        'cores_online': os.cpu_count(),
-        'cores_used': len(os.sched_getaffinity(0)),
-        'machine': platform.machine(),
-        'python': platform.python_version(),
-        'versions': versions,
-        'load_avg_at_start': list(os.getloadavg()),
-    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -495,24 +447,6 @@ def plot(
     fig.savefig(path, dpi=100)
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
-
-
-# --------------------------------------------------------------------------------------------
-# Entry point
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -657,7 +591,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     table = format_tables(report)
     (args.out / 'odometry.md').write_text(table)
-    (args.out / 'odometry.json').write_text(json.dumps(_jsonable(report), indent=1) + '\n')
+    write_json(args.out / 'odometry.json', report)
     if T_gt_plot is not None and aligned:
         plot(args.out / 'odometry.png', aligned, T_gt_plot, errors)
     print(table)

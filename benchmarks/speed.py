@@ -56,7 +56,6 @@ import datetime
 import json
 import logging
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -70,6 +69,8 @@ from numpy.typing import NDArray
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from benchmarks.common import git_describe, machine_info  # noqa: E402
 
 logger = logging.getLogger('benchmarks.speed')
 
@@ -461,49 +462,6 @@ def plot(path: Path, report: dict[str, Any]) -> None:
         ax.grid(True, which='both', alpha=0.3)
     ax_r.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.01, 1.0))
     fig.savefig(path, dpi=100)
-
-
-def git_describe() -> str | None:
-    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
-    try:
-        out = subprocess.run(
-            ['git', 'describe', '--always', '--dirty'],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.strip()
-    except OSError:
-        return None
-    return out or None
-
-
-def machine_info() -> dict[str, Any]:
-    """CPU, cores, Python and library versions."""
-    import importlib.metadata as md
-
-    cpu = platform.processor() or ''
-    try:
-        with open('/proc/cpuinfo', encoding='utf-8') as fh:
-            cpu = next(
-                (ln.split(':', 1)[1].strip() for ln in fh if ln.startswith('model name')), cpu
-            )
-    except OSError:
-        pass
-    versions = {}
-    for name in ('numpy', 'scipy', 'open3d-cpu', 'open3d', 'small_gicp', 'kiss-icp'):
-        try:
-            versions[name] = md.version(name)
-        except md.PackageNotFoundError:
-            continue
-    return {
-        'git': git_describe(),
-        'cpu': cpu,
-        'cores_online': os.cpu_count(),
-        'machine': platform.machine(),
-        'python': platform.python_version(),
-        'versions': versions,
-    }
 
 
 def run_library(
