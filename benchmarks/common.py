@@ -24,7 +24,7 @@ from kentreg_ros.core import drop_nonfinite
 from kentreg_ros.core.metrics import pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan
 from kentreg_ros.io.poses import Trajectory
-from kentreg_ros.replay import orthonormalize
+from kentreg_ros.replay import jsonable, orthonormalize
 
 FloatArray = NDArray[np.float64]
 
@@ -282,23 +282,9 @@ def machine_info() -> dict[str, Any]:
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as indented JSON (NaN written as null)."""
-
-    def clean(v: Any) -> Any:
-        if isinstance(v, float) and not np.isfinite(v):
-            return None
-        if isinstance(v, dict):
-            return {str(k): clean(x) for k, x in v.items()}
-        if isinstance(v, list | tuple):
-            return [clean(x) for x in v]
-        if isinstance(v, np.generic):
-            return clean(v.item())
-        if isinstance(v, np.ndarray):
-            return clean(v.tolist())
-        return v
-
+    """Write ``data`` as indented JSON (numpy values as Python values, NaN written as null)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(clean(data), indent=1) + '\n')
+    path.write_text(json.dumps(jsonable(data), indent=1) + '\n')
 
 
 def fmt(value: Any, spec: str) -> str:

@@ -128,10 +128,6 @@ class _Counters:
             self.total[name] += n
             self.window[name] += n
 
-    def snapshot(self) -> dict[str, int]:
-        with self._lock:
-            return dict(self.total)
-
     def take_window(self) -> tuple[dict[str, int], dict[str, int]]:
         with self._lock:
             window, self.window = self.window, dict.fromkeys(self.NAMES, 0)
@@ -650,11 +646,6 @@ class KentRegNode(Node):
 
     # ----------------------------------------------------------------------------------------
     # Lifecycle
-
-    @property
-    def counters(self) -> dict[str, int]:
-        """Cumulative event counts (received, processed, dropped_queue, malformed, ...)."""
-        return self._counters.snapshot()
 
     def destroy_node(self) -> None:
         """Stop and join the worker (it finishes the scan in hand), then destroy the node."""

@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
-import math
 import sys
 import time
 from collections.abc import Iterator, Sequence
@@ -48,6 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from kentreg_ros.cli_args import non_negative_float, non_negative_int, positive_float, positive_int
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.io.errors import BagError
 
@@ -77,34 +77,6 @@ class _ArgumentParser(argparse.ArgumentParser):
         raise InputError(message)
 
 
-def _nonnegative_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value) or value < 0.0:
-        raise argparse.ArgumentTypeError(f'expected a finite number >= 0, got {text!r}')
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value) or value <= 0.0:
-        raise argparse.ArgumentTypeError(f'expected a finite number > 0, got {text!r}')
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
-    return value
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 1, got {text!r}')
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``kentreg_play`` (ROS arguments are removed first)."""
     parser = _ArgumentParser(
@@ -127,22 +99,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         '--rate',
-        type=_nonnegative_float,
+        type=non_negative_float,
         default=None,
         help='playback speed as a multiple of the recorded rate (default 1; 0: as fast as '
         'possible)',
     )
     parser.add_argument(
         '--hz',
-        type=_positive_float,
+        type=positive_float,
         help='publish at this fixed rate instead, whatever the recorded stamps',
     )
     parser.add_argument('--loop', action='store_true', help='repeat until interrupted')
     parser.add_argument(
-        '--start', type=_nonnegative_int, default=0, help='skip this many scans (default 0)'
+        '--start', type=non_negative_int, default=0, help='skip this many scans (default 0)'
     )
     parser.add_argument(
-        '--max-scans', type=_positive_int, help='publish at most this many scans per pass'
+        '--max-scans', type=positive_int, help='publish at most this many scans per pass'
     )
     parser.add_argument(
         '--restamp',
@@ -153,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         '--clock',
-        type=_positive_float,
+        type=positive_float,
         nargs='?',
         const=DEFAULT_CLOCK_HZ,
         metavar='HZ',
@@ -169,11 +141,11 @@ def build_parser() -> argparse.ArgumentParser:
         'best-effort subscribers)',
     )
     parser.add_argument(
-        '--depth', type=_positive_int, default=10, help='QoS history depth (default 10)'
+        '--depth', type=positive_int, default=10, help='QoS history depth (default 10)'
     )
     parser.add_argument(
         '--wait-subscribers',
-        type=_nonnegative_float,
+        type=non_negative_float,
         default=0.0,
         metavar='SECONDS',
         help='wait up to SECONDS for a subscriber before the first scan (default 0: do not '

@@ -65,6 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros import __version__
+from kentreg_ros.cli_args import non_negative_int, positive_int
 from kentreg_ros.core import metrics
 from kentreg_ros.core.config import KentRegConfig, dump_config, load_config
 from kentreg_ros.core.errors import KentRegError
@@ -149,9 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=GROUND_TRUTH_TOPIC,
         help=f'ground-truth topic of the bag (default {GROUND_TRUTH_TOPIC})',
     )
-    parser.add_argument('--max-scans', type=_positive_int, metavar='N', help='process N scans')
+    parser.add_argument('--max-scans', type=positive_int, metavar='N', help='process N scans')
     parser.add_argument(
-        '--start', type=_non_negative_int, default=0, metavar='N', help='skip the first N scans'
+        '--start', type=non_negative_int, default=0, metavar='N', help='skip the first N scans'
     )
     parser.add_argument(
         '--odom-frame', default='odom', help='frame of the output poses (default odom)'
@@ -168,23 +169,6 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument('-q', '--quiet', action='store_true', help='log errors only')
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     return parser
-
-
-def _positive_int(text: str) -> int:
-    value = _non_negative_int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'expected a positive integer, got {text!r}')
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'expected an integer, got {text!r}') from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'expected a non-negative integer, got {text!r}')
-    return value
 
 
 # --------------------------------------------------------------------------------------------
@@ -652,15 +636,16 @@ def write_odometry_mcap(
     return counts
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays as Python values and NaN/inf as None (JSON-ready)."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
+        return jsonable(value.tolist())
     if isinstance(value, np.generic):
-        return _jsonable(value.item())
+        return jsonable(value.item())
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
@@ -740,7 +725,7 @@ def write_outputs(
         if png:
             written.append('trajectory.png')
     report['files'] = written + ['metrics.json']
-    (out / 'metrics.json').write_text(json.dumps(_jsonable(report), indent=2) + '\n')
+    (out / 'metrics.json').write_text(json.dumps(jsonable(report), indent=2) + '\n')
     written.append('metrics.json')
     return written
 
