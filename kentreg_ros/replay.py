@@ -548,6 +548,8 @@ def _step_record(step: OdometryStep, input_index: int) -> dict[str, Any]:
         'timings_ms': {k: round(v, 3) for k, v in step.timings.items()},
         'n_points': step.n_points,
         'n_prepared': step.n_prepared,
+        'fit': step.fit if np.isfinite(step.fit) else None,
+        'searched': step.searched,
     }
     if step.result is not None:
         rec.update(
@@ -771,7 +773,9 @@ def format_summary(report: dict[str, Any], out: Path | None) -> str:
     lines = [
         f'{PROG}: {speed["n_scans"]} scans of {report["input"]["description"]}, '
         f'mode {report["mode"]}',
-        '  health     ' + ', '.join(f'{k} {health[k]}' for k in HEALTHS),
+        '  health     '
+        + ', '.join(f'{k} {health[k]}' for k in HEALTHS)
+        + f' (start-free search on {report.get("n_searched", 0)} scans)',
         f'  speed      {_fmt(speed["ms_per_scan"]["mean"], ".1f")} ms/scan mean, '
         f'{_fmt(speed["ms_per_scan"]["p95"], ".1f")} ms p95, '
         f'{_fmt(speed["scans_per_s"], ".2f")} scans/s (wall, with reading)',
@@ -891,6 +895,7 @@ def _replay(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         'error': run.error,
         'health': health,
         'n_failed_steps': health['fell_back'] + health['rejected'],
+        'n_searched': sum(s.searched for s in run.steps),
         'speed': speed_summary(run),
     }
     if evaluation is not None:

@@ -37,8 +37,10 @@ def test_automatic_voxel_size_reaches_the_target_count() -> None:
     pts = np.column_stack(
         [rng.uniform(0, 20, 80000), rng.uniform(0, 20, 80000), rng.normal(scale=0.01, size=80000)]
     )
-    size = choose_voxel_size(pts, 10000)
-    assert abs(len(voxel_downsample(pts, size)) - 10000) < 1500
+    out, grid = downsample(pts, target_points=10000)
+    # Within the search tolerance (5 %) of the target, every kept voxel holds >= 2 returns.
+    assert abs(len(out) - 10000) < 500
+    assert grid.min_points == 2 and grid.size == choose_voxel_size(pts, 10000)
 
 
 def test_voxel_count_and_automatic_downsampling_agree_with_a_direct_computation() -> None:
@@ -47,9 +49,54 @@ def test_voxel_count_and_automatic_downsampling_agree_with_a_direct_computation(
     for size in (0.05, 0.3, 1.7):
         keys = np.floor(pts / size).astype(np.int64)
         assert count_voxels(pts, size) == len(np.unique(keys, axis=0))
-    out, size = downsample(pts, target_points=5000)
-    assert size == choose_voxel_size(pts, 5000)
-    np.testing.assert_array_equal(out, voxel_downsample(pts, size))
+    out, grid = downsample(pts, voxel_size=0.5, min_voxel_points=1)
+    np.testing.assert_allclose(out, voxel_downsample(pts, 0.5), rtol=1e-12, atol=1e-12)
+    keys = np.floor(pts / 0.5).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    out2, grid2 = downsample(pts, voxel_size=0.5, min_voxel_points=2)
+    # A blob this dense has no stray returns to raise the floor above the one asked for.
+    assert grid.min_points == 1 and grid2.min_points == 2
+    assert len(out2) == int((counts >= 2).sum())
+    assert grid2.n_isolated == int(counts[counts < 2].sum())
+
+
+def _surfaces_with_stray_returns(
+    rng: np.random.Generator, n_surface: int, share: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A 30 x 20 x 6 m box's floor and walls, plus uniform stray returns in its volume making
+    ``share`` of all points; returns the points and a mask of the stray ones."""
+    lo, hi = np.array([-15.0, -10.0, -1.0]), np.array([15.0, 10.0, 5.0])
+    pts = rng.uniform(lo, hi, (n_surface, 3))
+    face = rng.integers(0, 3, n_surface)
+    pts[face == 0, 2] = lo[2]
+    pts[face == 1, 0] = rng.choice([lo[0], hi[0]], int((face == 1).sum()))
+    pts[face == 2, 1] = rng.choice([lo[1], hi[1]], int((face == 2).sum()))
+    n_stray = int(round(share / (1.0 - share) * n_surface))
+    stray = rng.uniform(lo, hi, (n_stray, 3))
+    return np.concatenate([pts, stray]), np.r_[np.zeros(n_surface, bool), np.ones(n_stray, bool)]
+
+
+@pytest.mark.parametrize('share', [0.2, 0.4, 0.6])
+def test_stray_returns_neither_choose_the_voxel_nor_survive_it(share: float) -> None:
+    rng = np.random.default_rng(int(share * 10))
+    # 100 returns per square metre of surface, as a LiDAR gives at ~10 m.
+    clean, _ = _surfaces_with_stray_returns(rng, 120000, 0.0)
+    noisy, stray = _surfaces_with_stray_returns(rng, 120000, share)
+    size_clean = choose_voxel_size(clean, 10000)
+    out, grid = downsample(noisy, target_points=10000)
+    # Counting every occupied voxel, the stray returns (one per voxel) would dominate the count
+    # and push the size up several times; counting voxels with several returns keeps it within
+    # the factor the returns-per-voxel floor moves it by (>= 2 returns at 40 %, more above).
+    assert grid.size < 1.5 * size_clean
+    assert len(out) > 0.5 * 10000
+    # Kept voxels are the surfaces': a voxel is stray when it lies off every face.
+    lo, hi = np.array([-15.0, -10.0, -1.0]), np.array([15.0, 10.0, 5.0])
+    off = np.min(np.abs(np.column_stack([out[:, 2] - lo[2], out[:, :2] - lo[:2],
+                                         hi[:2] - out[:, :2]])), axis=1)  # fmt: skip
+    assert np.mean(off > 2.0 * grid.size) < 0.1  # MAX_ISOLATED_SHARE of the kept voxels
+    # Stray returns that share a voxel with a surface are averaged into it (surface voxels fill
+    # ~12 % of this box at its voxel size); nearly all others are dropped.
+    assert grid.n_isolated >= 0.75 * stray.sum()
 
 
 def test_points_validation_messages() -> None:
@@ -89,7 +136,7 @@ def test_closed_form_smallest_eigenpairs_match_eigh_including_degenerate_matrice
     evals[130:200, 0] = 1e-7 * evals[130:200, 2]  # nearly planar
     M = np.einsum('nij,nj,nkj->nik', Q, evals, Q)
     cov = M.reshape(-1, 9)[:, [0, 1, 2, 4, 5, 8]]
-    lam, vec = smallest_eigenpairs_3x3(cov)
+    lam, vec, _ = smallest_eigenpairs_3x3(cov)
     w, v = np.linalg.eigh(M)
     np.testing.assert_allclose(lam, w[:, 0], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(vec, axis=1), 1.0, atol=1e-12)

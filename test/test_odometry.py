@@ -78,11 +78,22 @@ def run(odom: Odometry, clouds: list[np.ndarray]) -> list[OdometryStep]:
     return [odom.step(c, i * STEP_NS, frame_id='lidar') for i, c in enumerate(clouds)]
 
 
+def healths(steps: list[OdometryStep]) -> list[str]:
+    """Step healths, with the first pair's 'ambiguous' read as 'ok': the first pair is always
+    searched (no earlier fits to judge it by) and the test room is centrally symmetric up to
+    its boxes, so its twin may fit nearly as well (the pose nearest the prediction is used)."""
+    out = [s.health for s in steps]
+    if len(out) > 1 and out[1] == 'ambiguous':
+        out[1] = 'ok'
+    return out
+
+
 def test_odometry_recovers_known_trajectory(scans: tuple[np.ndarray, list[np.ndarray]]) -> None:
     T_true, clouds = scans
     odom = Odometry(KentRegConfig(), initial_pose=T_true[0])
     steps = run(odom, clouds)
-    assert [s.health for s in steps] == ['first'] + ['ok'] * 5
+    assert healths(steps) == ['first'] + ['ok'] * 5
+    assert steps[1].searched and not any(s.searched for s in steps[2:])
     assert odom.n_steps == 6 and odom.n_failed == 0 and odom.n_degenerate == 0
     assert odom.poses.shape == (6, 4, 4)
     np.testing.assert_array_equal(odom.stamps_ns, np.arange(6) * STEP_NS)
@@ -126,11 +137,17 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
     assert len(prepared) == 4
     assert hints == [0.0, *prepared[:-1]]  # each voxel search starts at the last scan's size
     assert min(prepared) > 0.0
-    assert len(registered) == 3
-    for (source, target), (next_source, next_target) in zip(registered, registered[1:],
-                                                            strict=False):  # fmt: skip
+    # One registration per step, plus the start-free search where a step was doubtful (the
+    # first pair always is); all calls of a step share its source, prepared once, against the
+    # same model, and that source is the next step's model.
+    sources = list(dict.fromkeys(id(source) for source, _ in registered))
+    assert len(sources) == 3 and len(registered) >= 3
+    target_of = {id(source): target for source, target in registered}
+    for source, target in registered:
         assert isinstance(source, PreparedScan) and isinstance(target, PreparedScan)
-        assert next_target is source  # the new scan, prepared once, is the next model
+        assert target_of[id(source)] is target
+    for prev, nxt in zip(sources, sources[1:], strict=False):
+        assert id(target_of[nxt]) == prev
 
 
 def test_odometry_rejects_tiny_cloud_without_corrupting_later_poses(
@@ -141,7 +158,7 @@ def test_odometry_rejects_tiny_cloud_without_corrupting_later_poses(
     clouds[3] = clouds[3][:5]
     odom = Odometry(initial_pose=T_true[0])
     steps = run(odom, clouds)
-    assert [s.health for s in steps] == ['first', 'ok', 'ok', 'rejected', 'ok', 'ok']
+    assert healths(steps) == ['first', 'ok', 'ok', 'rejected', 'ok', 'ok']
     rejected = steps[3]
     assert not rejected.ok and rejected.result is None
     assert 'Rejected' in rejected.message and 'points' in rejected.message
@@ -160,12 +177,14 @@ def test_odometry_falls_back_on_implausible_step(
     scans: tuple[np.ndarray, list[np.ndarray]],
 ) -> None:
     _, clouds = scans
-    cfg = KentRegConfig().with_updates({'odometry.max_step_rotation_deg': 3.0})
+    # The scans turn 6 deg per 0.1 s (60 deg/s): a 30 deg/s limit makes every step implausible,
+    # and so every pose the search finds.
+    cfg = KentRegConfig().with_updates({'odometry.max_angular_speed_deg': 30.0})
     odom = Odometry(cfg)
     steps = run(odom, clouds[:3])
     assert [s.health for s in steps] == ['first', 'fell_back', 'fell_back']
-    assert odom.n_failed == 2
-    assert 'max_step_rotation_deg' in steps[1].message
+    assert odom.n_failed == 2 and all(s.searched for s in steps[1:])
+    assert 'max_angular_speed_deg' in steps[1].message
     assert steps[1].result is not None  # the rejected estimate is kept for inspection
     # No motion known yet: the predictions, hence the poses, stay at the start.
     np.testing.assert_allclose(odom.poses, np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
@@ -304,7 +323,7 @@ def test_odometry_covariance_grows_and_inflates_on_fall_back(
     clouds = list(clouds[:4])
     clouds[2] = clouds[2][:5]
     steps = run(Odometry(), clouds)
-    assert [s.health for s in steps] == ['first', 'ok', 'rejected', 'ok']
+    assert healths(steps) == ['first', 'ok', 'rejected', 'ok']
     np.testing.assert_array_equal(steps[0].covariance, np.zeros((6, 6)))
     variances = [np.diag(s.covariance) for s in steps]
     assert np.all(variances[1] > 0) and np.all(variances[1] < 1e-4)

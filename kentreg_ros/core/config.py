@@ -48,8 +48,18 @@ class PreprocessConfig:
     )
     target_points: int = _f(
         10000,
-        'Points kept after automatic voxel downsampling (paper: ~10,000).',
+        'Voxels kept by automatic voxel downsampling (paper: ~10,000 points). Only voxels '
+        'holding at least min_voxel_points returns count, so stray returns cannot choose the '
+        'size.',
         range=(100, 2_000_000),
+    )
+    min_voxel_points: int = _f(
+        2,
+        'Returns a voxel must hold to be kept. A voxel with a single return is where isolated '
+        'returns (dust, rain, multipath) land and says nothing about a surface; the floor is '
+        'raised automatically while uniform stray returns at the observed rate of single-return '
+        'voxels would fill more than 5 % of the kept voxels. 1 keeps every voxel.',
+        range=(1, 8),
     )
     min_range: float = _f(
         0.0, 'Drop points closer to the sensor than this (m).', range=(0.0, 1000.0)
@@ -64,6 +74,14 @@ class NormalsConfig:
     """PCA surface normals and their cosine-similarity outlier removal."""
 
     k_neighbors: int = _f(15, 'Neighbours for PCA normals (paper: 15).', range=(5, 100))
+    max_flatness: float = _f(
+        0.25,
+        'Keep a normal only where its neighbourhood is a surface: smallest over middle '
+        'eigenvalue of the neighbourhood covariance at most this. At 0.25 the normal of 15 '
+        'neighbours is determined to about 7 deg; above it the points form a line, a blob or '
+        'a crease (stray returns, far scan rings). 1 keeps every normal.',
+        range=(0.0, 1.0),
+    )
     outlier_cosine: float = _f(
         0.8,
         'Remove a normal whose cosine to its neighbourhood mean normal is below this; '
@@ -154,6 +172,13 @@ class TranslationConfig:
         'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
+    max_shift: float = _f(
+        2.0,
+        'How far (m) the translation may lie from its start along each plane normal in the '
+        'cross-correlation: 2 m is 20 m/s at 10 Hz, beyond the motion between scans of any '
+        'platform the odometry is meant for.',
+        range=(0.0, 1000.0),
+    )
     degeneracy_ratio: float = _f(
         0.02,
         'Flag degeneracy when the smallest/largest eigenvalue of the translation normal '
@@ -204,19 +229,87 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
+class SearchConfig:
+    """Start-free rotation search from the two clouds' normal-mixture summaries."""
+
+    mode: str = _f(
+        'auto',
+        "When register() searches SO(3) instead of starting only from init: 'auto' when no "
+        "init is given (the odometry searches when a step is doubtful), 'always', 'never'.",
+        choices=('auto', 'always', 'never'),
+    )
+    twist_step_deg: float = _f(
+        5.0,
+        'Step of the twist grid about each pair of aligned cluster means (deg). The EM '
+        'started from a hypothesis converges from about a quarter of a cluster spread; '
+        'hypotheses within half a step of the truth reach it.',
+        range=(0.5, 90.0),
+    )
+    candidates: int = _f(
+        6,
+        'Distinct best hypotheses refined by the EM and verified on the points. Symmetric '
+        'scenes give their twins equal summary scores (a room has up to 4 about the vertical, '
+        'a corridor 2 per axis), so this must exceed the twins of one axis.',
+        range=(1, 100),
+    )
+    min_separation_deg: float = _f(
+        10.0,
+        'Hypotheses closer than this (deg) count as one: twice the twist step, so two grid '
+        'neighbours of one peak are not both refined.',
+        range=(0.0, 180.0),
+    )
+    ambiguity_ratio: float = _f(
+        0.9,
+        'Another pose, distinct from the best (its points move by more than twice the fit '
+        'distance gate), that fits at least this share of the best fit makes the result '
+        'ambiguous: less than a tenth of the matched surfaces tells the two apart.',
+        range=(0.0, 1.0),
+    )
+
+
+@dataclass(frozen=True)
 class OdometryConfig:
     """Scan-to-previous-scan pose integration."""
 
-    constant_velocity: bool = _f(True, 'Start each registration from the last relative motion.')
-    max_step_rotation_deg: float = _f(
-        90.0,
-        'A step rotating more than this is rejected as a failure (deg).',
-        range=(0.0, 180.0),
+    constant_velocity: bool = _f(
+        True,
+        'Start each registration from the last accepted motion (scaled to the time gap); a '
+        'step that fell back never feeds it.',
     )
-    max_step_translation: float = _f(
-        10.0,
-        'A step translating more than this is rejected as a failure (m).',
-        range=(0.0, 1000.0),
+    max_angular_speed_deg: float = _f(
+        360.0,
+        'Fastest plausible turn of the sensor (deg/s); a step turning more than this times its '
+        'time gap is rejected. One turn per second: beyond hand-held sweeps (BALM: up to '
+        '96 deg/s), vehicles and most aerial platforms.',
+        range=(1.0, 100000.0),
+    )
+    max_linear_speed: float = _f(
+        50.0,
+        'Fastest plausible motion of the sensor (m/s); a step moving more than this times its '
+        'time gap is rejected. 180 km/h: beyond the road vehicles LiDAR odometry runs on.',
+        range=(0.01, 10000.0),
+    )
+    doubt_ratio: float = _f(
+        0.7,
+        'A step whose fit (share of points landing on matching surfaces) is below this share '
+        'of the median fit of the last accepted steps is doubtful: the zero-motion start and '
+        'the start-free search are tried too and the best fit wins. Correct steps of real '
+        'sequences stay above ~0.85 of their median (overlap changes slowly); a wrong minimum '
+        'loses whole families of surfaces. Searching costs time, not accuracy, so the margin '
+        'errs toward searching.',
+        range=(0.0, 1.0),
+    )
+    fit_window: int = _f(
+        10,
+        'Accepted steps whose fits form the median doubt_ratio is applied to (a few seconds '
+        'of a 2-10 Hz sensor: long enough to be stable, short enough to follow a scene change).',
+        range=(1, 1000),
+    )
+    min_fit: float = _f(
+        0.1,
+        'A step whose best fit is below this (fewer than a tenth of the points land on a '
+        'matching surface: the scans barely overlap) falls back to the prediction.',
+        range=(0.0, 1.0),
     )
 
 
@@ -241,6 +334,7 @@ class KentRegConfig:
     em: EMConfig = field(default_factory=EMConfig)
     translation: TranslationConfig = field(default_factory=TranslationConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 
     def __post_init__(self) -> None:

@@ -446,7 +446,42 @@ def fit_kent_moments_batch(
     outer = (xu[:, :, None] * xu[:, None, :]).reshape(n, 9)
     xbar = (w @ xu) / w_sum[:, None]
     scatter = ((w @ outer) / w_sum[:, None]).reshape(k_comp, 3, 3)
+    kappa, beta, gamma = kent_from_moments(xbar, scatter)
+    kappa[degenerate] = 0.0
+    beta[degenerate] = 0.0
+    gamma[degenerate] = np.eye(3)
+    return kappa, beta, gamma
 
+
+def kent_from_moments(
+    xbar: FloatArray, scatter: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Kent's (1982, section 4) moment estimates from first and second sample moments.
+
+    With ``xbar`` the (weighted) mean vector and ``S`` the (weighted) mean of ``x x^T``:
+    ``H`` rotates the first axis onto ``xbar / |xbar|``; the tangent 2x2 block of ``H^T S H``
+    is diagonalised by a rotation ``psi`` so that ``gamma1`` is the axis of larger spread;
+    with ``r1 = |xbar|`` and ``r2 = l1 - l2`` (the tangent eigenvalue gap)::
+
+        kappa = 1 / (2 - 2 r1 - r2) + 1 / (2 - 2 r1 + r2)
+        beta  = (1 / (2 - 2 r1 - r2) - 1 / (2 - 2 r1 + r2)) / 2
+
+    i.e. ``kappa - 2 beta = 1 / (2 - 2 r1 + r2)`` and ``kappa + 2 beta = 1 / (2 - 2 r1 - r2)``,
+    the precisions along the major and the minor axis: ``beta > 0`` exactly when the spread
+    along the major axis exceeds that along the minor one.
+
+    Parameters
+    ----------
+    xbar : ndarray, shape (K, 3)
+    scatter : ndarray, shape (K, 3, 3)
+
+    Returns
+    -------
+    kappa, beta : ndarray, shape (K,)
+        ``kappa`` clipped to :data:`KAPPA_MAX`, ``beta`` to ``MAX_BETA_RATIO * kappa``.
+    gamma : ndarray, shape (K, 3, 3)
+        Rotations (det +1) with columns mean, major axis, minor axis.
+    """
     r1 = np.linalg.norm(xbar, axis=1)
     m = np.where((r1 > 0.0)[:, None], xbar / np.where(r1 > 0.0, r1, 1.0)[:, None], [1.0, 0, 0])
     h = _frames_from_mean(m)
@@ -468,10 +503,6 @@ def fit_kent_moments_batch(
     resolved = one_minus_r1 > 64.0 * np.finfo(np.float64).eps
     ratio = np.where(resolved, r2 / (4.0 * np.where(resolved, one_minus_r1, 1.0)), 0.0)
     beta = np.minimum(ratio, MAX_BETA_RATIO) * kappa
-
-    kappa[degenerate] = 0.0
-    beta[degenerate] = 0.0
-    gamma[degenerate] = np.eye(3)
     return kappa, beta, gamma
 
 

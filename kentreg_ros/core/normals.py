@@ -30,12 +30,17 @@ class NormalEstimate:
     curvature : ndarray, shape (N,)
         Surface variation ``l0 / (l0 + l1 + l2)`` of the local covariance (0 = planar,
         1/3 = isotropic).
+    flatness : ndarray, shape (N,)
+        ``l0 / l1``, the smallest over the middle eigenvalue of the local covariance: small on
+        a plane (also a narrow strip of one), near 1 where the normal is undefined (a line of
+        points, an isotropic blob). See :func:`planar_mask`.
     neighbors : ndarray of int, shape (N, k)
         Indices of the k nearest neighbours (including the point itself).
     """
 
     normals: FloatArray
     curvature: FloatArray
+    flatness: FloatArray
     neighbors: NDArray[np.intp]
 
 
@@ -75,12 +80,17 @@ def estimate_normals(
     _, idx = tree.query(points, k=k, workers=-1)
     idx = np.asarray(idx, dtype=np.intp)
     cov = neighbourhood_covariances(points, idx)
-    evals, normals = smallest_eigenpairs_3x3(cov)
+    evals, normals, mid = smallest_eigenpairs_3x3(cov)
     total = cov[:, 0] + cov[:, 3] + cov[:, 5]
     curvature = np.where(total > 0, evals / np.where(total > 0, total, 1.0), 1.0 / 3.0)
+    lo = np.maximum(evals, 0.0)
+    flatness = np.where(mid > 0, lo / np.where(mid > 0, mid, 1.0), 1.0)
     normals = orient_normals(points, normals, viewpoint)
     return NormalEstimate(
-        normals=normals, curvature=np.clip(curvature, 0.0, 1.0 / 3.0), neighbors=idx
+        normals=normals,
+        curvature=np.clip(curvature, 0.0, 1.0 / 3.0),
+        flatness=np.clip(flatness, 0.0, 1.0),
+        neighbors=idx,
     )
 
 
@@ -127,8 +137,9 @@ def neighbourhood_covariances(points: FloatArray, neighbors: NDArray[np.intp]) -
 
 def smallest_eigenpairs_3x3(
     cov: FloatArray, *, gap_ratio: float = 1e-6
-) -> tuple[FloatArray, FloatArray]:
-    """Smallest eigenvalue and its unit eigenvector of many symmetric 3x3 matrices.
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Smallest eigenvalue and its unit eigenvector, and the middle eigenvalue, of many
+    symmetric 3x3 matrices.
 
     Closed form: eigenvalues by the trigonometric solution of the characteristic cubic
     (Smith 1961), the eigenvector as the largest cross product of two rows of
@@ -148,6 +159,8 @@ def smallest_eigenpairs_3x3(
     evals : ndarray, shape (N,)
     evecs : ndarray, shape (N, 3)
         Unit eigenvectors (sign arbitrary).
+    mid : ndarray, shape (N,)
+        Middle eigenvalues.
     """
     a, b, c, d, e, f = (cov[:, i] for i in range(6))
     m = (a + d + f) / 3.0
@@ -173,6 +186,7 @@ def smallest_eigenpairs_3x3(
     hard = (p <= 0.0) | (l_mid - l_min <= gap_ratio * scale) | ~(vec_norm > 0.0)
     evecs = vec / np.where(hard, 1.0, vec_norm)[:, None]
     evals = l_min
+    mid = l_mid
     if hard.any():
         full = np.empty((int(hard.sum()), 3, 3))
         sub = cov[hard]
@@ -180,9 +194,11 @@ def smallest_eigenpairs_3x3(
             full[:, r, col] = full[:, col, r] = sub[:, i]
         w, v = np.linalg.eigh(full)
         evals = evals.copy()
+        mid = mid.copy()
         evals[hard] = w[:, 0]
+        mid[hard] = w[:, 1]
         evecs[hard] = v[:, :, 0]
-    return evals, np.ascontiguousarray(evecs)
+    return evals, np.ascontiguousarray(evecs), mid
 
 
 def orient_normals(
@@ -230,3 +246,20 @@ def normal_inlier_mask(
     if min_cosine <= -1.0:
         return np.ones(len(normals), dtype=bool)
     return normal_consistency(normals, neighbors) >= min_cosine
+
+
+#: Default of :func:`planar_mask`: the normal of k neighbours spread with eigenvalues
+#: ``l0 <= l1`` is determined to about ``sqrt(l0 / (k l1))`` rad; at ``l0 / l1 = 1/4`` and
+#: ``k = 15`` that is 7 deg, about the spread of a plane's normals within one cluster. Above it
+#: the neighbourhood is a line of points, a blob or a crease, not a surface.
+MAX_FLATNESS = 0.25
+
+
+def planar_mask(flatness: FloatArray, max_flatness: float = MAX_FLATNESS) -> NDArray[np.bool_]:
+    """Mask of neighbourhoods flat enough to define a normal (``l0 / l1 <= max_flatness``).
+
+    ``max_flatness >= 1`` keeps every normal.
+    """
+    if max_flatness >= 1.0:
+        return np.ones(len(flatness), dtype=bool)
+    return flatness <= max_flatness

@@ -2,17 +2,21 @@
 
 The loop of the design card, one scan at a time::
 
-    predict    T_world_pred = T_world_last @ motion      (constant velocity, or no motion)
+    predict    T_world_pred = T_world_last @ velocity    (the last *accepted* motion, or none)
     prepare    the new scan once (crop, voxels, normals, clusters)
-    register   source = new scan (observed), target = model (previous scan), init = prediction
-    check      status 'failed', or a step beyond odometry.max_step_* -> fall back to prediction
+    register   source = new scan, target = model (previous scan), init = prediction
+    doubt      the step failed, breaks the speed limits, or fits clearly worse than the last
+               accepted steps  ->  also search without a start (zero motion and the
+               start-free rotation search) and keep the best-fitting plausible pose; poses
+               that fit about equally well go to the one nearest the prediction
+    check      nothing plausible that fits -> fall back to the prediction
     chain      T_world_curr = T_world_model @ T_model_curr
     keep       the new scan, with its cached preprocessing, as the next model
 
-A failure never corrupts the trajectory: a registration that fails (or jumps implausibly far)
-keeps the predicted pose and is flagged ``'fell_back'``; a cloud that cannot be used at all
-(:class:`~kentreg_ros.core.errors.InvalidPointCloudError`, e.g. too few points) is flagged
-``'rejected'``, gets the predicted pose, and the model is kept for the next scan.
+A step that fell back keeps the predicted pose and is flagged; it never feeds the velocity,
+so one bad step cannot be repeated by the next prediction (a runaway). A cloud that cannot be
+used at all (:class:`~kentreg_ros.core.errors.InvalidPointCloudError`, e.g. too few points) is
+flagged ``'rejected'``, gets the predicted pose, and the model is kept for the next scan.
 
 :class:`Odometry` keeps no global state; the ROS node runs one instance in one worker thread.
 An instance is not meant to be shared between threads.
@@ -39,6 +43,7 @@ from kentreg_ros.core.registration import (
     register,
 )
 from kentreg_ros.core.rotations import exp_so3, hat, log_so3, make_transform, rotation_angle
+from kentreg_ros.core.verify import FitGates, rms_displacement
 
 logger = logging.getLogger(__name__)
 
@@ -46,11 +51,23 @@ FloatArray = NDArray[np.float64]
 
 HEALTH_FIRST = 'first'
 HEALTH_OK = 'ok'
+HEALTH_RECOVERED = 'recovered'
 HEALTH_DEGENERATE = 'degenerate'
+HEALTH_AMBIGUOUS = 'ambiguous'
 HEALTH_FELL_BACK = 'fell_back'
 HEALTH_REJECTED = 'rejected'
 #: Every health value of an :class:`OdometryStep`, in order of severity.
-HEALTHS = (HEALTH_FIRST, HEALTH_OK, HEALTH_DEGENERATE, HEALTH_FELL_BACK, HEALTH_REJECTED)
+HEALTHS = (
+    HEALTH_FIRST,
+    HEALTH_OK,
+    HEALTH_RECOVERED,
+    HEALTH_DEGENERATE,
+    HEALTH_AMBIGUOUS,
+    HEALTH_FELL_BACK,
+    HEALTH_REJECTED,
+)
+#: Healths whose pose comes from a registration (they feed the velocity and the fit window).
+ACCEPTED = (HEALTH_OK, HEALTH_RECOVERED, HEALTH_DEGENERATE, HEALTH_AMBIGUOUS)
 
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
@@ -83,10 +100,17 @@ class OdometryStep:
         The registration result; None for the first scan, a rejected scan, or a registration
         that raised.
     health : str
-        ``'first'`` (became the first model), ``'ok'`` (estimate used), ``'degenerate'``
-        (estimate used, but some direction is poorly constrained), ``'fell_back'`` (the
-        registration failed or jumped too far: the pose is the prediction) or ``'rejected'``
-        (the cloud is unusable: the pose is the prediction and the model is kept).
+        ``'first'`` (became the first model), ``'ok'`` (the registration from the prediction
+        was used), ``'recovered'`` (that one was doubtful; the search found a better-fitting
+        pose, which was used), ``'degenerate'`` (estimate used, but some direction is poorly
+        constrained), ``'ambiguous'`` (distinct poses fit about equally; the one nearest the
+        prediction was used), ``'fell_back'`` (nothing plausible fitted: the pose is the
+        prediction) or ``'rejected'`` (the cloud is unusable: the pose is the prediction and
+        the model is kept).
+    fit : float
+        Balanced fit of the pose used (NaN without a registration or in paper mode).
+    searched : bool
+        The start-free search ran for this step.
     message : str
         Human-readable explanation of the health.
     timings : dict of str to float
@@ -119,11 +143,13 @@ class OdometryStep:
     n_points: int = 0
     n_prepared: int = 0
     covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    fit: float = float('nan')
+    searched: bool = False
 
     @property
     def ok(self) -> bool:
         """True when the pose comes from a registration (or is the first pose)."""
-        return self.health in (HEALTH_FIRST, HEALTH_OK, HEALTH_DEGENERATE)
+        return self.health == HEALTH_FIRST or self.health in ACCEPTED
 
     @property
     def stamp(self) -> float:
@@ -275,8 +301,6 @@ class Odometry:
         self._initial_pose = (
             np.eye(4) if initial_pose is None else _check_pose(initial_pose, 'initial_pose')
         )
-        self._max_rotation = np.radians(cfg.odometry.max_step_rotation_deg)
-        self._max_translation = cfg.odometry.max_step_translation
         self.reset()
 
     # ----------------------------------------------------------------------------------------
@@ -302,6 +326,11 @@ class Odometry:
         self._n_steps = 0
         self._frame_id: str | None = None
         self._counts = dict.fromkeys(HEALTHS, 0)
+        # The last accepted motion T_prev_curr and its time gap (ns); None until one exists.
+        self._velocity: tuple[FloatArray, int] | None = None
+        self._model_stamp = 0
+        self._fits: deque[float] = deque(maxlen=self._config.odometry.fit_window)
+        self._n_searched = 0
 
     @property
     def config(self) -> KentRegConfig:
@@ -319,8 +348,7 @@ class Odometry:
                 f'Expected `config` to be a KentRegConfig, got {type(config).__name__}.'
             )
         self._config = config
-        self._max_rotation = np.radians(config.odometry.max_step_rotation_deg)
-        self._max_translation = config.odometry.max_step_translation
+        self._fits = deque(self._fits, maxlen=config.odometry.fit_window)
         if config.preprocess != self._config_preprocess:
             self._voxel_size_hint = 0.0  # the previous size was searched for other settings
         self._config_preprocess = config.preprocess
@@ -353,6 +381,11 @@ class Odometry:
         return self._counts[HEALTH_FELL_BACK] + self._counts[HEALTH_REJECTED]
 
     @property
+    def n_searched(self) -> int:
+        """Steps for which the start-free search ran."""
+        return self._n_searched
+
+    @property
     def n_degenerate(self) -> int:
         """Scans registered in a degenerate scene (estimate used, flagged)."""
         return self._counts[HEALTH_DEGENERATE]
@@ -366,34 +399,54 @@ class Odometry:
     # The loop
 
     def _predict(self, stamp_ns: int) -> FloatArray:
-        """``T_world_pred`` of a scan taken at ``stamp_ns``."""
+        """``T_world_pred`` of a scan taken at ``stamp_ns``: the last pose moved by the last
+        accepted motion, stretched to the time gap (constant velocity), or the last pose."""
         if not self._poses:
             return self._initial_pose.copy()
         T_last = self._poses[-1]
-        if not self._config.odometry.constant_velocity or len(self._poses) < 2:
+        if not self._config.odometry.constant_velocity or self._velocity is None:
             return T_last.copy()
-        motion = _invert(self._poses[-2]) @ T_last
-        gap_last = self._stamps[-1] - self._stamps[-2]
+        motion, gap_motion = self._velocity
         gap_now = stamp_ns - self._stamps[-1]
         factor = 1.0
-        if gap_last > 0 and gap_now > 0:
-            factor = min(gap_now / gap_last, MAX_VELOCITY_SCALE)
+        if gap_motion > 0 and gap_now > 0:
+            factor = min(gap_now / gap_motion, MAX_VELOCITY_SCALE)
         return T_last @ _scale_motion(motion, factor)
 
-    def _check_step(self, T_model_curr: FloatArray) -> str:
-        """Why a registered step is implausible, or '' if it is not."""
-        angle = rotation_angle(T_model_curr[:3, :3])
+    def _implausible(self, T_model_curr: FloatArray, gap_ns: int) -> str:
+        """Why a step breaks the speed limits over ``gap_ns``, or '' if it does not."""
+        if gap_ns <= 0:
+            return ''
+        odo = self._config.odometry
+        gap = gap_ns * 1e-9
+        angle = np.degrees(rotation_angle(T_model_curr[:3, :3]))
         dist = float(np.linalg.norm(T_model_curr[:3, 3]))
-        if angle > self._max_rotation:
+        if angle > odo.max_angular_speed_deg * gap:
             return (
-                f'the step rotates {np.degrees(angle):.1f} deg, more than '
-                f'odometry.max_step_rotation_deg={self._config.odometry.max_step_rotation_deg}'
+                f'the step turns {angle:.1f} deg in {gap:.3f} s, faster than '
+                f'odometry.max_angular_speed_deg={odo.max_angular_speed_deg}'
             )
-        if dist > self._max_translation:
+        if dist > odo.max_linear_speed * gap:
             return (
-                f'the step translates {dist:.2f} m, more than '
-                f'odometry.max_step_translation={self._max_translation}'
+                f'the step moves {dist:.2f} m in {gap:.3f} s, faster than '
+                f'odometry.max_linear_speed={odo.max_linear_speed}'
             )
+        return ''
+
+    def _doubt(self, result: RegistrationResult, why_implausible: str) -> str:
+        """Why the registration from the prediction is doubtful, or '' if it is not."""
+        if result.status == STATUS_FAILED:
+            return f'it failed ({result.message})'
+        if why_implausible:
+            return why_implausible
+        if not np.isfinite(result.fit):
+            return ''  # paper mode: no fit to judge by
+        if not self._fits:
+            return 'no accepted step yet to compare its fit with'
+        median = float(np.median(self._fits))
+        ratio = self._config.odometry.doubt_ratio
+        if result.fit < ratio * median:
+            return f'its fit {result.fit:.2f} is below {ratio} x the recent median {median:.2f}'
         return ''
 
     def step(
@@ -464,30 +517,96 @@ class Odometry:
             return self._record(pending, T_world_pred, None, HEALTH_FIRST, message, scan)
 
         t0 = time.perf_counter()
-        result: RegistrationResult | None = None
-        reason = ''
-        try:
-            result = register(scan, self._model, init=pending.T_model_pred, config=self._config)
-        except (KentRegError, np.linalg.LinAlgError) as exc:
-            reason = f'the registration raised {type(exc).__name__}: {exc}'
+        choice = self._register(scan, pending, stamp - self._model_stamp)
         pending.timings['register'] = _ms(t0)
-        if result is not None:
-            for stage in ('rotation', 'translation', 'refine'):
-                if stage in result.timings:
-                    pending.timings[stage] = result.timings[stage]
-            if result.status == STATUS_FAILED:
-                reason = f'the registration failed: {result.message}'
+        if choice.result is not None:
+            for stage in ('rotation', 'translation', 'refine', 'search'):
+                if stage in choice.result.timings:
+                    pending.timings[stage] = choice.result.timings[stage]
+        if choice.health == HEALTH_FELL_BACK:
+            logger.warning('Scan %d: %s', index, choice.message)
+            return self._record(
+                pending, T_world_pred, choice.result, HEALTH_FELL_BACK, choice.message, scan
+            )
+        if choice.health != HEALTH_OK:
+            logger.info('Scan %d: %s', index, choice.message)
+        pending.fit = choice.fit
+        T_world_curr = self._T_world_model @ choice.T
+        return self._record(
+            pending, T_world_curr, choice.result, choice.health, choice.message, scan
+        )
+
+    def _register(self, scan: PreparedScan, pending: _Pending, gap: int) -> _Choice:
+        """Choose the pose of ``scan`` in the model frame (see the module docstring)."""
+        assert self._model is not None
+        cfg = self._config
+        T_pred = pending.T_model_pred
+        try:
+            first = register(scan, self._model, init=T_pred, config=cfg, global_search=False)
+        except (KentRegError, np.linalg.LinAlgError) as exc:
+            return _Choice.fell_back(f'the registration raised {type(exc).__name__}: {exc}')
+        why = self._implausible(first.T_target_source, gap)
+        doubt = self._doubt(first, why)
+        if not doubt:
+            health = HEALTH_DEGENERATE if first.status == STATUS_DEGENERATE else HEALTH_OK
+            return _Choice(first, first.T_target_source, first.fit, health, first.message)
+        candidates: list[_Candidate] = []
+        if first.status != STATUS_FAILED and not why:
+            candidates.append(_Candidate(first, first.T_target_source, first.fit, False))
+        if cfg.mode == 'robust' and cfg.search.mode != 'never':
+            self._n_searched += 1
+            pending.searched = True
+            try:
+                found = register(scan, self._model, init=np.eye(4), config=cfg, global_search=True)
+            except (KentRegError, np.linalg.LinAlgError) as exc:
+                logger.warning(
+                    'Scan %d: the search raised %s: %s', pending.index, type(exc).__name__, exc
+                )
             else:
-                reason = self._check_step(result.T_target_source)
-        if result is None or reason:
-            message = f'Fell back to the prediction: {reason}'
-            logger.warning('Scan %d: %s', index, message)
-            return self._record(pending, T_world_pred, result, HEALTH_FELL_BACK, message, scan)
-        T_world_curr = self._T_world_model @ result.T_target_source
-        health = HEALTH_DEGENERATE if result.status == STATUS_DEGENERATE else HEALTH_OK
-        if health == HEALTH_DEGENERATE:
-            logger.info('Scan %d: %s', index, result.message)
-        return self._record(pending, T_world_curr, result, health, result.message, scan)
+                if found.status != STATUS_FAILED:
+                    for T, fit in [(found.T_target_source, found.fit), *found.alternatives]:
+                        if not self._implausible(T, gap):
+                            candidates.append(_Candidate(found, T, fit, True))
+        if not candidates:
+            return _Choice.fell_back(
+                f'the registration from it was doubtful ({doubt}) and no plausible pose was found',
+                first,
+            )
+        fits = np.array([c.fit if np.isfinite(c.fit) else 0.0 for c in candidates])
+        best_fit = float(fits.max())
+        if np.isfinite(first.fit) and best_fit < cfg.odometry.min_fit:
+            return _Choice.fell_back(
+                f'the best pose found fits {best_fit:.2f} < odometry.min_fit='
+                f'{cfg.odometry.min_fit} ({doubt})',
+                first,
+            )
+        ratio = cfg.search.ambiguity_ratio
+        near = [c for c, f in zip(candidates, fits, strict=True) if f >= ratio * best_fit]
+        # Poses that fit about equally: the one nearest the motion prior wins.
+        chosen = min(near, key=lambda c: rms_displacement(scan.points, c.T, T_pred))
+        spacing = max(scan.voxel_size, self._model.voxel_size)
+        gate = 2.0 * FitGates.for_spacing(spacing).distance if spacing > 0.0 else 0.0
+        distinct = [c for c in near if rms_displacement(scan.points, c.T, chosen.T) > gate]
+        if chosen.from_search and not candidates[0].from_search:
+            if rms_displacement(scan.points, candidates[0].T, chosen.T) <= gate:
+                chosen = candidates[0]  # the search confirmed the registration
+        if distinct:
+            health = HEALTH_AMBIGUOUS
+            message = (
+                f'{len(distinct) + 1} distinct poses fit about equally (fit {chosen.fit:.2f}); '
+                f'used the one nearest the prediction. Searched because {doubt}.'
+            )
+        elif chosen.from_search:
+            health = HEALTH_RECOVERED
+            message = (
+                f'Recovered: the registration from the prediction was doubtful ({doubt}); the '
+                f'search found a pose fitting {chosen.fit:.2f} (it fitted {first.fit:.2f}).'
+            )
+        else:
+            result = chosen.result
+            health = HEALTH_DEGENERATE if result.status == STATUS_DEGENERATE else HEALTH_OK
+            message = f'{result.message} Confirmed by a search ({doubt}).'
+        return _Choice(chosen.result, chosen.T, chosen.fit, health, message)
 
     def _record(
         self,
@@ -503,7 +622,7 @@ class Odometry:
         if self._model is None and new_model is not None:
             covariance = self._cov_model.copy()  # the first pose is the origin of the frame
         else:
-            if health in (HEALTH_OK, HEALTH_DEGENERATE) and result is not None:
+            if health in ACCEPTED and result is not None:
                 cov_step = np.asarray(result.covariance, dtype=np.float64)
             else:
                 cov_step = _prediction_covariance(pending.T_model_pred)
@@ -512,6 +631,12 @@ class Odometry:
                 self._cov_model, self._T_world_model, T_model_curr, cov_step
             )
         model_index = self._model_index
+        if health in ACCEPTED and self._model is not None:
+            # Only accepted motions feed the prediction and the fits a step is judged by.
+            T_model_curr = _invert(self._T_world_model) @ T_world_curr
+            self._velocity = (T_model_curr, pending.stamp_ns - self._model_stamp)
+            if np.isfinite(pending.fit):
+                self._fits.append(pending.fit)
         if new_model is not None:
             # A fall-back still moves the model on: the scan is valid and its predicted pose is
             # the best estimate; the next registration then bridges one scan gap, not two.
@@ -519,6 +644,7 @@ class Odometry:
             self._model_index = pending.index
             self._T_world_model = T_world_curr.copy()
             self._cov_model = covariance
+            self._model_stamp = pending.stamp_ns
         self._poses.append(T_world_curr.copy())
         self._stamps.append(pending.stamp_ns)
         self._n_steps += 1
@@ -539,6 +665,8 @@ class Odometry:
             n_points=pending.n_points,
             n_prepared=pending.n_prepared,
             covariance=covariance,
+            fit=pending.fit,
+            searched=pending.searched,
         )
 
 
@@ -554,3 +682,33 @@ class _Pending:
     t_start: float
     n_prepared: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    fit: float = float('nan')
+    searched: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    """A pose the step may take."""
+
+    result: RegistrationResult
+    T: FloatArray
+    fit: float
+    from_search: bool
+
+
+@dataclass(frozen=True, eq=False)
+class _Choice:
+    """The pose a step takes, or a fall-back to the prediction (``health``)."""
+
+    result: RegistrationResult | None
+    T: FloatArray
+    fit: float
+    health: str
+    message: str
+
+    @classmethod
+    def fell_back(cls, reason: str, result: RegistrationResult | None = None) -> _Choice:
+        """Fall back to the prediction; ``result`` (the rejected estimate) is kept for
+        inspection."""
+        message = f'Fell back to the prediction: {reason}.'
+        return cls(result, np.eye(4), float('nan'), HEALTH_FELL_BACK, message)

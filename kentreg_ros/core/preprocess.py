@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -137,55 +138,242 @@ def _centroids(points: FloatArray, keys: NDArray[np.int64]) -> FloatArray:
     return out
 
 
-def _count_unique(keys: NDArray[np.int64]) -> int:
+def _run_lengths(keys: NDArray[np.int64]) -> NDArray[np.intp]:
+    """Number of points in every occupied voxel (in key order), from the voxel keys."""
     if len(keys) == 0:
-        return 0
+        return np.zeros(0, dtype=np.intp)
     ordered = np.sort(keys)
-    return 1 + int(np.count_nonzero(ordered[1:] != ordered[:-1]))
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    return np.diff(np.r_[starts, len(ordered)])
 
 
 def count_voxels(points: FloatArray, voxel_size: float) -> int:
     """Number of occupied voxels of edge ``voxel_size``."""
-    return _count_unique(_voxel_keys(points, voxel_size))
+    return len(_run_lengths(_voxel_keys(points, voxel_size)))
 
 
-def _search_voxel_size(
-    points: FloatArray, target_points: int, iterations: int, initial: float
-) -> tuple[float, NDArray[np.int64] | None]:
-    """:func:`choose_voxel_size`, also returning the voxel keys of the size chosen."""
+#: Largest share of the kept voxels that isolated returns may be expected to fill (see
+#: :func:`isolated_return_floor`). The registration's own outlier handling (the EM's uniform
+#: component, pi0 = 0.1 by default, and the robust kernels) absorbs a few percent of stray
+#: points; more than that and outliers start to shape normals and clusters.
+MAX_ISOLATED_SHARE = 0.1
+#: Largest returns-per-voxel floor the isolated-return test may raise to.
+MAX_MIN_VOXEL_POINTS = 8
+
+
+def _poisson_tail(lam: float, m: int) -> float:
+    """P(X >= m) for X ~ Poisson(lam)."""
+    term = np.exp(-lam)
+    below = 0.0
+    for j in range(m):
+        below += term
+        term *= lam / (j + 1)
+    return float(max(1.0 - below, 0.0))
+
+
+def isolated_return_floor(counts: NDArray[np.intp], n_cells: float, lam: float, floor: int) -> int:
+    """Fewest returns a voxel must hold so that isolated returns rarely reach it.
+
+    Surfaces put several returns into a voxel; isolated returns (dust, rain, multipath, sensor
+    noise) are spread through the volume. If they were uniform at ``lam`` returns per voxel
+    over the ``n_cells`` voxels of the volume, the expected number of voxels they fill with
+    ``m`` or more returns would be ``n_cells * P(Poisson(lam) >= m)``. The smallest
+    ``m >= floor`` for which that is at most :data:`MAX_ISOLATED_SHARE` of the voxels holding
+    ``m`` or more returns (``counts >= m``) is returned (at most
+    :data:`MAX_MIN_VOXEL_POINTS`).
+
+    Parameters
+    ----------
+    counts : ndarray of int, shape (V,)
+        Returns per occupied voxel.
+    n_cells : float
+        Voxels in the volume the isolated returns come from.
+    lam : float
+        Isolated returns per voxel.
+    floor : int
+        Smallest value returned (``preprocess.min_voxel_points``).
+    """
+    m = max(int(floor), 1)
+    while 1 < m < MAX_MIN_VOXEL_POINTS:
+        kept = int(np.count_nonzero(counts >= m))
+        if n_cells * _poisson_tail(lam, m) <= MAX_ISOLATED_SHARE * max(kept, 1):
+            break
+        m += 1
+    return m
+
+
+@dataclass(frozen=True)
+class VoxelChoice:
+    """The voxel grid :func:`downsample` used.
+
+    Attributes
+    ----------
+    size : float
+        Voxel edge (0 when the cloud was used as given).
+    min_points : int
+        Returns a voxel needed to be kept (the isolated-return floor).
+    n_isolated : int
+        Input points dropped because their voxel held fewer than ``min_points``.
+    """
+
+    size: float
+    min_points: int
+    n_isolated: int
+
+
+class _VoxelProbe:
+    """Cached run lengths of the voxel grids tried by the size search, and the isolated-return
+    rate of the cloud."""
+
+    def __init__(self, points: FloatArray) -> None:
+        self.points = points
+        self.bounds = _bounds(points)
+        extent = np.maximum(self.bounds[1] - self.bounds[0], 0.0)
+        self.extent = float(extent.max())
+        # A flat or linear cloud has no volume; its zero extents count as one unit so that the
+        # isolated-return rate stays finite (it only matters for clouds that fill a volume).
+        sides = np.sort(np.where(extent > 0.0, extent, 1.0))
+        self.volume = float(np.prod(sides))
+        self.largest_face = float(sides[1] * sides[2])
+        self.rate = 0.0  # isolated returns per unit volume, see measure_rate
+        self._counts: dict[float, NDArray[np.intp]] = {}
+
+    def counts(self, size: float) -> NDArray[np.intp]:
+        if size not in self._counts:
+            self._counts[size] = _run_lengths(_voxel_keys(self.points, size, self.bounds))
+        return self._counts[size]
+
+    def kept(self, size: float, m: int) -> int:
+        return int(np.count_nonzero(self.counts(size) >= m))
+
+    def measure_rate(self, size: float) -> None:
+        """Isolated returns per unit volume: the single-return voxels at ``size`` over the
+        volume. Measured where surfaces put several returns into a voxel, so that a return
+        alone in its voxel is a stray one (an upper bound: sparse surface samples count too).
+        """
+        self.rate = float(np.count_nonzero(self.counts(size) == 1)) / self.volume
+
+    def floor(self, size: float, m: int) -> int:
+        """:func:`isolated_return_floor` at ``size`` for the measured rate."""
+        cell = size**3
+        return isolated_return_floor(self.counts(size), self.volume / cell, self.rate * cell, m)
+
+    @property
+    def n_probes(self) -> int:
+        return len(self._counts)
+
+
+#: Ratio between consecutive sizes of the bracketing search (count ~ size^-2: a factor of 2
+#: in voxel count per step).
+_SEARCH_STEP = float(np.sqrt(2.0))
+_SEARCH_TOLERANCE = 0.05
+_SEARCH_MAX_PROBES = 12
+#: Growing the size, surface voxels fall as size^-2 while voxels filled by pairs of isolated
+#: returns grow as size^3 (while sparse); a count falling more slowly than 1 / size is no
+#: longer the surfaces' (see :func:`_search_size`).
+_SURFACE_SLOPE = -1.0
+#: Returns per voxel at which the search starts: the points spread over the bounding box's
+#: largest face would put this many in each voxel, well above the size at which surface voxels
+#: start to hold single returns (the peak of the count).
+_START_RETURNS = 8.0
+
+
+def _search_size(probe: _VoxelProbe, target: int, m: int, start: float) -> tuple[float, bool]:
+    """Largest voxel size on the surface branch whose ``>= m``-return voxels number ``target``.
+
+    Starting at ``start``, the size is stepped by :data:`_SEARCH_STEP` until the count brackets
+    ``target``, then interpolated in log-log. Going down, a count that stops growing means the
+    cloud is too sparse for ``target`` voxels of ``m`` returns: the size of the largest count
+    is returned. Going up, a count that falls more slowly than the surfaces' (slope above
+    :data:`_SURFACE_SLOPE`) is made by isolated returns: the search stops and the second value
+    is True (raise ``m`` and search again).
+    """
+    size = start
+    count = probe.kept(size, m)
+    if abs(count / target - 1.0) < _SEARCH_TOLERANCE:
+        return size, False
+    if count > target:
+        lo, c_lo = size, count
+        while True:
+            hi = lo * _SEARCH_STEP
+            c_hi = probe.kept(hi, m)
+            slope = np.log(max(c_hi, 1) / max(c_lo, 1)) / np.log(_SEARCH_STEP)
+            if c_hi > target and slope > _SURFACE_SLOPE:
+                return lo, True
+            if c_hi <= target:
+                break
+            if probe.n_probes >= _SEARCH_MAX_PROBES:
+                return hi, False
+            lo, c_lo = hi, c_hi
+    else:
+        hi, c_hi = size, count
+        while True:
+            lo = hi / _SEARCH_STEP
+            c_lo = probe.kept(lo, m)
+            if c_lo >= target:
+                break
+            if c_lo <= c_hi or probe.n_probes >= _SEARCH_MAX_PROBES:
+                return (hi if c_hi >= c_lo else lo), False  # too sparse for target voxels
+            hi, c_hi = lo, c_lo
+    if c_lo <= 0 or c_hi <= 0 or c_lo == c_hi:
+        return hi, False
+    slope = (np.log(c_hi) - np.log(c_lo)) / (np.log(hi) - np.log(lo))
+    return float(np.exp(np.log(lo) + (np.log(target) - np.log(c_lo)) / slope)), False
+
+
+def choose_voxel_grid(
+    points: FloatArray,
+    target_points: int,
+    *,
+    initial: float = 0.0,
+    min_voxel_points: int = 2,
+) -> VoxelChoice:
+    """Voxel size and returns-per-voxel floor keeping about ``target_points`` surface voxels.
+
+    Only voxels that hold at least ``m`` returns count, and ``m`` (at least
+    ``min_voxel_points``) is raised while isolated returns would fill more than
+    :data:`MAX_ISOLATED_SHARE` of them (:func:`isolated_return_floor`, with the rate of
+    single-return voxels at the size found) or while they, not the surfaces, make the count
+    (:func:`_search_size`). So the size is chosen by the surfaces, not by stray points: with
+    40 % uniform outliers added to a real scan the size moves by a few percent, where counting
+    every occupied voxel let the outliers pick a voxel several times larger.
+
+    The search starts at ``initial`` (e.g. the previous scan's size) or where the points,
+    spread over the bounding box's largest face, would hold :data:`_START_RETURNS` per voxel.
+
+    Returns
+    -------
+    VoxelChoice
+        ``size`` 0 when the cloud has no more than ``target_points`` points.
+    """
     n = len(points)
     if n <= target_points:
-        return 0.0, None
-    bounds = _bounds(points)
-    extent = float(np.max(bounds[1] - bounds[0]))
-    if extent <= 0.0:
-        return 0.0, None
-    # Initial guess: the area of a bounding-box shell split into target_points squares.
-    size = initial if initial > 0.0 else max(extent * np.sqrt(6.0 / target_points) * 0.5, 1e-6)
-    best = size
-    keys: NDArray[np.int64] | None = None
-    for _ in range(iterations):
-        keys = _voxel_keys(points, size, bounds)
-        count = _count_unique(keys)
-        best = size
-        ratio = count / target_points
-        if abs(ratio - 1.0) < 0.05:
+        return VoxelChoice(0.0, 1, 0)
+    probe = _VoxelProbe(points)
+    if probe.extent <= 0.0:
+        return VoxelChoice(0.0, 1, 0)
+    start = float(np.sqrt(_START_RETURNS * probe.largest_face / n))
+    size = initial if initial > 0.0 else min(start, probe.extent)
+    m = max(int(min_voxel_points), 1)
+    for _ in range(MAX_MIN_VOXEL_POINTS):
+        size, raise_floor = _search_size(probe, target_points, m, size)
+        probe.measure_rate(size)
+        m_needed = max(probe.floor(size, m), m + 1 if raise_floor else m)
+        if m_needed <= m or m >= MAX_MIN_VOXEL_POINTS:
             break
-        size *= float(np.clip(np.sqrt(ratio), 0.25, 4.0))
-    return best, keys
+        m = min(m_needed, MAX_MIN_VOXEL_POINTS)
+    counts = probe.counts(size)
+    return VoxelChoice(size, m, int(counts[counts < m].sum()))
 
 
 def choose_voxel_size(
-    points: FloatArray, target_points: int, *, iterations: int = 4, initial: float = 0.0
+    points: FloatArray, target_points: int, *, initial: float = 0.0, min_voxel_points: int = 2
 ) -> float:
-    """Voxel size for which :func:`voxel_downsample` keeps about ``target_points`` points.
-
-    Surfaces dominate LiDAR scans, so the voxel count scales roughly as ``size**-2``; a few
-    secant steps in that model converge to within a few percent. ``initial`` (e.g. the size
-    chosen for the previous scan of a sequence) replaces the bounding-box guess, which usually
-    leaves a single counting pass.
-    """
-    return _search_voxel_size(points, target_points, iterations, initial)[0]
+    """Voxel size of :func:`choose_voxel_grid` (0 when no downsampling is needed)."""
+    grid = choose_voxel_grid(
+        points, target_points, initial=initial, min_voxel_points=min_voxel_points
+    )
+    return grid.size
 
 
 def downsample(
@@ -194,16 +382,40 @@ def downsample(
     voxel_size: float = 0.0,
     target_points: int = 10000,
     voxel_size_hint: float = 0.0,
-) -> tuple[FloatArray, float]:
-    """Voxel downsample with a fixed size, or an automatic size reaching ``target_points``.
+    min_voxel_points: int = 2,
+) -> tuple[FloatArray, VoxelChoice]:
+    """Voxel centroids of the voxels holding enough returns; isolated returns are dropped.
 
-    ``voxel_size_hint`` starts the automatic search (see :func:`choose_voxel_size`).
-    Returns ``(points, voxel_size_used)``; ``voxel_size_used`` is 0 when nothing was done.
+    With ``voxel_size > 0`` that edge is used; otherwise :func:`choose_voxel_grid` picks it
+    (starting at ``voxel_size_hint``). Either way a voxel is kept only when it holds at least
+    the isolated-return floor of returns (:func:`isolated_return_floor`, at least
+    ``min_voxel_points``). A cloud of no more than ``target_points`` points (automatic size) is
+    returned as given.
+
+    Returns
+    -------
+    points : ndarray, shape (M, 3)
+        Centroids of the kept voxels, ordered by voxel key.
+    grid : VoxelChoice
     """
     if voxel_size > 0.0:
-        return voxel_downsample(points, voxel_size), voxel_size
-    size, keys = _search_voxel_size(points, target_points, 4, voxel_size_hint)
-    if size <= 0.0 or keys is None:
-        return points, 0.0
-    # The search's last probe is the size returned: reuse its voxel keys.
-    return _centroids(points, keys), size
+        probe = _VoxelProbe(points)
+        probe.measure_rate(voxel_size)
+        m = probe.floor(voxel_size, max(int(min_voxel_points), 1))
+        size = voxel_size
+    else:
+        grid = choose_voxel_grid(
+            points, target_points, initial=voxel_size_hint, min_voxel_points=min_voxel_points
+        )
+        if grid.size <= 0.0:
+            return points, grid
+        size, m = grid.size, grid.min_points
+    keys = _voxel_keys(points, size)
+    order = np.argsort(keys, kind='stable')
+    ordered = keys[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    counts = np.diff(np.r_[starts, len(ordered)])
+    keep = counts >= m
+    sums = np.add.reduceat(points[order], starts, axis=0)
+    out = np.ascontiguousarray(sums[keep] / counts[keep, None])
+    return out, VoxelChoice(size, m, int(counts[~keep].sum()))

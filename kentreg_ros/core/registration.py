@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -27,18 +27,28 @@ from scipy.spatial import cKDTree
 from kentreg_ros.core.clustering import spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.em import EMResult, ModelClusters, paper_cluster_em, shared_rotation_em
+from kentreg_ros.core.em import (
+    EMResult,
+    ModelClusters,
+    NormalBins,
+    bin_cell_for,
+    paper_cluster_em,
+    shared_rotation_em,
+)
 from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
-from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask
+from kentreg_ros.core.kent import fit_kent_moments_batch
+from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask, planar_mask
 from kentreg_ros.core.preprocess import as_points, crop_range, downsample
 from kentreg_ros.core.refine import refine_joint
 from kentreg_ros.core.rotations import average_rotations, make_transform, rotation_angle
+from kentreg_ros.core.search import distinct_best, mixture_overlap, twist_hypotheses
 from kentreg_ros.core.translation import (
     centroid_translation,
     degenerate_directions,
     plane_offset_translation,
     point_to_plane_translation,
 )
+from kentreg_ros.core.verify import Fit, FitGates, balanced_fit, rms_displacement
 
 logger = logging.getLogger(__name__)
 
@@ -62,7 +72,6 @@ class PreparedScan:
         Downsampled points whose normals passed the outlier test.
     normals : ndarray, shape (N, 3)
         Unit normals oriented toward ``viewpoint``.
-    curvature : ndarray, shape (N,)
     labels : ndarray of int, shape (N,)
         Spherical k-means cluster of every normal.
     centers : ndarray, shape (K, 3)
@@ -76,6 +85,10 @@ class PreparedScan:
     viewpoint : ndarray, shape (3,)
     n_input : int
         Points given.
+    n_isolated : int
+        Input points dropped as isolated returns (their voxel held too few returns).
+    min_voxel_points : int
+        Returns a voxel needed to be kept (the isolated-return floor used).
     n_normal_outliers : int
         Points removed by the cosine-similarity normal test.
     timings : dict
@@ -84,7 +97,6 @@ class PreparedScan:
 
     points: FloatArray
     normals: FloatArray
-    curvature: FloatArray
     labels: NDArray[np.intp]
     centers: FloatArray
     clusters: ModelClusters
@@ -92,6 +104,8 @@ class PreparedScan:
     voxel_size: float
     viewpoint: FloatArray
     n_input: int
+    n_isolated: int
+    min_voxel_points: int
     n_normal_outliers: int
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -134,6 +148,17 @@ class RegistrationResult:
     mode : str
     n_source, n_target : int
         Points used after preprocessing.
+    fit : float
+        Balanced fit of the pose in [0, 1] (:func:`kentreg_ros.core.verify.balanced_fit`):
+        the share of source points landing on a target surface of the same orientation,
+        averaged over the target's normal clusters. NaN in paper mode.
+    hypotheses : int
+        Rotation hypotheses scored by the start-free search (0 when it did not run).
+    ambiguous : bool
+        Another pose, distinct from this one, fits nearly as well (``search.ambiguity_ratio``):
+        symmetric scenes (rooms, corridors) have such twins.
+    alternatives : tuple of (ndarray (4, 4), float)
+        The distinct other poses the search refined, with their fits.
     """
 
     T_target_source: FloatArray
@@ -153,6 +178,10 @@ class RegistrationResult:
     mode: str
     n_source: int
     n_target: int
+    fit: float = float('nan')
+    hypotheses: int = 0
+    ambiguous: bool = False
+    alternatives: tuple[tuple[FloatArray, float], ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -204,15 +233,19 @@ def prepare_scan(
     n_input = len(pts)
     k = cfg.normals.k_neighbors
     voxel = 0.0
+    n_isolated = 0
+    floor = 1
     if normals is None:
         t0 = time.perf_counter()
         pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
-        pts, voxel = downsample(
+        pts, grid = downsample(
             pts,
             voxel_size=cfg.preprocess.voxel_size,
             target_points=cfg.preprocess.target_points,
             voxel_size_hint=voxel_size_hint,
+            min_voxel_points=cfg.preprocess.min_voxel_points,
         )
+        voxel, n_isolated, floor = grid.size, grid.n_isolated, grid.min_points
         timings['downsample'] = _ms(t0)
         if len(pts) < max(k, MIN_POINTS):
             raise InvalidPointCloudError(
@@ -222,7 +255,7 @@ def prepare_scan(
         t0 = time.perf_counter()
         tree = cKDTree(pts)
         est = estimate_normals(pts, k, viewpoint=vp, tree=tree)
-        nrm, curv, nbrs = est.normals, est.curvature, est.neighbors
+        nrm, flat, nbrs = est.normals, est.flatness, est.neighbors
         timings['normals'] = _ms(t0)
     else:
         nrm = as_points(normals, 'normals')
@@ -241,18 +274,20 @@ def prepare_scan(
         t0 = time.perf_counter()
         tree = cKDTree(pts)
         _, nbrs = tree.query(pts, k=k, workers=-1)
-        curv = np.zeros(len(pts))
+        flat = np.zeros(len(pts))  # given normals are trusted
         timings['normals'] = _ms(t0)
     t0 = time.perf_counter()
     keep = normal_inlier_mask(nrm, np.asarray(nbrs, dtype=np.intp), cfg.normals.outlier_cosine)
+    keep &= planar_mask(flat, cfg.normals.max_flatness)
     n_out = int((~keep).sum())
     if keep.sum() < MIN_POINTS:
         raise InvalidPointCloudError(
-            f'Only {int(keep.sum())} of {len(pts)} normals passed the outlier test '
-            f'(normals.outlier_cosine={cfg.normals.outlier_cosine}); need {MIN_POINTS}.'
+            f'Only {int(keep.sum())} of {len(pts)} normals passed the planarity and outlier '
+            f'tests (normals.max_flatness={cfg.normals.max_flatness}, '
+            f'normals.outlier_cosine={cfg.normals.outlier_cosine}); need {MIN_POINTS}.'
         )
     if n_out:
-        pts, nrm, curv = pts[keep], nrm[keep], curv[keep]
+        pts, nrm = pts[keep], nrm[keep]
         tree = cKDTree(pts)
     timings['outliers'] = _ms(t0)
     t0 = time.perf_counter()
@@ -264,13 +299,15 @@ def prepare_scan(
         restarts=cfg.clustering.restarts,
         sample_size=cfg.clustering.restart_sample,
     )
-    clusters = ModelClusters.from_labels(nrm, labels, len(centers))
+    onehot = (labels[None, :] == np.arange(len(centers))[:, None]).astype(np.float64)
+    kappa_clusters, _, _ = fit_kent_moments_batch(nrm, onehot)
+    bins = NormalBins.from_normals(nrm, bin_cell_for(kappa_clusters)[labels], labels)
+    clusters = ModelClusters.from_bins(bins, centers)
     timings['clustering'] = _ms(t0)
     timings['total'] = _ms(t_start)
     return PreparedScan(
         points=pts,
         normals=nrm,
-        curvature=curv,
         labels=labels,
         centers=centers,
         clusters=clusters,
@@ -278,6 +315,8 @@ def prepare_scan(
         voxel_size=voxel,
         viewpoint=vp,
         n_input=n_input,
+        n_isolated=n_isolated,
+        min_voxel_points=floor,
         n_normal_outliers=n_out,
         timings=timings,
     )
@@ -321,6 +360,7 @@ def register(
     source_normals: ArrayLike | None = None,
     target_normals: ArrayLike | None = None,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+    global_search: bool | None = None,
 ) -> RegistrationResult:
     """Estimate ``T_target_source``, the rigid transform taking source points into the target.
 
@@ -339,6 +379,10 @@ def register(
         Precomputed normals (see :func:`prepare_scan`).
     viewpoint : array_like, shape (3,)
         Sensor origin in each cloud's own frame, used to orient normals.
+    global_search : bool, optional
+        Search SO(3) from the two clouds' normal mixtures (:mod:`kentreg_ros.core.search`)
+        instead of starting only from ``init``. Default from ``search.mode``: with 'auto',
+        search when ``init`` is not given. Robust mode only.
 
     Returns
     -------
@@ -368,7 +412,11 @@ def register(
     if cfg.mode == 'paper':
         result = _register_paper(src, tgt, T_init, cfg, timings)
     else:
-        result = _register_robust(src, tgt, T_init, cfg, timings)
+        if global_search is None:
+            global_search = cfg.search.mode == 'always' or (
+                cfg.search.mode == 'auto' and init is None
+            )
+        result = _register_robust(src, tgt, T_init, cfg, timings, global_search)
     timings['total'] = _ms(t_start)
     return result
 
@@ -400,34 +448,86 @@ def _information_to_covariance(H: FloatArray) -> FloatArray:
     return (evecs * inv) @ evecs.T
 
 
-def _register_robust(
+@dataclass
+class _Candidate:
+    """One pose under consideration, with what its stages found."""
+
+    T: FloatArray
+    em: EMResult
+    fit: Fit
+    stages: dict[str, FloatArray]
+    iterations: int
+    converged: bool
+    inlier: float
+    covariance: FloatArray
+    H_trans: FloatArray
+    refined: bool = False
+
+
+@dataclass(frozen=True)
+class _Gates:
+    max_gate: float
+    min_gate: float
+    fit: FitGates
+
+
+def _gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig) -> _Gates:
+    max_gate, min_gate = _translation_gates(src, tgt, cfg)
+    return _Gates(max_gate, min_gate, FitGates.for_spacing(min_gate / 2.0))
+
+
+#: EM passes for ranking a search hypothesis: the annealing from ``em.kappa_cap_start`` = 20 by
+#: doubling reaches the concentrations of real normal clusters (up to a few hundred) in 4-5
+#: passes, which brings a hypothesis within a degree or so of its optimum: enough for the fit
+#: gates (20 deg, 2 voxels) to tell right from wrong. The winners' EM is then continued.
+SEARCH_EM_PASSES = 6
+
+
+def _rotation_stage(
     src: PreparedScan,
     tgt: PreparedScan,
-    T_init: FloatArray,
+    R0: FloatArray,
     cfg: KentRegConfig,
-    timings: dict[str, float],
-) -> RegistrationResult:
+    *,
+    max_iterations: int | None = None,
+    anneal: bool = True,
+) -> EMResult:
     em_cfg = cfg.em
-    stages: dict[str, FloatArray] = {}
-    t0 = time.perf_counter()
-    em = shared_rotation_em(
-        src.normals,
+    return shared_rotation_em(
+        src.clusters.bins,
         tgt.clusters,
-        T_init[:3, :3],
+        R0,
         outlier_weight=em_cfg.outlier_weight,
         use_beta=em_cfg.kent_beta,
         rotation=em_cfg.rotation,
-        kappa_cap_start=em_cfg.kappa_cap_start,
+        kappa_cap_start=em_cfg.kappa_cap_start if anneal else em_cfg.kappa_cap_end,
         kappa_cap_end=em_cfg.kappa_cap_end,
         kappa_cap_growth=em_cfg.kappa_cap_growth,
-        max_iterations=em_cfg.max_iterations,
+        max_iterations=max_iterations or em_cfg.max_iterations,
         tolerance=em_cfg.tolerance,
     )
+
+
+def _local(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T0: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    timings: dict[str, float],
+    *,
+    em: EMResult | None = None,
+    refine: bool = True,
+) -> _Candidate:
+    """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit."""
+    stages: dict[str, FloatArray] = {}
+    if em is None:
+        t0 = time.perf_counter()
+        em = _rotation_stage(src, tgt, T0[:3, :3], cfg)
+        timings['rotation'] = timings.get('rotation', 0.0) + _ms(t0)
     R = em.R
-    timings['rotation'] = _ms(t0)
-    stages['rotation'] = make_transform(R, T_init[:3, 3])
+    stages['rotation'] = make_transform(R, T0[:3, 3])
     iterations = em.iterations
-    max_gate, min_gate = _translation_gates(src, tgt, cfg)
     t0 = time.perf_counter()
     tr_cfg = cfg.translation
     H_t: FloatArray | None = None
@@ -439,7 +539,7 @@ def _register_robust(
     if tr_cfg.method == 'centroid':
         t = centroid_translation(R, src.points, tgt.points)
     else:
-        t = T_init[:3, 3].copy()
+        t = T0[:3, 3].copy()
         if tr_cfg.cross_correlation:
             t, _ = plane_offset_translation(
                 R,
@@ -449,7 +549,8 @@ def _register_robust(
                 tgt.points,
                 tgt.normals,
                 tgt.centers,
-                bin_size=max(min_gate / 4.0, 0.02),
+                bin_size=max(gates.min_gate / 4.0, 1e-9),
+                max_shift=tr_cfg.max_shift,
             )
             stages['cross_correlation'] = make_transform(R, t)
         tres = point_to_plane_translation(
@@ -460,8 +561,8 @@ def _register_robust(
             tgt.normals,
             tgt.tree,
             max_iterations=tr_cfg.max_iterations,
-            max_distance=max(tr_cfg.max_correspondence_distance, min_gate),
-            min_distance=min_gate,
+            max_distance=max(tr_cfg.max_correspondence_distance, gates.min_gate),
+            min_distance=gates.min_gate,
             degeneracy_ratio=tr_cfg.degeneracy_ratio,
             tolerance=tr_cfg.tolerance,
             neighbors=neighbors,
@@ -469,12 +570,13 @@ def _register_robust(
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
         inlier = tres.inlier_fraction
         iterations += tres.iterations
-    timings['translation'] = _ms(t0)
+    timings['translation'] = timings.get('translation', 0.0) + _ms(t0)
     T = make_transform(R, t)
     stages['translation'] = T
     converged = em.converged
     t0 = time.perf_counter()
-    if cfg.refine.method != 'none':
+    refined = refine and cfg.refine.method != 'none'
+    if refined:
         ref = refine_joint(
             T,
             src.points,
@@ -485,8 +587,8 @@ def _register_robust(
             method=cfg.refine.method,
             normal_weight=cfg.refine.normal_weight,
             max_iterations=cfg.refine.max_iterations,
-            max_distance=max_gate,
-            min_distance=min_gate,
+            max_distance=gates.max_gate,
+            min_distance=gates.min_gate,
             tolerance=cfg.refine.tolerance,
             neighbors=neighbors,
             max_step_scale=cfg.refine.max_step_scale,
@@ -496,10 +598,9 @@ def _register_robust(
         iterations += ref.iterations
         converged = ref.converged
         inlier = ref.inlier_fraction
-        H6 = ref.hessian
         # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
         perm = [3, 4, 5, 0, 1, 2]
-        info = H6[np.ix_(perm, perm)]
+        info = ref.hessian[np.ix_(perm, perm)]
         covariance = max(ref.sigma2, 1e-12) * _information_to_covariance(info)
         H_trans = info[:3, :3]
     else:
@@ -510,26 +611,108 @@ def _register_robust(
         else:
             covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
         H_trans = H_t if H_t is not None else np.eye(3)
-    timings['refine'] = _ms(t0)
-    deg_dirs = degenerate_directions(H_trans, tr_cfg.degeneracy_ratio)
-    rot_degenerate = _rotation_degenerate(em.hessian, tr_cfg.degeneracy_ratio)
+    timings['refine'] = timings.get('refine', 0.0) + _ms(t0)
+    t0 = time.perf_counter()
+    fit = balanced_fit(
+        T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
+    )
+    timings['fit'] = timings.get('fit', 0.0) + _ms(t0)
+    return _Candidate(
+        T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined
+    )
+
+
+def _search_candidates(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    timings: dict[str, float],
+) -> tuple[list[_Candidate], int]:
+    """Start-free search: twist hypotheses ranked by the mixture overlap, the distinct best
+    refined by the EM and placed by the translation stage, then verified by their fit; every
+    candidate that fits nearly as well as the best is refined in full."""
+    scfg = cfg.search
+    t0 = time.perf_counter()
+    hyp = twist_hypotheses(src.clusters, tgt.clusters, scfg.twist_step_deg)
+    cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
+    scores = mixture_overlap(hyp, src.clusters, tgt.clusters, cap)
+    chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
+    starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
+    timings['search'] = _ms(t0)
+    cheap: list[_Candidate] = []
+    seen: list[FloatArray] = []
+    for R0 in starts:
+        t0 = time.perf_counter()
+        em = _rotation_stage(src, tgt, R0, cfg, max_iterations=SEARCH_EM_PASSES)
+        timings['rotation'] = timings.get('rotation', 0.0) + _ms(t0)
+        if any(rotation_angle(em.R.T @ R) < np.radians(scfg.min_separation_deg) for R in seen):
+            continue  # converged onto a rotation already under consideration
+        seen.append(em.R)
+        T0 = make_transform(em.R, T_init[:3, 3])
+        cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False))
+    best_cheap = max(c.fit.score for c in cheap)
+    out: list[_Candidate] = []
+    for cand in sorted(cheap, key=lambda c: -c.fit.score):
+        if cand.fit.score >= scfg.ambiguity_ratio * best_cheap or not out:
+            t0 = time.perf_counter()
+            em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
+            timings['rotation'] += _ms(t0)
+            T0 = make_transform(em.R, T_init[:3, 3])
+            out.append(_local(src, tgt, T0, cfg, gates, timings, em=em))
+    return out, len(hyp)
+
+
+def _register_robust(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    timings: dict[str, float],
+    search: bool,
+) -> RegistrationResult:
+    gates = _gates(src, tgt, cfg)
+    n_hypotheses = 0
+    if search:
+        candidates, n_hypotheses = _search_candidates(src, tgt, T_init, cfg, gates, timings)
+    else:
+        candidates = [_local(src, tgt, T_init, cfg, gates, timings)]
+    candidates.sort(key=lambda c: -c.fit.score)
+    best = candidates[0]
+    distinct = [
+        c
+        for c in candidates[1:]
+        if rms_displacement(src.points, c.T, best.T) > 2.0 * gates.fit.distance
+    ]
+    ambiguous = any(c.fit.score >= cfg.search.ambiguity_ratio * best.fit.score for c in distinct)
+    tr_cfg = cfg.translation
+    deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
+    rot_degenerate = _rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
     degenerate = len(deg_dirs) > 0 or rot_degenerate
-    return _finish(
-        T,
-        converged,
-        iterations,
-        em,
-        inlier,
-        covariance,
+    result = _finish(
+        best.T,
+        best.converged,
+        best.iterations,
+        best.em,
+        best.inlier,
+        best.covariance,
         degenerate,
         deg_dirs,
         rot_degenerate,
         timings,
-        stages,
+        best.stages,
         'robust',
         src,
         tgt,
-        list(em.log_likelihood),
+        list(best.em.log_likelihood),
+    )
+    return replace(
+        result,
+        fit=best.fit.score,
+        hypotheses=n_hypotheses,
+        ambiguous=ambiguous,
+        alternatives=tuple((c.T, c.fit.score) for c in distinct),
     )
 
 

@@ -67,7 +67,10 @@ def plane_offset_translation(
     rows: list[FloatArray] = []
     rhs: list[float] = []
     wts: list[float] = []
-    nbins = int(np.ceil(2 * max_shift / bin_size))
+    # Lags searched on each side of the prior: at least one bin, so a coarse bin (large
+    # voxels) still gets a three-point peak to interpolate.
+    half = max(int(np.ceil(max_shift / bin_size)), 1)
+    lags = np.arange(-half, half + 1)
     for d in directions:
         mt = target_normals @ d > min_cosine
         ms = src_n @ d > min_cosine
@@ -82,21 +85,16 @@ def plane_offset_translation(
         hs = np.bincount(((off_s - lo) / bin_size).astype(np.intp), minlength=edges_n)
         ht = ht.astype(np.float64)
         hs = hs.astype(np.float64)
-        size = 1 << int(np.ceil(np.log2(2 * edges_n)))
+        size = 1 << int(np.ceil(np.log2(2 * edges_n + 2 * half)))
         corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
-        shifts = np.concatenate([corr[: nbins // 2 + 1], corr[-(nbins // 2) :]])
-        lags = np.concatenate([np.arange(nbins // 2 + 1), -np.arange(nbins // 2, 0, -1)])
+        shifts = corr[lags % size]  # correlation at each lag (circular index, no wrap-around)
         best = int(np.argmax(shifts))
         peak = shifts[best]
         if peak <= 0:
             continue
         # Parabolic sub-bin interpolation.
         frac = 0.0
-        if (
-            0 < best < len(shifts) - 1
-            and lags[best - 1] == lags[best] - 1
-            and lags[best + 1] == lags[best] + 1
-        ):
+        if 0 < best < len(shifts) - 1:
             a, b, c = shifts[best - 1], shifts[best], shifts[best + 1]
             denom = a - 2 * b + c
             if denom < 0:

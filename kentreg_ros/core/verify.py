@@ -1,0 +1,150 @@
+"""How well a pose explains the target: the balanced fit, a score a symmetric twin cannot fake.
+
+A rigid pose is judged by the share of source points that land on the target's surfaces:
+within :attr:`FitGates.distance` of a target point whose normal agrees with the source point's
+rotated normal to within :attr:`FitGates.normal_angle_deg`. The share is taken per target normal
+cluster (the group of surfaces facing one way) and averaged over the clusters, so that a pose
+which matches only the ground, or only one family of walls, scores low even if those surfaces
+hold most of the points. In a corridor or a room, a wrong shift along the walls or a rotation
+onto a symmetric twin leaves some family of surfaces unmatched; the point-to-plane residual of
+the same poses does not show it (it is small on whatever does match).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from kentreg_ros.core.correspondence import NearestNeighborCache
+
+FloatArray = NDArray[np.float64]
+
+#: Distance gate of a match in voxel edges. At the reference pose of real scan pairs 95 % of
+#: the nearest neighbours lie within 1.8 voxels (two independent voxel samplings of the same
+#: surface put centroids up to about one voxel apart, plus noise).
+FIT_DISTANCE_VOXELS = 2.0
+#: Normal agreement of a match. PCA normals over 15 voxel neighbours of real scans differ at
+#: the reference pose by 2.3 deg median and 15 deg at the 90th percentile; 20 deg keeps ~92 %
+#: of true matches while surfaces turned by more than that stop matching.
+FIT_NORMAL_ANGLE_DEG = 20.0
+#: A target cluster enters the average when it holds at least this share of the matched source
+#: points' normals (smaller groups are a handful of points whose share is noise).
+FIT_MIN_CLUSTER_SHARE = 0.02
+
+
+@dataclass(frozen=True)
+class FitGates:
+    """What counts as a match for :func:`balanced_fit`.
+
+    Attributes
+    ----------
+    distance : float
+        Largest point-to-point distance (same unit as the points).
+    normal_angle_deg : float
+        Largest angle between the two normals.
+    """
+
+    distance: float
+    normal_angle_deg: float = FIT_NORMAL_ANGLE_DEG
+
+    @classmethod
+    def for_spacing(cls, spacing: float) -> FitGates:
+        """Gates for clouds sampled every ``spacing`` (the voxel edge)."""
+        return cls(distance=FIT_DISTANCE_VOXELS * spacing)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """Outcome of :func:`balanced_fit`.
+
+    Attributes
+    ----------
+    score : float
+        Mean over target normal clusters of the share of source points matched, in [0, 1].
+    matched : float
+        Share of all source points matched.
+    per_cluster : ndarray, shape (K,)
+        Matched share per target cluster (NaN for clusters below the minimum share).
+    """
+
+    score: float
+    matched: float
+    per_cluster: FloatArray
+
+
+def balanced_fit(
+    T_target_source: FloatArray,
+    source_points: FloatArray,
+    source_normals: FloatArray,
+    target_normals: FloatArray,
+    target_centers: FloatArray,
+    gates: FitGates,
+    *,
+    target_tree: cKDTree | None = None,
+    target_points: FloatArray | None = None,
+    neighbors: NearestNeighborCache | None = None,
+) -> Fit:
+    """Balanced fit of a pose: the matched share of source points per target normal cluster.
+
+    Parameters
+    ----------
+    T_target_source : ndarray, shape (4, 4)
+    source_points, source_normals : ndarray, shape (N, 3)
+    target_normals : ndarray, shape (M, 3)
+    target_centers : ndarray, shape (K, 3)
+        Mean directions of the target's normal clusters; a source point belongs to the
+        cluster whose centre is nearest its rotated normal.
+    gates : FitGates
+    target_tree, target_points : cKDTree and ndarray (M, 3), optional
+        The target's tree and points, when ``neighbors`` is not given.
+    neighbors : NearestNeighborCache, optional
+        A correspondence cache over the target for these source points (e.g. the
+        refinement's): most points then need no new query.
+
+    Returns
+    -------
+    Fit
+    """
+    R = T_target_source[:3, :3]
+    x = source_points @ R.T + T_target_source[:3, 3]
+    if neighbors is not None:
+        dist, idx = neighbors.query(x, gates.distance)
+    else:
+        if target_tree is None:
+            raise ValueError('Expected `target_tree` or `neighbors`.')
+        dist, idx = target_tree.query(x, distance_upper_bound=gates.distance)
+    n_target = len(target_normals)
+    found = idx < n_target
+    rotated = source_normals @ R.T
+    cos = np.zeros(len(x))
+    j = idx[found]
+    cos[found] = np.einsum('ij,ij->i', rotated[found], np.take(target_normals, j, axis=0))
+    matched = found & (cos >= np.cos(np.radians(gates.normal_angle_deg)))
+    groups = np.argmax(rotated @ target_centers.T, axis=1)
+    k = len(target_centers)
+    size = np.bincount(groups, minlength=k).astype(np.float64)
+    hits = np.bincount(groups, weights=matched.astype(np.float64), minlength=k)
+    used = size >= max(FIT_MIN_CLUSTER_SHARE * len(x), 1.0)
+    per = np.full(k, np.nan)
+    per[used] = hits[used] / size[used]
+    score = float(np.mean(per[used])) if used.any() else 0.0
+    return Fit(score=score, matched=float(matched.mean()) if len(x) else 0.0, per_cluster=per)
+
+
+def rms_displacement(points: FloatArray, T_a: FloatArray, T_b: FloatArray) -> float:
+    """RMS distance between ``points`` (N, 3) moved by ``T_a`` and by ``T_b`` (4, 4).
+
+    From the points' first and second moments: ``E|A p + b|^2 = tr(A S A^T) + 2 b^T A m +
+    |b|^2`` with ``A = R_a - R_b``, ``b = t_a - t_b``, ``m`` the mean and ``S`` the mean of
+    ``p p^T``.
+    """
+    A = T_a[:3, :3] - T_b[:3, :3]
+    b = T_a[:3, 3] - T_b[:3, 3]
+    n = max(len(points), 1)
+    mean = points.sum(axis=0) / n
+    second = points.T @ points / n
+    value = float(np.trace(A @ second @ A.T) + 2.0 * b @ A @ mean + b @ b)
+    return float(np.sqrt(max(value, 0.0)))
