@@ -63,12 +63,13 @@ def test_bins_keep_the_exact_moments_of_their_normals() -> None:
     np.testing.assert_allclose(np.abs(np.einsum('kij,kij->kj', g_bins, g_pts)), 1.0, atol=1e-9)
 
 
+@pytest.mark.parametrize('use_beta', [False, True])
 @pytest.mark.parametrize(
     ('kappa', 'beta', 'angle_deg', 'seed'),
     [(150.0, 50.0, 20.0, 0), (60.0, 25.0, 35.0, 1), (300.0, 0.0, 10.0, 2)],
 )
 def test_shared_em_recovers_rotation_and_kent_parameters(
-    kappa: float, beta: float, angle_deg: float, seed: int
+    kappa: float, beta: float, angle_deg: float, seed: int, use_beta: bool
 ) -> None:
     rng = np.random.default_rng(seed)
     n = 3000
@@ -79,7 +80,7 @@ def test_shared_em_recovers_rotation_and_kent_parameters(
     R_true = exp_so3(axis / np.linalg.norm(axis) * np.radians(angle_deg))
     x_model, x_labels = _sample(frames, kappa, beta, n, rng)
     x = x_model @ R_true  # observed normals: y = R_true x
-    result = shared_rotation_em(_bins(x, x_labels, kappa), model, np.eye(3))
+    result = shared_rotation_em(_bins(x, x_labels, kappa), model, np.eye(3), use_beta=use_beta)
     assert result.converged
     # Rotation: each cluster's mean is known to ~1/sqrt(kappa n) rad per axis in each cloud;
     # 4 clusters, two clouds: the estimate's error is ~sqrt(2 / (4 kappa n)). 5 sigma:

@@ -121,7 +121,11 @@ class EMConfig:
         0.1, 'Mixture weight pi0 of the uniform outlier component.', range=(0.0, 0.99)
     )
     kent_beta: bool = _f(
-        True, 'Robust mode: use the Kent ovalness beta (False: von Mises-Fisher).'
+        False,
+        'Robust mode: put the Kent ovalness beta into the E-step kernels as the paper does. '
+        "The paper's beta term acts on the observed normal itself (a cluster-wide pull toward "
+        "the cluster's major axis), which biased the rotation where a cluster's spread differs "
+        'between views; beta is estimated and reported either way (paper mode always uses it).',
     )
     rotation: str = _f(
         'shared',

@@ -78,8 +78,11 @@ def plane_offset_translation(
             continue
         off_t = target[mt] @ d
         off_s = src[ms] @ d + float(d @ t0)
-        lo = min(off_t.min(), off_s.min()) - max_shift
-        hi = max(off_t.max(), off_s.max()) + max_shift
+        # Only source offsets within max_shift of the target's range can enter a searched lag.
+        lo, hi = off_t.min() - max_shift, off_t.max() + max_shift
+        off_s = off_s[(off_s >= lo) & (off_s <= hi)]
+        if len(off_s) < min_points:
+            continue
         edges_n = int(np.ceil((hi - lo) / bin_size)) + 1
         ht = np.bincount(((off_t - lo) / bin_size).astype(np.intp), minlength=edges_n)
         hs = np.bincount(((off_s - lo) / bin_size).astype(np.intp), minlength=edges_n)
