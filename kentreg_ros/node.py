@@ -115,6 +115,7 @@ class _Counters:
         'nonfinite_points',
         'errors',
         'resets',
+        'searched',
         *HEALTHS,
     )
 
@@ -526,6 +527,8 @@ class KentRegNode(Node):
         step = self._odometry.step(scan.points, scan.stamp_ns, frame_id=scan.frame_id)
         self._counters.add('processed')
         self._counters.add(step.health)
+        if step.searched:
+            self._counters.add('searched')
         self._last_health, self._last_message = step.health, step.message
         self._publish(step, prev_stamp, settings)
         self._counters.add('published')
