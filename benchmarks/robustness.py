@@ -448,6 +448,27 @@ def _raised(exc: BaseException | str, prep: Any = None) -> dict[str, Any]:
     }
 
 
+def _summary(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`benchmarks.common.summarize`, with times over the pairs that ran.
+
+    A method that raised has no time (NaN); ``summarize`` would report a NaN median as soon as
+    one pair raised. Its count stays in ``n_errors`` (and in ``failures``).
+    """
+    summ = summarize(records)
+    ms = np.array([r['ms'] for r in records], dtype=np.float64)
+    ms = ms[np.isfinite(ms)]
+    summ['ms'] = {
+        'median': float(np.median(ms)) if len(ms) else float('nan'),
+        'mean': float(ms.mean()) if len(ms) else float('nan'),
+    }
+    return summ
+
+
+def _raised_note(summary: dict[str, Any]) -> str:
+    """' (k raised)' when the method raised on some pairs, else ''."""
+    return f' ({summary["n_errors"]} raised)' if summary['n_errors'] else ''
+
+
 def _pair_record(rec: dict[str, Any], truth: FloatArray, **extra: Any) -> dict[str, Any]:
     e_R, e_t = (float('nan'),) * 2 if rec['T'] is None else errors(rec['T'], truth)
     return {
@@ -628,7 +649,7 @@ def run_outliers(
             'methods': {},
         }
         for name, recs in rows.items():
-            summ = summarize(recs)
+            summ = _summary(recs)
             summ['reported_failed'] = sum(r.get('status') == 'failed' for r in recs)
             summ['outlier_share_after_downsampling'] = (
                 float(np.mean(shares[name])) if shares[name] else float('nan')
@@ -717,7 +738,7 @@ def run_turned(
             'methods': {},
         }
         for name, recs in by_method.items():
-            summ = summarize(recs)
+            summ = _summary(recs)
             summ['recovered'] = summ['n'] - summ['failures']
             summ['recovered_fraction'] = summ['recovered'] / summ['n'] if summ['n'] else None
             summ['reported_failed'] = sum(r.get('status') == 'failed' for r in recs)
@@ -830,8 +851,9 @@ def markdown(results: dict[str, Any]) -> str:
             lines.append(f'| {n} | ' + ' | '.join(cells) + ' |')
         lines += [
             '',
-            f'*Failures ({fail_rule}); outlier share among the points the method downsampled '
-            'to; median ms per pair (source preparation + registration)*',
+            f'*Failures ({fail_rule}; "raised": the method threw an exception, counted as '
+            'failed); outlier share among the points the method downsampled to; median ms per '
+            'pair that ran (source preparation + registration)*',
             '',
             head,
             rule,
@@ -841,7 +863,7 @@ def markdown(results: dict[str, Any]) -> str:
             for b in levels.values():
                 s = b['methods'][n]['summary']
                 cells.append(
-                    f'{s["failures"]}/{s["n"]}, '
+                    f'{s["failures"]}/{s["n"]}{_raised_note(s)}, '
                     f'{fmt(100 * s["outlier_share_after_downsampling"], ".0f")} %, '
                     f'{fmt(s["ms"]["median"], ".0f")} ms'
                 )
@@ -892,7 +914,7 @@ def markdown(results: dict[str, Any]) -> str:
             for b in angles.values():
                 s = b['methods'][n]['summary']
                 share = fmt(100 * s['recovered_fraction'], '.0f')
-                cells.append(f'{s["recovered"]}/{s["n"]} ({share} %)')
+                cells.append(f'{s["recovered"]}/{s["n"]} ({share} %){_raised_note(s)}')
             lines.append(f'| {n} | ' + ' | '.join(cells) + ' |')
         lines += [
             '| *reference rotation (median)* | '

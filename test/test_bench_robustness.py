@@ -209,5 +209,7 @@ def test_report_bookkeeping_end_to_end_with_stand_in_methods(
     assert '| 3 |' in text and '| stay | 2/2 |' in text
     assert '| stay | 0/1 (0 %) | 0/1 (0 %) |' in text
     assert 'without replacement' in text
+    assert '| crash | 2/2 (2 raised), – %, – ms |' in text  # a method that raised: no time
+    assert '| crash | 0/1 (0 %) (1 raised) |' in text
     plot(results, tmp_path / 'robustness.png')
     assert (tmp_path / 'robustness.png').read_bytes().startswith(b'\x89PNG')
