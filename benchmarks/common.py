@@ -173,6 +173,17 @@ def is_failure(e_R: float, e_t: float) -> bool:
     return e_R > FAIL_ROTATION_DEG or e_t > FAIL_TRANSLATION_M
 
 
+def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
+    """:func:`is_failure` of arrays of errors, element by element (NaN counts as failed)."""
+    e_R, e_t = np.asarray(e_R, dtype=np.float64), np.asarray(e_t, dtype=np.float64)
+    with np.errstate(invalid='ignore'):
+        return (
+            ~(np.isfinite(e_R) & np.isfinite(e_t))
+            | (e_R > FAIL_ROTATION_DEG)
+            | (e_t > FAIL_TRANSLATION_M)
+        )
+
+
 def summarize(records: Iterable[Mapping[str, float]]) -> dict[str, Any]:
     """Mean/median/p90/max of e_R, e_t, failure count and median time of per-pair records.
 

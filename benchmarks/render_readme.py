@@ -1,9 +1,9 @@
 """Paste the generated tables into benchmarks/README.md, so the README always equals the results.
 
-Every ``benchmarks/results/<name>.md`` replaces the text between ``<!-- BEGIN <name> -->`` and
-``<!-- END <name> -->`` in the README. The ``goals`` block is computed here from
-``paper_table.json`` and ``outliers.json`` (the issue's targets, measured). Blocks whose source
-is missing are left as they are.
+Every ``benchmarks/results/<name>.md`` (paper_table, outliers, odometry, speed, robustness)
+replaces the text between ``<!-- BEGIN <name> -->`` and ``<!-- END <name> -->`` in the README.
+The ``goals`` block is computed here from ``paper_table.json`` and ``outliers.json`` (the
+issue's targets, measured). Blocks whose source is missing are left as they are.
 
 Usage::
 

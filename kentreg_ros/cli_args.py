@@ -6,20 +6,24 @@ import argparse
 import math
 
 
-def non_negative_int(text: str) -> int:
-    """An integer >= 0, or an ``ArgumentTypeError`` naming the text."""
+def _int(text: str) -> int:
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'expected an integer, got {text!r}') from None
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0, or an ``ArgumentTypeError`` naming the text."""
+    value = _int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f'expected a non-negative integer (>= 0), got {text!r}')
     return value
 
 
 def positive_int(text: str) -> int:
-    """An integer >= 1, or an ``ArgumentTypeError`` naming the text."""
-    value = non_negative_int(text)
+    """An integer >= 1, or an ``ArgumentTypeError`` naming the text (also for negatives)."""
+    value = _int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f'expected a positive integer (>= 1), got {text!r}')
     return value

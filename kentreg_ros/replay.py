@@ -2,7 +2,9 @@
 
 Every scan is processed, in order, at CPU speed (none is dropped), by the same
 :class:`~kentreg_ros.core.odometry.Odometry` the ROS node runs. Then the run is written out and,
-when ground truth is known, evaluated.
+when ground truth is known, evaluated. ``--stride N`` processes only every N-th scan (``start,
+start + N, ...``), keeping their stamps: a frame-skipping stress test in which the odometry sees
+N times the gaps and the evaluation joins consecutive *processed* scans.
 
 Examples
 --------
@@ -13,6 +15,10 @@ The sample recording (BALM, 50 real scans with reference poses on ``/ground_trut
 A scan folder with its pose file found beside the scans, the paper's recipe, 10 scans::
 
     kentreg_replay ../shared/data/balm --set mode=paper --max-scans 10
+
+Every third scan of the sample (scans 0, 3, 6, ...; three times the motion per pair)::
+
+    kentreg_replay bags/balm_50 --stride 3
 
 Outputs in ``--out`` (default ``results/<timestamp>/``, with ``results/latest`` pointing there)
 -------------------------------------------------------------------------------------------------
@@ -150,9 +156,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=GROUND_TRUTH_TOPIC,
         help=f'ground-truth topic of the bag (default {GROUND_TRUTH_TOPIC})',
     )
-    parser.add_argument('--max-scans', type=positive_int, metavar='N', help='process N scans')
+    parser.add_argument(
+        '--max-scans', type=positive_int, metavar='N', help='process N scans (after --stride)'
+    )
     parser.add_argument(
         '--start', type=non_negative_int, default=0, metavar='N', help='skip the first N scans'
+    )
+    parser.add_argument(
+        '--stride',
+        type=positive_int,
+        default=1,
+        metavar='N',
+        help='process every N-th scan only (start, start+N, ...), stamps unchanged: a '
+        'frame-skipping stress test; pairs and metrics join consecutive processed scans '
+        '(default 1: every scan)',
     )
     parser.add_argument(
         '--odom-frame', default='odom', help='frame of the output poses (default odom)'
@@ -349,27 +366,40 @@ def run_odometry(
     *,
     start: int = 0,
     max_scans: int | None = None,
+    stride: int = 1,
     progress: bool = True,
 ) -> ReplayRun:
-    """Feed every scan of ``source`` (from ``start``, at most ``max_scans``) to ``odometry``.
+    """Feed the scans ``start, start + stride, ...`` of ``source`` (at most ``max_scans``).
+
+    The scans in between are read and skipped (a bag is sequential); the processed scans keep
+    their own stamps, so the odometry sees ``stride`` times the gaps. ``max_scans`` counts
+    processed scans, and :attr:`ReplayRun.input_indices` records which input scans they were.
 
     A read error in the middle of the input (a damaged bag) ends the run early; the scans read
     before it are kept and the error is recorded in :attr:`ReplayRun.error`. Ctrl-C does the
     same with :attr:`ReplayRun.interrupted`.
+
+    Raises
+    ------
+    InputError
+        ``start`` beyond the input, or ``stride`` < 1.
     """
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise InputError(f'--stride: expected a positive integer (>= 1), got {stride!r}')
     run = ReplayRun()
     n_total = len(source)
-    stop = n_total if max_scans is None else min(n_total, start + max_scans)
-    total = max(stop - start, 0)
     if start >= n_total:
         raise InputError(f'--start {start}: the input has only {n_total} scans')
+    indices = range(start, n_total, stride)
+    if max_scans is not None:
+        indices = indices[:max_scans]
     reader: Iterator[Any] = iter(source)
-    scans = itertools.islice(reader, start, stop)
-    bar = _progress_bar(total, progress)
+    scans = itertools.islice(reader, indices.start, indices.stop, indices.step)
+    bar = _progress_bar(len(indices), progress)
     t_run = time.perf_counter()
     try:
         with _logging_redirect(bar):
-            for index in range(start, stop):
+            for index in indices:
                 t0 = time.perf_counter()
                 try:
                     scan = next(scans)
@@ -766,13 +796,18 @@ def _fmt(value: Any, spec: str) -> str:
     return format(value, spec)
 
 
+def _stride_text(stride: int) -> str:
+    """'stride 1 (every scan)' or 'stride 3 (one scan in 3)' for the summary and plot title."""
+    return 'stride 1 (every scan)' if stride == 1 else f'stride {stride} (one scan in {stride})'
+
+
 def format_summary(report: dict[str, Any], out: Path | None) -> str:
     """The short table printed at the end of a run."""
     speed = report['speed']
     health = report['health']
     lines = [
         f'{PROG}: {speed["n_scans"]} scans of {report["input"]["description"]}, '
-        f'mode {report["mode"]}',
+        f'{_stride_text(report["input"].get("stride", 1))}, mode {report["mode"]}',
         '  health     '
         + ', '.join(f'{k} {health[k]}' for k in HEALTHS)
         + f' (start-free search on {report.get("n_searched", 0)} scans)',
@@ -870,6 +905,7 @@ def _replay(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         Odometry(cfg),
         start=args.start,
         max_scans=args.max_scans,
+        stride=args.stride,
         progress=not args.no_progress,
     )
     if not run.steps:
@@ -884,6 +920,7 @@ def _replay(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
             'path': str(args.input),
             'description': source.description,
             'start': args.start,
+            'stride': args.stride,
             'n_scans': len(run.steps),
             'n_nonfinite_dropped': int(getattr(source, 'n_dropped', 0)),
             'frame_id': run.steps[0].frame_id,
@@ -907,6 +944,8 @@ def _replay(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         _step_record(s, i) for s, i in zip(run.steps, run.input_indices, strict=True)
     ]
     title = f'kentreg ({cfg.mode}): {Path(args.input).name}'
+    if args.stride > 1:
+        title += f', {_stride_text(args.stride)}'
     write_outputs(
         out,
         run,

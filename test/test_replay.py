@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -197,6 +198,67 @@ def test_replay_sample_metrics_match_independent_computation(
     assert len(report['steps']) == SAMPLE_SCANS
 
 
+def test_replay_stride_processes_every_third_scan_with_original_stamps(
+    sample_bag: Path, shared_data: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / 'stride'
+    code, stdout, stderr = run_cli(
+        [str(sample_bag), '--stride', '3', '--max-scans', '5', '--out', str(out),
+         '--no-progress', '--no-plot']
+    )  # fmt: skip
+    assert code == 0, stderr
+    report = json.loads((out / 'metrics.json').read_text())
+    assert report['input']['stride'] == 3
+    # --max-scans counts processed scans: 0, 3, 6, 9, 12.
+    assert [s['input_index'] for s in report['steps']] == [0, 3, 6, 9, 12]
+    assert [s['index'] for s in report['steps']] == [0, 1, 2, 3, 4]
+    input_stamps = [stamp_ns(m) for m in mcap_messages(sample_bag / 'balm_50.mcap')['/points']]
+    assert [s['stamp_ns'] for s in report['steps']] == input_stamps[0:13:3]
+    stamps, T_est = read_tum(out / 'poses_tum.txt')
+    np.testing.assert_allclose(stamps, np.array(input_stamps[0:13:3]) * 1e-9, atol=1e-6)
+    # Pairs join consecutive processed scans: (0, 3), (3, 6), ... against the poses of 0, 3, ...
+    gt_stamps, T_gt_all = read_balm_csv(shared_data / 'balm' / 'alidarPose.csv')
+    e_R, e_t = independent_pair_errors(T_est, T_gt_all[0:13:3])
+    np.testing.assert_allclose(gt_stamps[0:13:3], stamps, atol=1e-4)
+    pairs = report['ground_truth']['pairs']
+    assert pairs['count'] == 4 and report['ground_truth']['n_matched'] == 5
+    np.testing.assert_allclose(pairs['e_R_deg'], e_R, atol=2e-4)
+    np.testing.assert_allclose(pairs['e_t_m'], e_t, atol=1e-6)
+    first_line = stdout.splitlines()[0]
+    assert '5 scans' in first_line and 'stride 3 (one scan in 3)' in first_line
+    assert 'failed pairs' in stdout
+
+
+def test_run_odometry_stride_selects_start_plus_multiples() -> None:
+    from kentreg_ros.io.bags import Scan
+    from kentreg_ros.replay import run_odometry
+
+    class Recorder:
+        """Stands in for Odometry: records what it was given."""
+
+        n_failed = 0
+
+        def __init__(self) -> None:
+            self.stamps: list[int] = []
+
+        def step(
+            self, points: np.ndarray, stamp_ns: int, frame_id: str | None = None
+        ) -> SimpleNamespace:
+            self.stamps.append(stamp_ns)
+            return SimpleNamespace(health='ok', message='', timings={'total': 0.0})
+
+    scans = [Scan(1000 * i, 'lidar', np.zeros((1, 3)), {}) for i in range(10)]
+    odom = Recorder()
+    run = run_odometry(scans, odom, start=1, stride=4, progress=False)  # type: ignore[arg-type]
+    assert run.input_indices == [1, 5, 9] and odom.stamps == [1000, 5000, 9000]
+    odom = Recorder()
+    run = run_odometry(scans, odom, start=2, stride=3, max_scans=2, progress=False)  # type: ignore[arg-type]
+    assert run.input_indices == [2, 5] and odom.stamps == [2000, 5000]
+    odom = Recorder()
+    run = run_odometry(scans, odom, start=9, stride=5, progress=False)  # type: ignore[arg-type]
+    assert run.input_indices == [9]
+
+
 def test_replay_paper_mode_config_runs_end_to_end(sample_bag: Path, tmp_path: Path) -> None:
     config = tmp_path / 'paper.yaml'
     config.write_text(dump_config(KentRegConfig.paper()))
@@ -313,6 +375,10 @@ def test_replay_interrupted_writes_scans_so_far(
         (['{bag}', '--set', 'mode=fast'], 'mode'),
         (['{bag}', '--start', '50'], 'only 50 scans'),
         (['{bag}', '--max-scans', '0'], 'positive integer'),
+        (['{bag}', '--stride', '0'], 'positive integer'),
+        (['{bag}', '--stride', '-2'], 'expected a positive integer (>= 1)'),
+        (['{bag}', '--stride', '1.5'], 'expected an integer'),
+        (['{bag}', '--stride', 'two'], 'expected an integer'),
         (['{bag}', '--topic', '/ground_truth'], 'not sensor_msgs/msg/PointCloud2'),
     ],
 )
