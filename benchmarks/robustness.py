@@ -343,7 +343,7 @@ class Runner:
 
     name: str
     prepare: Callable[[FloatArray], Any]
-    register: Callable[[Any, Any, FloatArray], tuple[FloatArray, dict[str, Any]]]
+    register: Callable[[Any, Any, FloatArray | None], tuple[FloatArray, dict[str, Any]]]
     voxel: Callable[[Any], float]
     params: dict[str, Any] = field(default_factory=dict)
 
@@ -357,9 +357,12 @@ def kentreg_runner() -> Runner:
     def prepare(points: FloatArray) -> Any:
         return prepare_scan(points, config=cfg)
 
-    def run(source: Any, target: Any, init: FloatArray) -> tuple[FloatArray, dict[str, Any]]:
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
         result = register(source, target, init=init, config=cfg)
-        return np.array(result.T_target_source, dtype=np.float64), {'status': result.status}
+        info = {'status': result.status, 'fit': result.fit, 'ambiguous': result.ambiguous}
+        return np.array(result.T_target_source, dtype=np.float64), info
 
     return Runner(
         'kentreg',
@@ -382,8 +385,10 @@ def peer_runner(method: Method, voxel: float) -> Runner:
     def prepare(points: FloatArray) -> Any:
         return method.prepare(voxel_downsample(points, voxel))
 
-    def run(source: Any, target: Any, init: FloatArray) -> tuple[FloatArray, dict[str, Any]]:
-        return method.register(source, target, init), {}
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        return method.register(source, target, np.eye(4) if init is None else init), {}
 
     return Runner(
         method.name,
@@ -410,7 +415,7 @@ def make_runners(names: Sequence[str], voxel: float, threads: int) -> list[Runne
 
 
 def register_pair(
-    runner: Runner, source_raw: FloatArray, target_prep: Any, init: FloatArray
+    runner: Runner, source_raw: FloatArray, target_prep: Any, init: FloatArray | None
 ) -> dict[str, Any]:
     """Prepare the raw source, register it; errors as NaN (a failure) when the method raises.
 
@@ -715,7 +720,9 @@ def run_turned(
             )
             for runner in runners:
                 if runner.name in targets:
-                    rec = register_pair(runner, turned, targets[runner.name], np.eye(4))
+                    # No prior at all: kentreg's register() without init (which searches
+                    # SO(3) when it has no start), the peers from the identity.
+                    rec = register_pair(runner, turned, targets[runner.name], None)
                 else:
                     rec = _raised('the target could not be prepared')
                 rows[key][runner.name].append(_pair_record(rec, ref, trial=trial, pair=pair))
