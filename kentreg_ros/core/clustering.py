@@ -146,8 +146,3 @@ def _lloyd(
             break
         labels = new_labels
     return labels, centers
-
-
-def assign_to_centers(x: FloatArray, centers: FloatArray) -> NDArray[np.intp]:
-    """Index of the centre of largest cosine for every row of ``x``."""
-    return np.argmax(x @ centers.T, axis=1)

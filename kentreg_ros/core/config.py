@@ -101,8 +101,8 @@ class ClusteringConfig:
     restart_sample: int = _f(
         2000,
         'The restarts run on a seeded subset of this many normals and only the best is '
-        'continued on all of them (0: every restart on all normals). On BALM scans at 10k '
-        'points the labels came out identical, 2-4x faster.',
+        'continued on all of them (0: every restart on all normals): a few thousand normals '
+        'already show where the clusters lie, and the continuation settles their borders.',
         range=(0, 10_000_000),
     )
 
@@ -134,12 +134,21 @@ class EMConfig:
     )
     kappa_cap_start: float = _f(
         20.0,
-        'Robust mode: initial cap on kappa (wide basin); it rises each pass.',
+        "Robust mode: cap on the kernels' kappa in the first pass, rising each pass: 20 is an "
+        'angular spread of ~13 deg, a basin as wide as a cluster of normals.',
         range=(1.0, 1e6),
     )
-    kappa_cap_end: float = _f(2000.0, 'Robust mode: final cap on kappa.', range=(1.0, 1e7))
+    kappa_cap_end: float = _f(
+        2000.0,
+        'Robust mode: final cap on kappa: ~1.3 deg, finer than the noise of PCA normals, so it '
+        'only stops a perfectly flat synthetic cluster from collapsing the kernel.',
+        range=(1.0, 1e7),
+    )
     kappa_cap_growth: float = _f(
-        2.0, 'Robust mode: factor by which the kappa cap rises per pass.', range=(1.0, 100.0)
+        2.0,
+        'Robust mode: factor by which the kappa cap rises per pass (the kernel narrows by '
+        'sqrt(2) per pass: the rotation follows it from one basin into the next).',
+        range=(1.0, 100.0),
     )
     max_points_per_cluster: int = _f(
         1500,
@@ -164,8 +173,8 @@ class TranslationConfig:
     max_iterations: int = _f(
         3,
         'Iterations of the 3-DOF solve. The joint refinement re-solves all 6 DOF, so this '
-        'stage only places it in its basin; 3 lets the default gate reach its floor (20 '
-        'changed no measured result by more than 0.007 deg / 0.2 mm and cost ~10 ms).',
+        'stage only places it in its basin; 3 lets the gate shrink from its start to near its '
+        'floor.',
         range=(1, 1000),
     )
     tolerance: float = _f(
@@ -205,8 +214,8 @@ class RefineConfig:
     )
     max_iterations: int = _f(
         50,
-        'Gauss-Newton iterations (following a creep to the tolerance took up to ~35 on the '
-        'real small_gicp pair).',
+        'Gauss-Newton iterations at most: enough to follow a creep along a weakly constrained '
+        'direction to the tolerance (see max_step_scale).',
         range=(1, 1000),
     )
     max_correspondence_distance: float = _f(
@@ -216,11 +225,10 @@ class RefineConfig:
     )
     tolerance: float = _f(
         5e-5,
-        'Stop when the update is below this (rad and m). Nearest-neighbour correspondences make '
-        'Gauss-Newton creep (~0.1-0.5 mm per iteration) along weakly constrained directions; '
-        'with max_step_scale the creep is followed to its fixed point, so the result no longer '
-        'depends on where it stops (BALM median e_R 0.034 deg, against 0.043 deg at 5e-4 '
-        'without lengthening).',
+        'Stop when the update is below this (rad and m): far below the sensor noise, so that a '
+        'creep of nearest-neighbour Gauss-Newton along a weakly constrained direction is '
+        'followed to its fixed point (see max_step_scale) and the result does not depend on '
+        'where it stopped.',
         range=(0.0, 1.0),
     )
     max_step_scale: float = _f(
@@ -283,8 +291,8 @@ class OdometryConfig:
     max_angular_speed_deg: float = _f(
         360.0,
         'Fastest plausible turn of the sensor (deg/s); a step turning more than this times its '
-        'time gap is rejected. One turn per second: beyond hand-held sweeps (BALM: up to '
-        '96 deg/s), vehicles and most aerial platforms.',
+        'time gap is rejected. One turn per second: beyond hand-held sweeps, vehicles and '
+        'most aerial platforms.',
         range=(1.0, 100000.0),
     )
     max_linear_speed: float = _f(
@@ -297,10 +305,9 @@ class OdometryConfig:
         0.7,
         'A step whose fit (share of points landing on matching surfaces) is below this share '
         'of the median fit of the last accepted steps is doubtful: the zero-motion start and '
-        'the start-free search are tried too and the best fit wins. Correct steps of real '
-        'sequences stay above ~0.85 of their median (overlap changes slowly); a wrong minimum '
-        'loses whole families of surfaces. Searching costs time, not accuracy, so the margin '
-        'errs toward searching.',
+        'the start-free search are tried too and the best fit wins. Overlap, and so the fit, '
+        'changes slowly from scan to scan, while a wrong minimum loses whole families of '
+        'surfaces. Searching costs time, not accuracy, so the margin errs toward searching.',
         range=(0.0, 1.0),
     )
     fit_window: int = _f(

@@ -19,3 +19,11 @@ class InvalidPointCloudError(KentRegError, ValueError):
 
 class DegenerateSceneError(KentRegError):
     """The scene does not constrain the transform (e.g. too few or coplanar points)."""
+
+
+class InvalidInputError(KentRegError, ValueError, TypeError):
+    """An argument other than a point cloud is malformed: a transform that is not rigid, a
+    non-finite viewpoint, a configuration of the wrong type, a stamp that is not an integer.
+
+    It is both a ``ValueError`` and a ``TypeError``, so code catching either keeps working.
+    """

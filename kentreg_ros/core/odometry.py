@@ -33,16 +33,25 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
 from kentreg_ros.core.registration import (
     STATUS_DEGENERATE,
     STATUS_FAILED,
     PreparedScan,
     RegistrationResult,
+    elapsed_ms,
     prepare_scan,
     register,
 )
-from kentreg_ros.core.rotations import exp_so3, hat, log_so3, make_transform, rotation_angle
+from kentreg_ros.core.rotations import (
+    check_transform,
+    exp_so3,
+    hat,
+    invert_transform,
+    log_so3,
+    make_transform,
+    rotation_angle,
+)
 from kentreg_ros.core.verify import FitGates, rms_displacement
 
 logger = logging.getLogger(__name__)
@@ -157,27 +166,6 @@ class OdometryStep:
         return self.stamp_ns * 1e-9
 
 
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1e3
-
-
-def _check_pose(T: ArrayLike, name: str) -> FloatArray:
-    arr = np.asarray(T, dtype=np.float64)
-    if arr.shape != (4, 4) or not np.isfinite(arr).all():
-        raise ValueError(f'Expected `{name}` to be a finite 4x4 transform, got shape {arr.shape}.')
-    R = arr[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0.0:
-        raise ValueError(f'Expected the rotation block of `{name}` to be a rotation matrix.')
-    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f'Expected the last row of `{name}` to be [0, 0, 0, 1], got {arr[3]}.')
-    return arr.copy()
-
-
-def _invert(T: FloatArray) -> FloatArray:
-    R = T[:3, :3]
-    return make_transform(R.T, -R.T @ T[:3, 3])
-
-
 def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
     """Rotation vector and translation of ``T`` scaled by ``factor`` (first-order screw)."""
     if factor == 1.0:
@@ -240,7 +228,7 @@ def propagate_covariance(
 
 def _as_stamp(stamp_ns: int) -> int:
     if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer):
-        raise TypeError(
+        raise InvalidInputError(
             f'Expected `stamp_ns` to be an integer number of nanoseconds, got {stamp_ns!r}.'
         )
     return int(stamp_ns)
@@ -292,14 +280,16 @@ class Odometry:
     ) -> None:
         cfg = config if config is not None else KentRegConfig()
         if not isinstance(cfg, KentRegConfig):
-            raise TypeError(f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.')
+            raise InvalidInputError(
+                f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.'
+            )
         if max_history is not None and (isinstance(max_history, bool) or max_history < 2):
-            raise ValueError(f'Expected `max_history` >= 2 or None, got {max_history!r}.')
+            raise InvalidInputError(f'Expected `max_history` >= 2 or None, got {max_history!r}.')
         self._max_history = max_history
         self._config = cfg
         self._config_preprocess = cfg.preprocess
         self._initial_pose = (
-            np.eye(4) if initial_pose is None else _check_pose(initial_pose, 'initial_pose')
+            np.eye(4) if initial_pose is None else check_transform(initial_pose, 'initial_pose')
         )
         self.reset()
 
@@ -315,7 +305,7 @@ class Odometry:
             ``T_world_lidar`` of the next first scan (default: the one given at construction).
         """
         if initial_pose is not None:
-            self._initial_pose = _check_pose(initial_pose, 'initial_pose')
+            self._initial_pose = check_transform(initial_pose, 'initial_pose')
         self._model: PreparedScan | None = None
         self._model_index = -1
         self._T_world_model = self._initial_pose.copy()
@@ -344,7 +334,7 @@ class Odometry:
         the new settings and registered against it, so the trajectory continues without a gap.
         """
         if not isinstance(config, KentRegConfig):
-            raise TypeError(
+            raise InvalidInputError(
                 f'Expected `config` to be a KentRegConfig, got {type(config).__name__}.'
             )
         self._config = config
@@ -472,8 +462,8 @@ class Odometry:
 
         Raises
         ------
-        TypeError
-            ``stamp_ns`` is not an integer.
+        InvalidInputError
+            ``stamp_ns`` is not an integer (also a ``TypeError``).
         """
         t_start = time.perf_counter()
         stamp = _as_stamp(stamp_ns)
@@ -496,7 +486,7 @@ class Odometry:
             index=index,
             stamp_ns=stamp,
             frame_id=frame_id,
-            T_model_pred=_invert(self._T_world_model) @ T_world_pred,
+            T_model_pred=invert_transform(self._T_world_model) @ T_world_pred,
             n_points=int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0,
             t_start=t_start,
         )
@@ -505,11 +495,11 @@ class Odometry:
         try:
             scan = prepare_scan(points, config=self._config, voxel_size_hint=self._voxel_size_hint)
         except InvalidPointCloudError as exc:
-            pending.timings['preprocess'] = _ms(t0)
+            pending.timings['preprocess'] = elapsed_ms(t0)
             message = f'Rejected the scan: {exc} The pose is the prediction.'
             logger.warning('Scan %d: %s', index, message)
             return self._record(pending, T_world_pred, None, HEALTH_REJECTED, message, None)
-        pending.timings['preprocess'] = _ms(t0)
+        pending.timings['preprocess'] = elapsed_ms(t0)
         pending.n_prepared = len(scan)
         self._voxel_size_hint = scan.voxel_size
         if self._model is None:
@@ -518,7 +508,7 @@ class Odometry:
 
         t0 = time.perf_counter()
         choice = self._register(scan, pending, stamp - self._model_stamp)
-        pending.timings['register'] = _ms(t0)
+        pending.timings['register'] = elapsed_ms(t0)
         if choice.result is not None:
             for stage in ('rotation', 'translation', 'refine', 'search'):
                 if stage in choice.result.timings:
@@ -618,7 +608,9 @@ class Odometry:
         new_model: PreparedScan | None,
     ) -> OdometryStep:
         """Append the pose, move the model on (unless ``new_model`` is None), build the step."""
-        T_prev_curr = _invert(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
+        T_prev_curr = (
+            invert_transform(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
+        )
         if self._model is None and new_model is not None:
             covariance = self._cov_model.copy()  # the first pose is the origin of the frame
         else:
@@ -626,14 +618,14 @@ class Odometry:
                 cov_step = np.asarray(result.covariance, dtype=np.float64)
             else:
                 cov_step = _prediction_covariance(pending.T_model_pred)
-            T_model_curr = _invert(self._T_world_model) @ T_world_curr
+            T_model_curr = invert_transform(self._T_world_model) @ T_world_curr
             covariance = propagate_covariance(
                 self._cov_model, self._T_world_model, T_model_curr, cov_step
             )
         model_index = self._model_index
         if health in ACCEPTED and self._model is not None:
             # Only accepted motions feed the prediction and the fits a step is judged by.
-            T_model_curr = _invert(self._T_world_model) @ T_world_curr
+            T_model_curr = invert_transform(self._T_world_model) @ T_world_curr
             self._velocity = (T_model_curr, pending.stamp_ns - self._model_stamp)
             if np.isfinite(pending.fit):
                 self._fits.append(pending.fit)
@@ -649,7 +641,7 @@ class Odometry:
         self._stamps.append(pending.stamp_ns)
         self._n_steps += 1
         self._counts[health] += 1
-        pending.timings['total'] = _ms(pending.t_start)
+        pending.timings['total'] = elapsed_ms(pending.t_start)
         return OdometryStep(
             index=pending.index,
             stamp_ns=pending.stamp_ns,

@@ -23,7 +23,21 @@ from kentreg_ros.core.translation import geman_mcclure_weights, robust_scale
 
 FloatArray = NDArray[np.float64]
 
+#: GICP's planar covariance ``I - (1 - eps) n n^T`` (Segal et al. 2009 use 1e-3): the normal
+#: direction is a thousand times more certain than the in-plane ones.
 PLANE_EPSILON = 1e-3
+#: Concentration of the normal-agreement weight, re-estimated from the residual normals each
+#: iteration and clipped: at 5 a 40 deg disagreement still keeps ~30 % weight (wide basin); 500
+#: (2.6 deg) is the spread of PCA normals of one plane, finer would weigh noise.
+NORMAL_KAPPA_RANGE = (5.0, 500.0)
+#: Fewest correspondences for a 6-DOF Gauss-Newton step (twice the unknowns).
+MIN_CORRESPONDENCES = 12
+#: The correspondence gate shrinks by this factor per iteration from the start gate to the
+#: floor: a few iterations of a wide basin, then precision (0.7^6 ~ 1/8).
+GATE_SHRINK = 0.7
+#: Consecutive steps whose (metric-weighted) directions agree to this cosine are a creep and get
+#: lengthened (see :func:`refine_joint`).
+CREEP_COSINE = 0.9
 
 
 @dataclass(frozen=True)
@@ -88,14 +102,14 @@ def refine_joint(
     target_normals: FloatArray,
     target_tree: cKDTree,
     *,
-    method: str = 'plane_to_plane',
+    method: str = 'point_to_plane',
     normal_weight: bool = True,
-    max_iterations: int = 30,
+    max_iterations: int = 50,
     max_distance: float = 1.0,
     min_distance: float = 0.1,
-    tolerance: float = 1e-5,
+    tolerance: float = 5e-5,
     noise_floor: float = 0.005,
-    kappa_range: tuple[float, float] = (5.0, 500.0),
+    kappa_range: tuple[float, float] = NORMAL_KAPPA_RANGE,
     neighbors: NearestNeighborCache | None = None,
     max_step_scale: float = 16.0,
 ) -> RefineResult:
@@ -128,7 +142,7 @@ def refine_joint(
     correspondence sets, or creep: converge linearly, by many small steps in one direction,
     along weakly constrained directions (on the real small_gicp pair ~0.15 mrad per iteration
     for 100+ iterations). When consecutive steps reverse, the step is halved, so a cycle
-    collapses onto its midpoint; when they keep their direction (cosine > 0.9, rotations
+    collapses onto its midpoint; when they keep their direction (cosine > CREEP_COSINE, rotations
     weighted by the RMS radius of the source so both parts count as displacements), it is
     doubled, up to ``max_step_scale``. A fixed tolerance on the step then stops close to the
     fixed point instead of at an arbitrary point of a creep.
@@ -152,7 +166,7 @@ def refine_joint(
         x = source @ R.T + t
         dist, idx = nn.query(x, gate)
         ok = np.flatnonzero(np.isfinite(dist))
-        if len(ok) < 12:
+        if len(ok) < MIN_CORRESPONDENCES:
             break
         j = idx[ok]
         xo = np.take(x, ok, axis=0)  # np.take: several times faster than fancy indexing
@@ -203,7 +217,7 @@ def refine_joint(
                 step_scale *= 0.5
             elif gate <= min_distance and step_scale < max_step_scale:
                 a, b = delta * step_metric, prev_delta * step_metric
-                if float(a @ b) > 0.9 * float(np.linalg.norm(a) * np.linalg.norm(b)):
+                if float(a @ b) > CREEP_COSINE * float(np.linalg.norm(a) * np.linalg.norm(b)):
                     step_scale = min(2.0 * step_scale, max_step_scale)
         prev_delta = delta
         delta = step_scale * delta
@@ -211,7 +225,7 @@ def refine_joint(
         R = project_to_so3(dR @ R)
         t = dR @ t + delta[3:]
         inlier = len(ok) / len(source)
-        gate = max(gate * 0.7, min_distance)
+        gate = max(gate * GATE_SHRINK, min_distance)
         if (
             np.linalg.norm(delta[:3]) < tolerance
             and np.linalg.norm(delta[3:]) < tolerance

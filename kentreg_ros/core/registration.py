@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,12 +34,17 @@ from kentreg_ros.core.em import (
     paper_cluster_em,
     shared_rotation_em,
 )
-from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
 from kentreg_ros.core.kent import fit_kent_moments_batch
 from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask, planar_mask
 from kentreg_ros.core.preprocess import as_points, crop_range, downsample
 from kentreg_ros.core.refine import refine_joint
-from kentreg_ros.core.rotations import average_rotations, make_transform, rotation_angle
+from kentreg_ros.core.rotations import (
+    average_rotations,
+    check_transform,
+    make_transform,
+    rotation_angle,
+)
 from kentreg_ros.core.search import distinct_best, mixture_overlap, twist_hypotheses
 from kentreg_ros.core.translation import (
     centroid_translation,
@@ -55,6 +59,22 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 MIN_POINTS = 20
+#: Nearest-neighbour gates shrink to this many sampling spacings: two samplings of one surface
+#: put corresponding points up to about one spacing apart, so two keep every true match while
+#: a point off the surface by more finds none.
+GATE_FLOOR_SPACINGS = 2.0
+#: The robust (Geman-McClure) scale never drops below this share of the spacing: voxel
+#: centroids of two scans of one plane scatter about it by the sensor noise averaged over a
+#: voxel's returns, a few percent of the spacing for LiDARs (1-3 cm of noise, tens of returns
+#: per 0.1-0.5 m voxel); the floor keeps a noise-free synthetic scene from shrinking the kernel
+#: to nothing.
+NOISE_FLOOR_SPACINGS = 1.0 / 32.0
+#: Target points sampled to measure the spacing of a cloud with no voxel grid.
+SPACING_SAMPLE = 500
+#: Below this share of source points with a correspondence the clouds do not overlap at the
+#: pose found: the result is 'failed'. Scan-to-scan overlap is rarely under a half; a twentieth
+#: is left by a pose that matches a single surface by accident.
+MIN_INLIER_FRACTION = 0.05
 
 STATUS_CONVERGED = 'converged'
 STATUS_MAX_ITERATIONS = 'max_iterations'
@@ -189,7 +209,8 @@ class RegistrationResult:
         return self.status != STATUS_FAILED
 
 
-def _ms(t0: float) -> float:
+def elapsed_ms(t0: float) -> float:
+    """Milliseconds since ``t0`` (a ``time.perf_counter()`` reading)."""
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -229,7 +250,7 @@ def prepare_scan(
     pts = as_points(points)
     vp = np.asarray(viewpoint, dtype=np.float64).reshape(3)
     if not np.isfinite(vp).all():
-        raise ValueError(f'Expected a finite `viewpoint`, got {vp}.')
+        raise InvalidInputError(f'Expected a finite `viewpoint`, got {vp}.')
     n_input = len(pts)
     k = cfg.normals.k_neighbors
     voxel = 0.0
@@ -246,7 +267,7 @@ def prepare_scan(
             min_voxel_points=cfg.preprocess.min_voxel_points,
         )
         voxel, n_isolated, floor = grid.size, grid.n_isolated, grid.min_points
-        timings['downsample'] = _ms(t0)
+        timings['downsample'] = elapsed_ms(t0)
         if len(pts) < max(k, MIN_POINTS):
             raise InvalidPointCloudError(
                 f'Expected at least {max(k, MIN_POINTS)} points after preprocessing '
@@ -256,7 +277,7 @@ def prepare_scan(
         tree = cKDTree(pts)
         est = estimate_normals(pts, k, viewpoint=vp, tree=tree)
         nrm, flat, nbrs = est.normals, est.flatness, est.neighbors
-        timings['normals'] = _ms(t0)
+        timings['normals'] = elapsed_ms(t0)
     else:
         nrm = as_points(normals, 'normals')
         if nrm.shape != pts.shape:
@@ -275,7 +296,7 @@ def prepare_scan(
         tree = cKDTree(pts)
         _, nbrs = tree.query(pts, k=k, workers=-1)
         flat = np.zeros(len(pts))  # given normals are trusted
-        timings['normals'] = _ms(t0)
+        timings['normals'] = elapsed_ms(t0)
     t0 = time.perf_counter()
     keep = normal_inlier_mask(nrm, np.asarray(nbrs, dtype=np.intp), cfg.normals.outlier_cosine)
     keep &= planar_mask(flat, cfg.normals.max_flatness)
@@ -289,7 +310,7 @@ def prepare_scan(
     if n_out:
         pts, nrm = pts[keep], nrm[keep]
         tree = cKDTree(pts)
-    timings['outliers'] = _ms(t0)
+    timings['outliers'] = elapsed_ms(t0)
     t0 = time.perf_counter()
     labels, centers = spherical_kmeans(
         nrm,
@@ -303,8 +324,8 @@ def prepare_scan(
     kappa_clusters, _, _ = fit_kent_moments_batch(nrm, onehot)
     bins = NormalBins.from_normals(nrm, bin_cell_for(kappa_clusters)[labels], labels)
     clusters = ModelClusters.from_bins(bins, centers)
-    timings['clustering'] = _ms(t0)
-    timings['total'] = _ms(t_start)
+    timings['clustering'] = elapsed_ms(t0)
+    timings['total'] = elapsed_ms(t_start)
     return PreparedScan(
         points=pts,
         normals=nrm,
@@ -331,24 +352,14 @@ def _as_prepared(
 ) -> PreparedScan:
     if isinstance(scan, PreparedScan):
         if normals is not None:
-            raise ValueError(f'`{name}_normals` cannot be given with a PreparedScan `{name}`.')
+            raise InvalidInputError(
+                f'`{name}_normals` cannot be given with a PreparedScan `{name}`.'
+            )
         return scan
     try:
         return prepare_scan(scan, config=cfg, viewpoint=viewpoint, normals=normals)
     except InvalidPointCloudError as exc:
         raise InvalidPointCloudError(f'{name}: {exc}') from exc
-
-
-def _check_init(init: ArrayLike | None) -> FloatArray:
-    if init is None:
-        return np.eye(4)
-    T = np.asarray(init, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f'Expected `init` to be a finite 4x4 transform, got shape {T.shape}.')
-    R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-        raise ValueError('Expected the rotation block of `init` to be a rotation matrix.')
-    return T
 
 
 def register(
@@ -394,20 +405,22 @@ def register(
     ------
     InvalidPointCloudError
         Malformed clouds: wrong shape, NaN/inf, too few points.
-    ValueError
-        A malformed ``init``.
+    InvalidInputError
+        A malformed ``init``, ``viewpoint`` or ``config``.
     """
     cfg = config or KentRegConfig()
     if not isinstance(cfg, KentRegConfig):
-        raise TypeError(f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.')
+        raise InvalidInputError(
+            f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.'
+        )
     t_start = time.perf_counter()
-    T_init = _check_init(init)
+    T_init = np.eye(4) if init is None else check_transform(init, 'init')
     t0 = time.perf_counter()
     src = _as_prepared(source, source_normals, cfg, viewpoint, 'source')
-    t_src = _ms(t0)
+    t_src = elapsed_ms(t0)
     t0 = time.perf_counter()
     tgt = _as_prepared(target, target_normals, cfg, viewpoint, 'target')
-    t_tgt = _ms(t0)
+    t_tgt = elapsed_ms(t0)
     timings = {'prepare_source': t_src, 'prepare_target': t_tgt}
     if cfg.mode == 'paper':
         result = _register_paper(src, tgt, T_init, cfg, timings)
@@ -417,19 +430,19 @@ def register(
                 cfg.search.mode == 'auto' and init is None
             )
         result = _register_robust(src, tgt, T_init, cfg, timings, global_search)
-    timings['total'] = _ms(t_start)
+    timings['total'] = elapsed_ms(t_start)
     return result
 
 
-def _translation_gates(
-    src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
-) -> tuple[float, float]:
+def sampling_spacing(src: PreparedScan, tgt: PreparedScan) -> float:
+    """The clouds' sampling step: the larger voxel edge, or (no voxel grid) the median distance
+    between neighbouring target points."""
     voxel = max(src.voxel_size, tgt.voxel_size)
-    if voxel <= 0.0:
-        d = tgt.tree.query(tgt.points[:: max(1, len(tgt) // 500)], k=2)[0][:, 1]
-        voxel = float(np.median(d))
-    min_gate = max(2.0 * voxel, 0.05)
-    return max(cfg.refine.max_correspondence_distance, min_gate), min_gate
+    if voxel > 0.0:
+        return voxel
+    step = max(1, len(tgt) // SPACING_SAMPLE)
+    d = tgt.tree.query(tgt.points[::step], k=2)[0][:, 1]
+    return float(np.median(d))
 
 
 def _rotation_degenerate(H: FloatArray, ratio: float) -> bool:
@@ -466,14 +479,20 @@ class _Candidate:
 
 @dataclass(frozen=True)
 class _Gates:
+    """Scales of one registration, from the sampling spacing (see the constants above)."""
+
     max_gate: float
     min_gate: float
+    noise_floor: float
     fit: FitGates
 
 
 def _gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig) -> _Gates:
-    max_gate, min_gate = _translation_gates(src, tgt, cfg)
-    return _Gates(max_gate, min_gate, FitGates.for_spacing(min_gate / 2.0))
+    spacing = sampling_spacing(src, tgt)
+    min_gate = GATE_FLOOR_SPACINGS * spacing
+    max_gate = max(cfg.refine.max_correspondence_distance, min_gate)
+    noise_floor = NOISE_FLOOR_SPACINGS * spacing
+    return _Gates(max_gate, min_gate, noise_floor, FitGates.for_spacing(spacing))
 
 
 #: EM passes for ranking a search hypothesis: the annealing from ``em.kappa_cap_start`` = 20 by
@@ -524,7 +543,7 @@ def _local(
     if em is None:
         t0 = time.perf_counter()
         em = _rotation_stage(src, tgt, T0[:3, :3], cfg)
-        timings['rotation'] = timings.get('rotation', 0.0) + _ms(t0)
+        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
     R = em.R
     stages['rotation'] = make_transform(R, T0[:3, 3])
     iterations = em.iterations
@@ -549,7 +568,7 @@ def _local(
                 tgt.points,
                 tgt.normals,
                 tgt.centers,
-                bin_size=max(gates.min_gate / 4.0, 1e-9),
+                bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
                 max_shift=tr_cfg.max_shift,
             )
             stages['cross_correlation'] = make_transform(R, t)
@@ -563,6 +582,7 @@ def _local(
             max_iterations=tr_cfg.max_iterations,
             max_distance=max(tr_cfg.max_correspondence_distance, gates.min_gate),
             min_distance=gates.min_gate,
+            noise_floor=gates.noise_floor,
             degeneracy_ratio=tr_cfg.degeneracy_ratio,
             tolerance=tr_cfg.tolerance,
             neighbors=neighbors,
@@ -570,7 +590,7 @@ def _local(
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
         inlier = tres.inlier_fraction
         iterations += tres.iterations
-    timings['translation'] = timings.get('translation', 0.0) + _ms(t0)
+    timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
     T = make_transform(R, t)
     stages['translation'] = T
     converged = em.converged
@@ -590,6 +610,7 @@ def _local(
             max_distance=gates.max_gate,
             min_distance=gates.min_gate,
             tolerance=cfg.refine.tolerance,
+            noise_floor=gates.noise_floor,
             neighbors=neighbors,
             max_step_scale=cfg.refine.max_step_scale,
         )
@@ -611,12 +632,12 @@ def _local(
         else:
             covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
         H_trans = H_t if H_t is not None else np.eye(3)
-    timings['refine'] = timings.get('refine', 0.0) + _ms(t0)
+    timings['refine'] = timings.get('refine', 0.0) + elapsed_ms(t0)
     t0 = time.perf_counter()
     fit = balanced_fit(
         T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
     )
-    timings['fit'] = timings.get('fit', 0.0) + _ms(t0)
+    timings['fit'] = timings.get('fit', 0.0) + elapsed_ms(t0)
     return _Candidate(
         T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined
     )
@@ -640,13 +661,13 @@ def _search_candidates(
     scores = mixture_overlap(hyp, src.clusters, tgt.clusters, cap)
     chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
     starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
-    timings['search'] = _ms(t0)
+    timings['search'] = elapsed_ms(t0)
     cheap: list[_Candidate] = []
     seen: list[FloatArray] = []
     for R0 in starts:
         t0 = time.perf_counter()
         em = _rotation_stage(src, tgt, R0, cfg, max_iterations=SEARCH_EM_PASSES)
-        timings['rotation'] = timings.get('rotation', 0.0) + _ms(t0)
+        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
         if any(rotation_angle(em.R.T @ R) < np.radians(scfg.min_separation_deg) for R in seen):
             continue  # converged onto a rotation already under consideration
         seen.append(em.R)
@@ -658,7 +679,7 @@ def _search_candidates(
         if cand.fit.score >= scfg.ambiguity_ratio * best_cheap or not out:
             t0 = time.perf_counter()
             em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
-            timings['rotation'] += _ms(t0)
+            timings['rotation'] += elapsed_ms(t0)
             T0 = make_transform(em.R, T_init[:3, 3])
             out.append(_local(src, tgt, T0, cfg, gates, timings, em=em))
     return out, len(hyp)
@@ -736,7 +757,7 @@ def _finish(
     if not np.isfinite(T).all():
         status, message = STATUS_FAILED, 'The estimate is not finite.'
         T = np.full((4, 4), np.nan)
-    elif inlier < 0.05:
+    elif inlier < MIN_INLIER_FRACTION:
         status = STATUS_FAILED
         message = (
             f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
@@ -817,10 +838,10 @@ def _register_paper(
     if not results:
         raise KentRegError('No cluster pair had enough normals for the EM.')
     R = average_rotations(np.array([r.R for r in results]))
-    timings['rotation'] = _ms(t0)
+    timings['rotation'] = elapsed_ms(t0)
     t0 = time.perf_counter()
     t = centroid_translation(R, src.points, tgt.points)
-    timings['translation'] = _ms(t0)
+    timings['translation'] = elapsed_ms(t0)
     timings['refine'] = 0.0
     T = make_transform(R, t)
     H_rot = np.sum([r.hessian for r in results], axis=0)
@@ -865,18 +886,3 @@ def _register_paper(
             np.degrees(spread),
         )
     return res
-
-
-def result_summary(result: RegistrationResult) -> dict[str, Any]:
-    """A JSON-ready summary of a result (for logs and metrics files)."""
-    return {
-        'status': result.status,
-        'message': result.message,
-        'converged': result.converged,
-        'iterations': result.iterations,
-        'inlier_fraction': result.inlier_fraction,
-        'degenerate': result.degenerate,
-        'timings_ms': dict(result.timings),
-        'n_source': result.n_source,
-        'n_target': result.n_target,
-    }

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core.errors import InvalidInputError
+
 FloatArray = NDArray[np.float64]
 
 
@@ -66,11 +68,55 @@ def rotation_angle(R: FloatArray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def project_to_so3(M: FloatArray) -> FloatArray:
-    """Closest rotation (Frobenius) to a 3x3 matrix, by SVD."""
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    return U @ np.diag([1.0, 1.0, d]) @ Vt
+def project_to_so3(M: ArrayLike) -> FloatArray:
+    """Closest rotation (Frobenius) to a 3x3 matrix, or to each of a stack (..., 3, 3), by SVD."""
+    A = np.asarray(M, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(A)
+    d = np.where(np.linalg.det(U @ Vt) < 0.0, -1.0, 1.0)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    out: FloatArray = U @ Vt
+    return out
+
+
+#: Largest deviation of ``R^T R`` from the identity accepted in a transform given by a caller;
+#: float32 poses composed of a few products are orthonormal to ~1e-6, so 1e-5 accepts them and
+#: still refuses anything that is not a rotation (a scaled or sheared matrix is off by far more).
+ORTHONORMAL_TOLERANCE = 1e-5
+
+
+def check_transform(T: ArrayLike, name: str) -> FloatArray:
+    """Validate a rigid 4x4 transform given by a caller; returns it with an exact rotation.
+
+    Raises
+    ------
+    InvalidInputError
+        Not a finite 4x4 array, a rotation block that is not a rotation (to
+        :data:`ORTHONORMAL_TOLERANCE`), or a last row other than ``[0, 0, 0, 1]``.
+    """
+    try:
+        arr = np.array(T, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f'Expected `{name}` to be a numeric 4x4 array: {exc}') from exc
+    if arr.shape != (4, 4) or not np.isfinite(arr).all():
+        raise InvalidInputError(
+            f'Expected `{name}` to be a finite 4x4 transform, got shape {arr.shape}.'
+        )
+    R = arr[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOLERANCE) or np.linalg.det(R) < 0.0:
+        raise InvalidInputError(f'Expected the rotation block of `{name}` to be a rotation.')
+    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InvalidInputError(
+            f'Expected the last row of `{name}` to be [0, 0, 0, 1], got {arr[3]}.'
+        )
+    arr[:3, :3] = project_to_so3(R)
+    return arr
+
+
+def invert_transform(T: FloatArray) -> FloatArray:
+    """Inverse of a rigid 4x4 transform (``R^T``, ``-R^T t``)."""
+    R = T[:3, :3]
+    return make_transform(R.T, -R.T @ T[:3, 3])
 
 
 def procrustes(C: FloatArray) -> FloatArray:

@@ -20,6 +20,16 @@ from scipy.spatial import cKDTree
 
 from kentreg_ros.core.correspondence import NearestNeighborCache
 
+#: Fewest correspondences for the 3-DOF solve (a few times the unknowns).
+MIN_CORRESPONDENCES = 10
+#: The correspondence gate shrinks by this factor per iteration down to its floor.
+GATE_SHRINK = 0.7
+#: A point joins the plane-offset histogram of a direction when its normal is within
+#: arccos(0.9) = 26 deg of it: the spread of one cluster of normals around its mean.
+PLANE_COSINE = 0.9
+#: Fewest points (per cloud) a direction's histogram needs for a usable correlation peak.
+PLANE_MIN_POINTS = 50
+
 FloatArray = NDArray[np.float64]
 
 
@@ -39,8 +49,8 @@ def plane_offset_translation(
     *,
     bin_size: float = 0.05,
     max_shift: float = 2.0,
-    min_cosine: float = 0.9,
-    min_points: int = 50,
+    min_cosine: float = PLANE_COSINE,
+    min_points: int = PLANE_MIN_POINTS,
 ) -> tuple[FloatArray, int]:
     """Translation from cross-correlated plane-offset histograms per direction.
 
@@ -201,7 +211,7 @@ def point_to_plane_translation(
         moved = src + t
         dist, idx = nn.query(moved, gate)
         ok = np.isfinite(dist)
-        if ok.sum() < 10:
+        if ok.sum() < MIN_CORRESPONDENCES:
             break
         j = idx[ok]
         q = np.take(target, j, axis=0)
@@ -217,7 +227,7 @@ def point_to_plane_translation(
         t = t + dt
         sigma2 = float(np.sum(w * r * r) / max(np.sum(w), 1e-12))
         inlier = float(ok.mean())
-        gate = max(gate * 0.7, min_distance)
+        gate = max(gate * GATE_SHRINK, min_distance)
         if np.linalg.norm(dt) < tolerance and gate <= min_distance:
             break
     return TranslationResult(
