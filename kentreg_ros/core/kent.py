@@ -283,8 +283,13 @@ def kent_log_normalizer(kappa: ArrayLike, beta: ArrayLike) -> FloatArray | float
     k = k_arr.ravel()
     b = b_arr.ravel()
     out = np.full(k.shape, _LOG_4PI)
-    series = (k > 0.0) & (k <= KAPPA_SWITCH)
-    quad = k > KAPPA_SWITCH
+    # beta = 0 is von Mises-Fisher, in closed form: log(4 pi sinh(k) / k)
+    # = log(2 pi / k) + k + log(1 - exp(-2 k)).
+    vmf = (k > 0.0) & (b == 0.0)
+    kv = k[vmf]
+    out[vmf] = np.log(2.0 * np.pi / kv) + kv + np.log(-np.expm1(-2.0 * kv))
+    series = (k > 0.0) & (k <= KAPPA_SWITCH) & ~vmf
+    quad = (k > KAPPA_SWITCH) & ~vmf
     out[series] = _log_normalizer_series(k[series], b[series])
     out[quad] = _log_normalizer_quadrature(k[quad], b[quad])
     if k_arr.ndim == 0:

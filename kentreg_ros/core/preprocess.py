@@ -221,6 +221,32 @@ class VoxelChoice:
     n_isolated: int
 
 
+@dataclass(frozen=True)
+class _Grid:
+    """The points grouped by voxel: ``order`` sorts them by voxel key, voxel ``i`` holds
+    ``counts[i]`` of them from ``starts[i]`` on."""
+
+    order: NDArray[np.intp]
+    starts: NDArray[np.intp]
+    counts: NDArray[np.intp]
+
+    @classmethod
+    def of(cls, keys: NDArray[np.int64]) -> _Grid:
+        order = np.argsort(keys)
+        ordered = keys[order]
+        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(keys) else order
+        counts = np.diff(np.r_[starts, len(keys)])
+        return cls(order, starts, counts)
+
+    def centroids(self, points: FloatArray, min_points: int) -> tuple[FloatArray, int]:
+        """Centroids of the voxels holding at least ``min_points`` points, and the number of
+        points in the others."""
+        keep = self.counts >= min_points
+        sums = np.add.reduceat(points[self.order], self.starts, axis=0)
+        out = np.ascontiguousarray(sums[keep] / self.counts[keep, None])
+        return out, int(self.counts[~keep].sum())
+
+
 class _VoxelProbe:
     """Cached run lengths of the voxel grids tried by the size search, and the isolated-return
     rate of the cloud."""
@@ -236,12 +262,15 @@ class _VoxelProbe:
         self.volume = float(np.prod(sides))
         self.largest_face = float(sides[1] * sides[2])
         self.rate = 0.0  # isolated returns per unit volume, see measure_rate
-        self._counts: dict[float, NDArray[np.intp]] = {}
+        self._grids: dict[float, _Grid] = {}
+
+    def grid(self, size: float) -> _Grid:
+        if size not in self._grids:
+            self._grids[size] = _Grid.of(_voxel_keys(self.points, size, self.bounds))
+        return self._grids[size]
 
     def counts(self, size: float) -> NDArray[np.intp]:
-        if size not in self._counts:
-            self._counts[size] = _run_lengths(_voxel_keys(self.points, size, self.bounds))
-        return self._counts[size]
+        return self.grid(size).counts
 
     def kept(self, size: float, m: int) -> int:
         return int(np.count_nonzero(self.counts(size) >= m))
@@ -260,7 +289,7 @@ class _VoxelProbe:
 
     @property
     def n_probes(self) -> int:
-        return len(self._counts)
+        return len(self._grids)
 
 
 #: Ratio between consecutive sizes of the bracketing search (count ~ size^-2: a factor of 2
@@ -346,15 +375,21 @@ def choose_voxel_grid(
     VoxelChoice
         ``size`` 0 when the cloud has no more than ``target_points`` points.
     """
-    n = len(points)
-    if n <= target_points:
+    if len(points) <= target_points:
         return VoxelChoice(0.0, 1, 0)
     probe = _VoxelProbe(points)
-    if probe.extent <= 0.0:
+    return _choose_grid(probe, points, target_points, initial, max(int(min_voxel_points), 1))
+
+
+def _choose_grid(
+    probe: _VoxelProbe, points: FloatArray, target_points: int, initial: float, m: int
+) -> VoxelChoice:
+    """:func:`choose_voxel_grid` on a probe whose grids the caller reuses."""
+    n = len(points)
+    if n <= target_points or probe.extent <= 0.0:
         return VoxelChoice(0.0, 1, 0)
     start = float(np.sqrt(_START_RETURNS * probe.largest_face / n))
     size = initial if initial > 0.0 else min(start, probe.extent)
-    m = max(int(min_voxel_points), 1)
     for _ in range(MAX_MIN_VOXEL_POINTS):
         size, raise_floor = _search_size(probe, target_points, m, size)
         probe.measure_rate(size)
@@ -398,24 +433,17 @@ def downsample(
         Centroids of the kept voxels, ordered by voxel key.
     grid : VoxelChoice
     """
+    probe = _VoxelProbe(points)
     if voxel_size > 0.0:
-        probe = _VoxelProbe(points)
         probe.measure_rate(voxel_size)
         m = probe.floor(voxel_size, max(int(min_voxel_points), 1))
         size = voxel_size
     else:
-        grid = choose_voxel_grid(
-            points, target_points, initial=voxel_size_hint, min_voxel_points=min_voxel_points
+        grid = _choose_grid(
+            probe, points, target_points, voxel_size_hint, max(int(min_voxel_points), 1)
         )
         if grid.size <= 0.0:
             return points, grid
         size, m = grid.size, grid.min_points
-    keys = _voxel_keys(points, size)
-    order = np.argsort(keys, kind='stable')
-    ordered = keys[order]
-    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-    counts = np.diff(np.r_[starts, len(ordered)])
-    keep = counts >= m
-    sums = np.add.reduceat(points[order], starts, axis=0)
-    out = np.ascontiguousarray(sums[keep] / counts[keep, None])
-    return out, VoxelChoice(size, m, int(counts[~keep].sum()))
+    out, n_isolated = probe.grid(size).centroids(points, m)
+    return out, VoxelChoice(size, m, n_isolated)
