@@ -74,7 +74,7 @@ BASE_METHODS: tuple[str, ...] = (
 
 #: kentreg robust ablations: one switch of the README's "robust vs paper" table each.
 ABLATIONS: dict[str, dict[str, Any]] = {
-    'vmf': {'em.kent_beta': False},
+    'kent_beta': {'em.kent_beta': True},  # the paper's beta term in the E-step kernels
     'averaged': {'em.rotation': 'averaged'},
     'no_anneal': {'em.kappa_cap_start': 2000.0, 'em.kappa_cap_end': 2000.0},
     'centroid': {'translation.method': 'centroid'},
