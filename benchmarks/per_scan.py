@@ -1,0 +1,320 @@
+"""Per-scan odometry cost: raw scan in, pose out, previous scan cached; one thread per method.
+
+What a live node pays for every scan of a spinning LiDAR. Each method runs as its own scan-to-
+previous-scan odometry over the same raw scans (``../shared/data/balm``: 72k-90k points, or
+``bags/balm_50`` when the shared data are absent) in its own subprocess, pinned to one CPU
+(:func:`benchmarks.methods.limit_threads`) with the library's own thread count set to 1:
+
+``kentreg``
+    ``kentreg_ros.core.odometry.Odometry(KentRegConfig())`` as is: automatic voxel size,
+    normals, clusters, the registration from the constant-velocity prediction, and the start-free
+    search whenever a step is doubtful (its cost is in the scans that needed it).
+``gicp``
+    small_gicp: ``preprocess_points`` on the raw scan (its own voxel grid at 0.25 m, 10
+    covariance neighbours, KD-tree), ``align`` (GICP) to the cached previous scan from the
+    constant-velocity prediction.
+``icp_pt2pl``
+    Open3D: ``voxel_down_sample`` (0.25 m), normals from 15 neighbours, KD-tree, point-to-plane
+    ``registration_icp`` (gate 1 m) from the constant-velocity prediction.
+``kiss_icp``
+    KISS-ICP's own odometry pipeline (``KissICP.register_frame``, default configuration for the
+    sensor's range): its voxel grid, adaptive threshold, constant-velocity model and local map.
+
+Reported per method: p50 / p95 / max of the wall time per scan (the first scan, which only
+prepares, excluded), peak resident memory of the process, and the pair errors against the
+reference poses (median e_R / e_t and failures, e_R > 2 deg or e_t > 0.2 m). Ratios to GICP come
+from the same run; the methods run in ``--rounds`` rounds in rotated order and the JSON keeps
+every round, so a load change on the shared machine does not land on one method only.
+
+Usage::
+
+    python3 benchmarks/per_scan.py                    # all methods, 2 rounds, ~5 min
+    python3 benchmarks/per_scan.py --methods kentreg gicp --scans 20
+
+Writes ``benchmarks/results/per_scan.json`` and ``per_scan.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.common import (  # noqa: E402
+    RESULTS,
+    SHARED_DATA,
+    errors,
+    git_describe,
+    is_failure,
+    load_balm,
+    machine_info,
+    write_json,
+)
+
+FloatArray = NDArray[np.float64]
+logger = logging.getLogger('per_scan')
+
+METHODS = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
+#: The peers' voxel edge on BALM (the edge giving ~10k points on a raw scan, as in the other
+#: benchmarks) and their neighbour counts (small_gicp's and Open3D's usual values).
+PEER_VOXEL = 0.25
+GICP_NEIGHBORS = 10
+NORMAL_NEIGHBORS = 15
+PEER_GATE = 1.0
+PERIOD_NS = 500_000_000  # BALM is a 2 Hz recording; stamps only feed the velocity models
+
+
+def _invert(T: FloatArray) -> FloatArray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _kentreg() -> Callable[[FloatArray, int], FloatArray]:
+    from kentreg_ros.core import KentRegConfig
+    from kentreg_ros.core.odometry import Odometry
+
+    odometry = Odometry(KentRegConfig(), max_history=2)
+
+    def step(points: FloatArray, stamp_ns: int) -> FloatArray:
+        return np.asarray(odometry.step(points, stamp_ns).T_world_lidar)
+
+    return step
+
+
+def _chained(
+    prepare: Callable[[FloatArray], Any], align: Callable[[Any, Any, FloatArray], FloatArray]
+) -> Callable[[FloatArray, int], FloatArray]:
+    """Scan-to-previous-scan odometry from a prepare/align pair, constant-velocity start."""
+    state: dict[str, Any] = {'prev': None, 'pose': np.eye(4), 'motion': np.eye(4)}
+
+    def step(points: FloatArray, stamp_ns: int) -> FloatArray:
+        scan = prepare(points)
+        if state['prev'] is not None:
+            motion = align(scan, state['prev'], state['motion'])
+            state['motion'] = motion
+            state['pose'] = state['pose'] @ motion
+        state['prev'] = scan
+        return np.array(state['pose'])
+
+    return step
+
+
+def _gicp() -> Callable[[FloatArray, int], FloatArray]:
+    import small_gicp
+
+    def prepare(points: FloatArray) -> Any:
+        return small_gicp.preprocess_points(
+            points, downsampling_resolution=PEER_VOXEL, num_neighbors=GICP_NEIGHBORS, num_threads=1
+        )
+
+    def align(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        result = small_gicp.align(
+            target[0], source[0], target[1], init_T_target_source=init, num_threads=1
+        )
+        return np.array(result.T_target_source)
+
+    return _chained(prepare, align)
+
+
+def _icp_pt2pl() -> Callable[[FloatArray, int], FloatArray]:
+    import open3d as o3d
+
+    o3d.utility.set_max_threads(1)
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    reg = o3d.pipelines.registration
+
+    def prepare(points: FloatArray) -> Any:
+        pcd = o3d.geometry.PointCloud()
+        pcd.points = o3d.utility.Vector3dVector(points)
+        pcd = pcd.voxel_down_sample(PEER_VOXEL)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBORS))
+        return pcd
+
+    def align(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        result = reg.registration_icp(
+            source, target, PEER_GATE, init, reg.TransformationEstimationPointToPlane()
+        )
+        return np.array(result.transformation)
+
+    return _chained(prepare, align)
+
+
+def _kiss_icp() -> Callable[[FloatArray, int], FloatArray]:
+    from kiss_icp.config import load_config
+    from kiss_icp.kiss_icp import KissICP
+
+    config = load_config(None)
+    config.registration.max_num_threads = 1
+    pipeline = KissICP(config)
+
+    def step(points: FloatArray, stamp_ns: int) -> FloatArray:
+        pipeline.register_frame(points, np.zeros(0))  # no per-point times: no deskewing
+        return np.array(pipeline.last_pose)
+
+    return step
+
+
+FACTORIES: dict[str, Callable[[], Callable[[FloatArray, int], FloatArray]]] = {
+    'kentreg': _kentreg,
+    'gicp': _gicp,
+    'icp_pt2pl': _icp_pt2pl,
+    'kiss_icp': _kiss_icp,
+}
+
+
+def run_worker(method: str, scans_file: Path, out_file: Path) -> None:
+    """Run one method over the scans (this process is pinned to one CPU by the caller)."""
+    from benchmarks.methods import limit_threads
+
+    limit_threads(1)
+    data = np.load(scans_file)
+    n = int(data['n'])
+    step = FACTORIES[method]()
+    poses, ms = [], []
+    for i in range(n):
+        points = np.ascontiguousarray(data[f's{i}'], dtype=np.float64)
+        t0 = time.perf_counter()
+        poses.append(step(points, i * PERIOD_NS))
+        ms.append((time.perf_counter() - t0) * 1e3)
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out_file.write_text(
+        json.dumps({'ms': ms, 'poses': np.array(poses).tolist(), 'peak_rss_mb': peak_kib / 1024})
+    )
+
+
+def summarize(ms: list[float], poses: FloatArray, truth: FloatArray) -> dict[str, Any]:
+    per_scan = np.array(ms[1:])  # the first scan only prepares
+    e = [
+        errors(_invert(poses[i - 1]) @ poses[i], _invert(truth[i - 1]) @ truth[i])
+        for i in range(1, len(poses))
+    ]
+    e_R = np.array([a for a, _ in e])
+    e_t = np.array([b for _, b in e])
+    return {
+        'ms_per_scan': {
+            'p50': float(np.percentile(per_scan, 50)),
+            'p95': float(np.percentile(per_scan, 95)),
+            'max': float(per_scan.max()),
+            'mean': float(per_scan.mean()),
+        },
+        'e_R_deg_median': float(np.median(e_R)),
+        'e_t_m_median': float(np.median(e_t)),
+        'failures': int(sum(is_failure(a, b) for a, b in zip(e_R, e_t, strict=True))),
+        'n_pairs': len(e_R),
+    }
+
+
+def markdown(report: dict[str, Any]) -> str:
+    meta = report['meta']
+    base = report['methods'].get('gicp', {}).get('ms_per_scan', {}).get('p50')
+    lines = [
+        f'Per-scan odometry on {meta["n_scans"]} raw BALM scans ({meta["points"]}), one thread '
+        f'per method, {meta["rounds"]} rounds; the first scan (prepare only) excluded.',
+        '',
+        '| method | p50 ms/scan | p95 | max | ratio to GICP (p50) | peak RSS MB '
+        '| median e_R (deg) | median e_t (mm) | failed pairs |',
+        '|---|---|---|---|---|---|---|---|---|',
+    ]
+    for name, r in report['methods'].items():
+        t = r['ms_per_scan']
+        ratio = f'{t["p50"] / base:.2f}×' if base else '–'
+        lines.append(
+            f'| {name} | {t["p50"]:.1f} | {t["p95"]:.1f} | {t["max"]:.1f} | {ratio} '
+            f'| {r["peak_rss_mb"]:.0f} | {r["e_R_deg_median"]:.3f} '
+            f'| {1e3 * r["e_t_m_median"]:.1f} | {r["failures"]}/{r["n_pairs"]} |'
+        )
+    lines += ['', f'Run at {meta["git"]}; load average {meta["load"]} at the start.', '']
+    return '\n'.join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
+    parser.add_argument('--scans', type=int, default=50, help='scans from the start (>= 2)')
+    parser.add_argument('--rounds', type=int, default=2)
+    parser.add_argument('--out', type=Path, default=RESULTS)
+    parser.add_argument(
+        '--worker', nargs=3, metavar=('METHOD', 'SCANS', 'OUT'), help=argparse.SUPPRESS
+    )
+    args = parser.parse_args(argv)
+    if args.worker:
+        run_worker(args.worker[0], Path(args.worker[1]), Path(args.worker[2]))
+        return 0
+    logging.basicConfig(level=logging.INFO, format='%(name)s: %(message)s')
+    seq = load_balm(SHARED_DATA / 'balm')
+    n = min(args.scans, len(seq.scan_paths))
+    scans = [seq.load(i) for i in range(n)]
+    truth = np.asarray(seq.T_world_sensor)[:n]
+    samples: dict[str, dict[str, Any]] = {m: {'ms': [], 'rounds': []} for m in args.methods}
+    with tempfile.TemporaryDirectory() as tmp:
+        scans_file = Path(tmp) / 'scans.npz'
+        np.savez(scans_file, n=n, **{f's{i}': s for i, s in enumerate(scans)})
+        for r in range(args.rounds):
+            order = args.methods[r % len(args.methods) :] + args.methods[: r % len(args.methods)]
+            for method in order:
+                out_file = Path(tmp) / f'{method}_{r}.json'
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    '--worker',
+                    method,
+                    str(scans_file),
+                    str(out_file),
+                ]
+                t0 = time.perf_counter()
+                subprocess.run(cmd, check=True, cwd=ROOT)
+                res = json.loads(out_file.read_text())
+                samples[method]['ms'].extend(res['ms'][1:])
+                samples[method]['rounds'].append(res)
+                logger.info(
+                    'round %d %s: p50 %.1f ms/scan (%.0f s)',
+                    r,
+                    method,
+                    np.median(res['ms'][1:]),
+                    time.perf_counter() - t0,
+                )
+    methods: dict[str, Any] = {}
+    for method, s in samples.items():
+        first = s['rounds'][0]
+        summary = summarize([first['ms'][0], *s['ms']], np.array(first['poses']), truth)
+        summary['peak_rss_mb'] = max(r['peak_rss_mb'] for r in s['rounds'])
+        summary['rounds_p50'] = [float(np.median(r['ms'][1:])) for r in s['rounds']]
+        methods[method] = summary
+    info = machine_info()
+    report = {
+        'meta': {
+            'n_scans': n,
+            'points': f'{min(len(s) for s in scans)}-{max(len(s) for s in scans)} points each',
+            'rounds': args.rounds,
+            'git': git_describe() or 'unknown',
+            'load': info.get('load_avg_at_start', info.get('load_avg')),
+            'machine': info,
+        },
+        'methods': methods,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / 'per_scan.json', report)
+    (args.out / 'per_scan.md').write_text(markdown(report))
+    print(markdown(report))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
