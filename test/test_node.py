@@ -150,12 +150,23 @@ class Harness:
         return proc
 
     def connect(self, proc: NodeProcess, *, reliable: bool = True) -> Outputs:
+        """Subscribe to the node's outputs and wait until both sides of every topic matched.
+
+        Matching is not symmetric: each side matches the other when its own discovery gets
+        there, so seeing the node's endpoints here does not mean the node sees ours. Our
+        ``points`` publisher has matched the node's subscription when its subscription count
+        is 1 (the node's side may lag: reliable QoS resends what it missed). The node's output
+        publishers have matched our subscriptions once a diagnostics message arrived: the node
+        discovers our subscriptions in the order we created them (one reliable, ordered
+        discovery stream), and ``diagnostics`` is the last, so ``odom``, ``pose`` and ``path``
+        were matched before; without this wait the first odometry could go to no one.
+        """
         out = Outputs(self, reliable=reliable)
         ok = self.spin_until(
             lambda: (
-                self.node.count_subscribers('/points') >= 1
-                and self.node.count_publishers('/odom') >= 1
-                and out.pub.get_subscription_count() >= 1
+                out.pub.get_subscription_count() >= 1
+                and all(sub.get_publisher_count() >= 1 for sub in out.subscriptions)
+                and bool(out.diag)
             ),
             timeout=30.0,
             proc=proc,
@@ -198,10 +209,13 @@ class Outputs:
         self.path: list[Any] = []
         self.diag: list[Any] = []
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        node.create_subscription(OdometryMsg, '/odom', self.odom.append, qos)
-        node.create_subscription(PoseStamped, '/pose', self.pose.append, qos)
-        node.create_subscription(PathMsg, '/path', self.path.append, qos)
-        node.create_subscription(DiagnosticArray, '/diagnostics', self.diag.append, qos)
+        # Diagnostics last: Harness.connect relies on this order.
+        self.subscriptions = [
+            node.create_subscription(OdometryMsg, '/odom', self.odom.append, qos),
+            node.create_subscription(PoseStamped, '/pose', self.pose.append, qos),
+            node.create_subscription(PathMsg, '/path', self.path.append, qos),
+            node.create_subscription(DiagnosticArray, '/diagnostics', self.diag.append, qos),
+        ]
         self.reset = node.create_client(Trigger, '/kentreg_node/reset')
         self.params = AsyncParameterClient(node, '/kentreg_node')
 
