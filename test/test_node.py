@@ -115,7 +115,8 @@ class NodeProcess:
         )
 
     def log(self) -> str:
-        self._log.flush()
+        if not self._log.closed:  # stop() closes it; the log stays readable
+            self._log.flush()
         return self.log_path.read_text()
 
     def alive(self) -> bool:
