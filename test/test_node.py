@@ -538,6 +538,36 @@ def test_node_exits_1_with_the_reason_on_bad_startup_parameters(
     assert 'Traceback' not in log
 
 
+@pytest.mark.parametrize('shut_down', [True, False])
+def test_node_exit_status_when_spin_raises_rclerror(tmp_path: Path, shut_down: bool) -> None:
+    """Ctrl-C shuts rclpy down from its signal handler's thread; landing while spin() sets up
+    its next wait, that makes spin raise RCLError instead of ExternalShutdownException
+    (ros2/rclpy#398; seen once as exit 1 with a traceback at the end of a test here). That is a
+    clean shutdown (exit 0); the same error with rclpy still running is not. Reproduced by
+    replacing spin() with one that shuts down first (or not), then raises."""
+    script = (
+        'import rclpy\n'
+        'from kentreg_ros import node\n'
+        'def spin(n):\n'
+        f'    if {shut_down}:\n'
+        '        rclpy.shutdown()\n'
+        "    raise RuntimeError('failed to initialize wait set: the given context is not valid')\n"
+        'rclpy.spin = spin\n'
+        f"args = ['kentreg_node', '--ros-args', '--params-file', '{PARAMS}']\n"
+        'raise SystemExit(node.main(args))\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, '-c', script],
+        env={**os.environ, **ros_environment(next_domain_id())},
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    out = proc.stdout + proc.stderr
+    if shut_down:
+        assert proc.returncode == 0 and 'Traceback' not in out, out
+    else:
+        assert proc.returncode == 1 and 'failed to initialize wait set' in out, out
+
+
 def test_node_honours_use_sim_time(harness: Harness, bag_scans: list[Any]) -> None:
     from rosgraph_msgs.msg import Clock
 
