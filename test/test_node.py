@@ -2,10 +2,13 @@
 
 Every test starts ``python -m kentreg_ros.node`` with the shipped parameter file, talks to it
 over Fast DDS kept on loopback (``test/fastdds_localhost.xml``,
-``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, see ``test/ros_env.py``) in a ROS domain of its
-own (test-only ids, so that tests never hear each other), and stops it with SIGINT, checking
-that it exits cleanly. The node keeps its default name and namespace: the parameter file's
-``kentreg_node:`` key only applies to ``/kentreg_node``.
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, see ``test/ros_env.py``) in a test-only ROS
+domain, and stops it with SIGINT, checking that it exits cleanly. The node keeps its default
+name and namespace: the parameter file's ``kentreg_node:`` key only applies to
+``/kentreg_node``. Its topics and services are remapped under a prefix of the test's own
+(:data:`REMAPPED`), because a domain is not private: there are only 40 test-only ids, and
+other test runs on the same machine (other checkouts, CI jobs) use them too; with the
+default names their nodes would take our scans and we their diagnostics.
 """
 
 from __future__ import annotations
@@ -53,6 +56,15 @@ PARAMS = REPO / 'config' / 'kentreg.yaml'
 GATED_NODE = Path(__file__).resolve().parent / 'gated_node.py'
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
 _DOMAINS = itertools.count()
+#: The node's topics and services (fully qualified, as in the root namespace), each remapped
+#: to ``<prefix><name>`` for a prefix unique to the test.
+REMAPPED = (
+    '/points', '/odom', '/pose', '/path', '/diagnostics', '/clock', '/kentreg_node/reset',
+    *(f'/kentreg_node/{s}' for s in (
+        'describe_parameters', 'get_parameter_types', 'get_parameters', 'list_parameters',
+        'set_parameters', 'set_parameters_atomically',
+    )),
+)  # fmt: skip
 #: Reliable input, and queue and history deep enough that a burst of test messages is kept.
 QUEUE_ALL = (
     '-p',
@@ -149,6 +161,8 @@ class Harness:
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
         self.node = rclpy.create_node(f'kentreg_test_{os.getpid()}', context=self.context)
+        #: Prefix of the node's topics and services in this test (see ``REMAPPED``).
+        self.prefix = ros_env.unique_topic('x').rpartition('/')[0]
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.processes: list[NodeProcess] = []
@@ -157,10 +171,16 @@ class Harness:
         self, *extra: str, params: Path | None = PARAMS, hold_file: Path | None = None
     ) -> NodeProcess:
         args = (['--params-file', str(params)] if params is not None else []) + list(extra)
+        for name in REMAPPED:
+            args += ['-r', f'{name}:={self.name(name)}']
         log = self.tmp_path / f'kentreg_node_{len(self.processes)}.log'
         proc = NodeProcess(self.domain_id, args, log, hold_file)
         self.processes.append(proc)
         return proc
+
+    def name(self, name: str) -> str:
+        """The name of the node's topic or service ``name`` (one of ``REMAPPED``) in this test."""
+        return self.prefix + name
 
     def connect(self, proc: NodeProcess, *, reliable: bool = True) -> Outputs:
         """Subscribe to the node's outputs and wait until both sides of every topic matched.
@@ -216,7 +236,7 @@ class Outputs:
             depth=10,
             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         )
-        self.pub = node.create_publisher(PointCloud2, '/points', qos_in)
+        self.pub = node.create_publisher(PointCloud2, harness.name('/points'), qos_in)
         self.odom: list[Any] = []
         self.pose: list[Any] = []
         self.path: list[Any] = []
@@ -224,13 +244,15 @@ class Outputs:
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         # Diagnostics last: Harness.connect relies on this order.
         self.subscriptions = [
-            node.create_subscription(OdometryMsg, '/odom', self.odom.append, qos),
-            node.create_subscription(PoseStamped, '/pose', self.pose.append, qos),
-            node.create_subscription(PathMsg, '/path', self.path.append, qos),
-            node.create_subscription(DiagnosticArray, '/diagnostics', self.diag.append, qos),
+            node.create_subscription(OdometryMsg, harness.name('/odom'), self.odom.append, qos),
+            node.create_subscription(PoseStamped, harness.name('/pose'), self.pose.append, qos),
+            node.create_subscription(PathMsg, harness.name('/path'), self.path.append, qos),
+            node.create_subscription(
+                DiagnosticArray, harness.name('/diagnostics'), self.diag.append, qos
+            ),
         ]
-        self.reset = node.create_client(Trigger, '/kentreg_node/reset')
-        self.params = AsyncParameterClient(node, '/kentreg_node')
+        self.reset = node.create_client(Trigger, harness.name('/kentreg_node/reset'))
+        self.params = AsyncParameterClient(node, harness.name('/kentreg_node'))
 
     def diagnostics(self) -> dict[str, str]:
         """Key/values of the latest diagnostics message."""
@@ -573,7 +595,7 @@ def test_node_honours_use_sim_time(harness: Harness, bag_scans: list[Any]) -> No
 
     proc = harness.start_node('-p', 'use_sim_time:=true', *QUEUE_ALL)
     out = harness.connect(proc)
-    clock_pub = harness.node.create_publisher(Clock, '/clock', 10)
+    clock_pub = harness.node.create_publisher(Clock, harness.name('/clock'), 10)
     sim_ns = 1_000_000 * 10**9  # simulated time: day 12 of 1970
     sim = {'now': sim_ns}
 
