@@ -680,6 +680,12 @@ def main(args: Sequence[str] | None = None) -> int:
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's signal handler shuts the context down from another thread; when that lands
+        # while spin() sets up its next wait, spin raises RCLError (a RuntimeError) instead of
+        # ExternalShutdownException (ros2/rclpy#398). A shutdown all the same.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()

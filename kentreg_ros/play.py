@@ -565,6 +565,13 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
         status = EXIT_INTERRUPTED
     except (InputError, KentRegError, BagError, ValueError, OSError) as exc:
         status, error = EXIT_BAD_INPUT, _one_line(exc)
+    except RuntimeError:
+        # rclpy's signal handler shuts the context down from another thread (SIGTERM raises no
+        # KeyboardInterrupt): an rclpy call already under way then fails with RCLError, a
+        # RuntimeError, instead of ExternalShutdownException (ros2/rclpy#398).
+        if rclpy.ok():
+            raise
+        status = EXIT_INTERRUPTED
     finally:
         if node is not None:
             node.destroy_node()

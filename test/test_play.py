@@ -158,8 +158,14 @@ def test_play_start_hz_and_restamp_now_pace_and_stamp_with_the_current_time(
     topic = unique_topic('points')
     receiver = make_receiver(topic)
     before_ns = time.time_ns()
+    # 1.6 Hz is slower than the recording (2 Hz), so the lower bounds below tell pacing by --hz
+    # apart from pacing by the recorded stamps (2 gaps: 1.0 s) and from no pacing at all. They
+    # hold on any machine: a scan is never published before its due time, and a late one
+    # moves the schedule on (never compresses the next gap). How late it is depends on the
+    # machine's load, so there is no upper bound; Timing's unit test pins the gaps exactly.
+    hz = 1.6
     proc = _start_play(
-        repo_root, str(sample_bag), '--start', '10', '--max-scans', '3', '--hz', '10',
+        repo_root, str(sample_bag), '--start', '10', '--max-scans', '3', '--hz', str(hz),
         '--restamp', 'now', '--fields', 'none', '--frame-id', 'velodyne', '--topic', topic,
         '--wait-subscribers', '30',
     )  # fmt: skip
@@ -171,11 +177,14 @@ def test_play_start_hz_and_restamp_now_pace_and_stamp_with_the_current_time(
     assert [f.name for f in got[0].fields] == ['x', 'y', 'z']
     stamps = [_ns(m.header.stamp) for m in got]
     assert stamps[0] >= before_ns and all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
-    # 10 Hz: the three messages span at least two periods of the player's own clock.
+    recorded_s = (bag_scans[12].stamp_ns - bag_scans[10].stamp_ns) * 1e-9
+    assert 2.0 / hz > recorded_s + 0.2
+    # The player's own (monotonic) clock: at least two periods from the first to the last.
     duration = float(re.search(r'in ([0-9.]+) s', stdout).group(1))  # type: ignore[union-attr]
-    assert 0.2 <= duration < 10.0
-    # The stamps were taken at publishing, so they are at least ~one period apart too.
-    assert (stamps[2] - stamps[0]) * 1e-9 >= 0.19
+    assert duration >= 2.0 / hz
+    # The stamps were taken from the system clock just before publishing, so they are two
+    # periods apart as well (10 ms for the two clocks' difference, e.g. a time step).
+    assert (stamps[2] - stamps[0]) * 1e-9 >= 2.0 / hz - 0.01
 
 
 def test_play_loop_with_clock_keeps_stamps_increasing_across_passes(
@@ -192,7 +201,7 @@ def test_play_loop_with_clock_keeps_stamps_increasing_across_passes(
     )  # fmt: skip
     try:
         receiver.spin_until(lambda: len(receiver.messages) >= 5)
-        clocks.spin_until(lambda: len(clocks.messages) >= 3, timeout_s=5.0)
+        clocks.spin_until(lambda: len(clocks.messages) >= 3)
     finally:
         proc.send_signal(signal.SIGINT)
     code, _, stderr = _play_and_receive(receiver, proc, 0)
@@ -201,17 +210,20 @@ def test_play_loop_with_clock_keeps_stamps_increasing_across_passes(
     assert re.search(r'interrupted after \d+ scan\(s\)', stderr)
     stamps = [_ns(m.header.stamp) for m in receiver.messages]
     assert len(stamps) >= 5
+    # Assert on what arrived, not on the first five: the player starts once its publisher has
+    # matched the subscription, but the subscription may match the publisher later; what was
+    # sent meanwhile is only resent while still in the publisher's history (depth 10: 0.25 s
+    # at 40 Hz), so a slow discovery loses the first messages, reliable QoS or not.
+    # Pass k is the two scans shifted by k * (span + one period) = 2k periods, so every stamp
+    # is first + j * period with j = 2k (first scan) or 2k + 1 (second), strictly increasing.
     first, second = (s.stamp_ns for s in bag_scans[:2])
     period = second - first
-    # Pass k is shifted by k * (span + one period) = 2k periods.
-    assert stamps[:5] == [
-        first,
-        second,
-        first + 2 * period,
-        second + 2 * period,
-        first + 4 * period,
-    ]
+    assert all((s - first) % period == 0 for s in stamps), (stamps, first, period)
+    steps = [(s - first) // period for s in stamps]
+    assert steps[0] >= 0 and all(b > a for a, b in zip(steps, steps[1:], strict=False)), steps
+    assert {j % 2 for j in steps} == {0, 1}, steps  # both scans are played, not one per pass
     clock_ns = [_ns(c.clock) for c in clocks.messages]
+    assert len(clock_ns) >= 3
     assert clock_ns == sorted(clock_ns) and clock_ns[0] >= first
 
 

@@ -71,7 +71,20 @@ def test_kent_rotation_solver_matches_brute_force_optimisation(beta: float, kapp
         )
         best = min(best, res.fun)
     assert problem.value(R_newton) <= best + 1e-6 * max(1.0, abs(best))
-    assert np.linalg.norm(problem.gradient(R_newton)) < 1e-6
+    # First-order optimality relative to the problem's scale F, the size of the terms of f.
+    # The solver accepts a step only when f decreases by more than its rounding noise
+    # (~20 eps F for the ~20 products behind each term); a Newton step from gradient g gains
+    # g^2 / (2 lambda) with lambda <= 2 F (the Hessian is a sum of the same terms), so it may
+    # stop anywhere below |g| ~ sqrt(4 lambda 20 eps F) ~ 13 sqrt(eps) F. Where exactly depends
+    # on the last bits of the BLAS kernel: measured |g| / F up to 2.6 sqrt(eps) over 7500 seeded
+    # problems x 4 OpenBLAS kernels, and 1e-16 to 3e-9 for this very problem. 30 sqrt(eps) F
+    # covers the worst case; stopping one Newton step early leaves |g| 13x (40/100) to 400x
+    # (5/20) above it.
+    F = np.linalg.norm(problem.C) + 2.0 * sum(
+        np.linalg.norm(A) * np.linalg.norm(B) for A, B in zip(problem.A, problem.B, strict=True)
+    )
+    gradient_norm = np.linalg.norm(problem.gradient(R_newton))
+    assert gradient_norm <= 30.0 * np.sqrt(np.finfo(float).eps) * F, (gradient_norm, F)
 
 
 def test_kent_rotation_solver_gradient_matches_finite_differences() -> None:
