@@ -433,6 +433,8 @@ def downsample(
         Centroids of the kept voxels, ordered by voxel key.
     grid : VoxelChoice
     """
+    if len(points) == 0:
+        return points, VoxelChoice(0.0, 1, 0)
     probe = _VoxelProbe(points)
     if voxel_size > 0.0:
         probe.measure_rate(voxel_size)
