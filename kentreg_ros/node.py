@@ -63,10 +63,11 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from kentreg_ros.core.config import NODE_NAME, KentRegConfig, iter_fields
+from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
 from kentreg_ros.node_params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
 

@@ -73,9 +73,10 @@ from numpy.typing import NDArray
 from kentreg_ros import __version__
 from kentreg_ros.cli_args import non_negative_int, positive_int
 from kentreg_ros.core import metrics
-from kentreg_ros.core.config import KentRegConfig, dump_config, load_config
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
+from kentreg_ros.io.params import dump_config, load_config
 
 logger = logging.getLogger('kentreg_ros.replay')  # also when run as __main__
 

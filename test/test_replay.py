@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.config import KentRegConfig, dump_config, load_config
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.io.params import dump_config, load_config
 from kentreg_ros.replay import associate, main
 
 pytest.importorskip('rosbags', reason='the replay CLI reads bags with rosbags')

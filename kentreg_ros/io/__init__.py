@@ -1,14 +1,22 @@
-"""Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags.
+"""Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags, parameter files.
 
-Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles` and
-:mod:`~kentreg_ros.io.poses` need only numpy/scipy; the bag names (``open_scan_source``,
-``BagWriter``, ...) load rosbags on first use, so a ROS node without rosbags can still import
-this package.
+Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles`,
+:mod:`~kentreg_ros.io.poses` and :mod:`~kentreg_ros.io.params` need only numpy/scipy/PyYAML; the
+bag names (``open_scan_source``, ``BagWriter``, ...) load rosbags on first use, so a ROS node
+without rosbags can still import this package.
 """
 
 from typing import TYPE_CHECKING, Any
 
 from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
+from kentreg_ros.io.params import (
+    NODE_NAME,
+    dump_config,
+    effective_config,
+    load_config,
+    parameters_from_yaml,
+    parse_overrides,
+)
 from kentreg_ros.io.pointcloud2 import (
     CloudArrays,
     MessageFactory,
@@ -62,6 +70,7 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    'NODE_NAME',
     'BagError',
     'BagScanSource',
     'BagWriter',
@@ -75,9 +84,14 @@ __all__ = [
     'Trajectory',
     'array_to_pointcloud2',
     'bag_topics',
+    'dump_config',
+    'effective_config',
     'is_bag',
     'list_scans',
+    'load_config',
     'open_scan_source',
+    'parameters_from_yaml',
+    'parse_overrides',
     'pointcloud2_to_array',
     'rclpy_factory',
     'read_ground_truth',
