@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import drop_nonfinite
-from kentreg_ros.core.metrics import pair_errors
+from kentreg_ros.eval.metrics import failed_pairs, pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan
 from kentreg_ros.io.poses import Trajectory
 from kentreg_ros.replay import jsonable, orthonormalize
@@ -31,10 +31,6 @@ FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('KENTREG_SHARED_DATA', ROOT.parent / 'shared' / 'data'))
 RESULTS = ROOT / 'benchmarks' / 'results'
-
-#: A pair fails when e_R > 2 deg or e_t > 0.2 m (the issue's and kentreg_replay's definition).
-FAIL_ROTATION_DEG = 2.0
-FAIL_TRANSLATION_M = 0.2
 
 
 def load_points(path: Path) -> FloatArray:
@@ -161,27 +157,19 @@ def select_pairs(n_pairs: int, count: int | None) -> list[int]:
 
 
 def errors(T_est: FloatArray, T_true: FloatArray) -> tuple[float, float]:
-    """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.core.metrics.pair_errors)."""
+    """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.eval.metrics.pair_errors)."""
     e_R, e_t = pair_errors(T_est[None], T_true[None])
     return float(e_R[0]), float(e_t[0])
 
 
 def is_failure(e_R: float, e_t: float) -> bool:
     """e_R > 2 deg or e_t > 0.2 m, or a method that raised (NaN errors)."""
-    if not (np.isfinite(e_R) and np.isfinite(e_t)):
-        return True
-    return e_R > FAIL_ROTATION_DEG or e_t > FAIL_TRANSLATION_M
+    return bool(failed_pairs(e_R, e_t))
 
 
 def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
     """:func:`is_failure` of arrays of errors, element by element (NaN counts as failed)."""
-    e_R, e_t = np.asarray(e_R, dtype=np.float64), np.asarray(e_t, dtype=np.float64)
-    with np.errstate(invalid='ignore'):
-        return (
-            ~(np.isfinite(e_R) & np.isfinite(e_t))
-            | (e_R > FAIL_ROTATION_DEG)
-            | (e_t > FAIL_TRANSLATION_M)
-        )
+    return failed_pairs(e_R, e_t)
 
 
 def summarize(records: Iterable[Mapping[str, float]]) -> dict[str, Any]:

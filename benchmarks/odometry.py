@@ -67,10 +67,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import git_describe, machine_info, write_json  # noqa: E402
-from kentreg_ros.core import metrics  # noqa: E402
 from kentreg_ros.core.config import KentRegConfig  # noqa: E402
 from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: E402
 from kentreg_ros.core.registration import prepare_scan  # noqa: E402
+from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.io.bags import Scan  # noqa: E402
 from kentreg_ros.replay import (  # noqa: E402
     GroundTruth,

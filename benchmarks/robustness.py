@@ -83,8 +83,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import (  # noqa: E402
-    FAIL_ROTATION_DEG,
-    FAIL_TRANSLATION_M,
     RESULTS,
     SHARED_DATA,
     errors,
@@ -104,6 +102,7 @@ from benchmarks.methods import (  # noqa: E402
     paper_voxel,
     voxel_downsample,
 )
+from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # noqa: E402
 
 logger = logging.getLogger('robustness')
 

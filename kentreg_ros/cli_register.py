@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kentreg_ros.core import KentRegConfig, KentRegError, register
-from kentreg_ros.core.metrics import pair_errors
+from kentreg_ros.eval.metrics import pair_errors
 from kentreg_ros.io.params import load_config
 
 

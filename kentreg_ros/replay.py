@@ -44,7 +44,7 @@ Per consecutive pair, the errors of Fahandezh-Saadi et al.: ``e_R = arccos((tr(R
 / 2)`` and ``e_t = ||t_est - t||`` (a pair *fails* when ``e_R > 2 deg`` or ``e_t > 0.2 m``);
 RPE per frame and per metre travelled; ATE after SE(3) (Umeyama) alignment; and the KITTI
 segment metric when the run is long enough to fill its 100 m segments. See
-:mod:`kentreg_ros.core.metrics`.
+:mod:`kentreg_ros.eval.metrics`.
 
 Exit status: 0 on success, 2 on bad input (one line on stderr), 130 when interrupted (the scans
 processed so far are still written out).
@@ -72,10 +72,10 @@ from numpy.typing import NDArray
 
 from kentreg_ros import __version__
 from kentreg_ros.cli_args import non_negative_int, positive_int
-from kentreg_ros.core import metrics
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
+from kentreg_ros.eval import kitti, metrics
 from kentreg_ros.io.params import dump_config, load_config
 
 logger = logging.getLogger('kentreg_ros.replay')  # also when run as __main__
@@ -91,9 +91,6 @@ PATH_TOPIC = '/kentreg/path'
 TF_TOPIC = '/tf'
 GROUND_TRUTH_TOPIC = '/ground_truth'
 
-#: A pair whose errors exceed these is counted as a failed registration.
-FAILED_PAIR_DEG = 2.0
-FAILED_PAIR_M = 0.2
 #: Largest stamp difference for a scan and a ground-truth pose to be associated.
 GT_TOLERANCE_S = 0.01
 #: File names of pose files looked for beside the scans of a folder.
@@ -493,7 +490,7 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
         run does not fill a 100 m segment (``kitti_note`` says why).
     """
     e_R, e_t = metrics.pair_errors(metrics.relative_poses(T_est), metrics.relative_poses(T_gt))
-    failed = (e_R > FAILED_PAIR_DEG) | (e_t > FAILED_PAIR_M)
+    failed = metrics.failed_pairs(e_R, e_t)
     out: dict[str, Any] = {
         'n_poses': len(T_est),
         'pairs': {
@@ -501,7 +498,9 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
             'rotation_deg': metrics.summarize(e_R),
             'translation_m': metrics.summarize(e_t),
             'n_failed': int(failed.sum()),
-            'failed_if': f'e_R > {FAILED_PAIR_DEG} deg or e_t > {FAILED_PAIR_M} m',
+            'failed_if': (
+                f'e_R > {metrics.FAIL_ROTATION_DEG} deg or e_t > {metrics.FAIL_TRANSLATION_M} m'
+            ),
             'failed_pairs': np.flatnonzero(failed).tolist(),
             'e_R_deg': e_R.tolist(),
             'e_t_m': e_t.tolist(),
@@ -535,19 +534,19 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
             'max': ate['max'],
             'T_gt_est': ate['T_gt_est'].tolist(),
         }
-    kitti = metrics.kitti_segment_errors(T_est, T_gt)
+    segments = kitti.kitti_segment_errors(T_est, T_gt)
     out['kitti'] = None
-    if kitti is None:
+    if segments is None:
         out['kitti_note'] = (
             f'not computed: {gt_distance:.2f} m of ground truth, shorter than a '
-            f'{metrics.KITTI_LENGTHS[0]:g} m segment'
+            f'{kitti.KITTI_LENGTHS[0]:g} m segment'
         )
     else:
         out['kitti'] = {
-            't_err_pct': kitti['t_err_pct'],
-            'r_err_deg_per_100m': 100.0 * kitti['r_err_deg_per_m'],
-            'n_segments': kitti['n_segments'],
-            'lengths_m': list(kitti['per_length']),
+            't_err_pct': segments['t_err_pct'],
+            'r_err_deg_per_100m': 100.0 * segments['r_err_deg_per_m'],
+            'n_segments': segments['n_segments'],
+            'lengths_m': list(segments['per_length']),
         }
     return out
 
@@ -765,7 +764,7 @@ def write_outputs(
 
 def _plot(path: Path, run: ReplayRun, evaluation: Evaluation | None, title: str) -> bool:
     try:
-        from kentreg_ros.plotting import plot_trajectory
+        from kentreg_ros.eval.plotting import plot_trajectory
 
         if evaluation is None:
             plot_trajectory(path, run.poses, title=title)
@@ -853,13 +852,13 @@ def format_summary(report: dict[str, Any], out: Path | None) -> str:
                 else 'not computed (fewer than 3 poses)'
             )
         )
-        kitti = gt['kitti']
+        segments = gt['kitti']
         lines.append(
             '  KITTI          '
             + (
-                f'{kitti["t_err_pct"]:.2f} %, {kitti["r_err_deg_per_100m"]:.3f} deg/100 m '
-                f'({kitti["n_segments"]} segments)'
-                if kitti is not None
+                f'{segments["t_err_pct"]:.2f} %, {segments["r_err_deg_per_100m"]:.3f} deg/100 m '
+                f'({segments["n_segments"]} segments)'
+                if segments is not None
                 else gt['kitti_note']
             )
         )

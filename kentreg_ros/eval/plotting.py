@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.metrics import as_poses
+from kentreg_ros.eval.metrics import as_poses
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -57,7 +57,7 @@ def plot_trajectory(
 
     The left panel shows the x-y positions of the estimate over the ground truth with equal axes
     and start (circle) and end (square) markers. The ground truth is drawn as given: align the
-    trajectories first (e.g. with :func:`kentreg_ros.core.metrics.ate`'s ``T_gt_est``) if they
+    trajectories first (e.g. with :func:`kentreg_ros.eval.metrics.ate`'s ``T_gt_est``) if they
     do not share a world frame. Each given error series adds a panel on the right, plotted
     against the pair index.
 
@@ -70,7 +70,7 @@ def plot_trajectory(
     T_gt : array_like, shape (M, 4, 4), optional
         Ground-truth poses in the same world frame.
     e_R_deg : array_like, shape (P,), optional
-        Rotation error of each pair in degrees (e.g. :func:`~kentreg_ros.core.metrics.rpe`'s
+        Rotation error of each pair in degrees (e.g. :func:`~kentreg_ros.eval.metrics.rpe`'s
         ``e_R_deg``).
     e_t : array_like, shape (P,), optional
         Translation error of each pair in metres.
