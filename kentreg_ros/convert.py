@@ -243,7 +243,7 @@ def _write_scans(
 
 
 def _convert(args: argparse.Namespace, progress: dict[str, Any]) -> None:
-    from kentreg_ros.io.bags import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter
     from kentreg_ros.io.errors import PoseFileError
 
     fields = _field_list(args.fields)

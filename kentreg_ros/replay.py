@@ -630,7 +630,7 @@ def write_odometry_mcap(
     and the ``odom_frame`` -> ``child_frame`` transform on ``/tf``, stamped with the scan's
     header stamp; then one nav_msgs/Path of every pose.
     """
-    from kentreg_ros.io.bags import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter
 
     tmp = path.parent / f'.{path.stem}-{os.getpid()}'
     if tmp.exists():

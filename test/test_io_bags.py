@@ -13,12 +13,12 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from kentreg_ros.io.bags import (
-    BagWriter,
     bag_topics,
     is_bag,
     open_scan_source,
     read_ground_truth,
 )
+from kentreg_ros.io.bagwriter import BagWriter
 from kentreg_ros.io.errors import BagError, PoseFileError
 from kentreg_ros.io.pointcloud2 import (
     MessageFactory,

@@ -297,7 +297,7 @@ def test_replay_scan_folder_uses_pose_file_beside_scans(shared_data: Path, tmp_p
 def test_replay_counts_rejected_scan_of_synthetic_bag(tmp_path: Path) -> None:
     from test_odometry import STEP_NS, observe, true_trajectory
 
-    from kentreg_ros.io.bags import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter
 
     rng = np.random.default_rng(11)
     T_true = true_trajectory(4)

@@ -36,7 +36,6 @@ from kentreg_ros.io.scanfiles import list_scans, read_scan, write_pcd
 if TYPE_CHECKING:
     from kentreg_ros.io.bags import (
         BagScanSource,
-        BagWriter,
         FilesScanSource,
         Scan,
         ScanSource,
@@ -45,27 +44,32 @@ if TYPE_CHECKING:
         open_scan_source,
         read_ground_truth,
     )
+    from kentreg_ros.io.bagwriter import BagWriter
 
-_BAG_NAMES = frozenset(
-    {
-        'BagScanSource',
-        'BagWriter',
-        'FilesScanSource',
-        'Scan',
-        'ScanSource',
-        'bag_topics',
-        'is_bag',
-        'open_scan_source',
-        'read_ground_truth',
-    }
-)
+#: The names loaded on first use, and the module each comes from.
+_LAZY = {
+    **dict.fromkeys(
+        (
+            'BagScanSource',
+            'FilesScanSource',
+            'Scan',
+            'ScanSource',
+            'bag_topics',
+            'is_bag',
+            'open_scan_source',
+            'read_ground_truth',
+        ),
+        'kentreg_ros.io.bags',
+    ),
+    'BagWriter': 'kentreg_ros.io.bagwriter',
+}
 
 
 def __getattr__(name: str) -> Any:
-    if name in _BAG_NAMES:
-        from kentreg_ros.io import bags
+    if name in _LAZY:
+        import importlib
 
-        return getattr(bags, name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
 
 
