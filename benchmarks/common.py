@@ -21,10 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import drop_nonfinite
+from kentreg_ros.eval import jsonable, orthonormalize
 from kentreg_ros.eval.metrics import failed_pairs, pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan
 from kentreg_ros.io.poses import Trajectory
-from kentreg_ros.replay import jsonable, orthonormalize
 
 FloatArray = NDArray[np.float64]
 

@@ -5,7 +5,7 @@ Three stress tests on the 50 real BALM scans (``../shared/data/balm``, or the re
 
 ``kentreg``
     ``KentRegConfig()`` as is: :class:`~kentreg_ros.core.odometry.Odometry` for the strides
-    (run by :func:`kentreg_ros.replay.run_odometry`, i.e. what ``kentreg_replay --stride N``
+    (run by :func:`kentreg_ros.eval.run_odometry`, i.e. what ``kentreg_replay --stride N``
     does) and ``register(source_raw, target_raw, init=...)`` for the pairs, on the *raw* scans,
     with its own automatic preprocessing (voxel size chosen per scan for
     ``preprocess.target_points``, normals, normal-outlier test). The pairs call
@@ -169,20 +169,22 @@ class Sample:
 def load_sample(path: Path) -> Sample:
     """Every scan and its reference pose from a scan folder with a pose file, or a bag.
 
-    The input is opened as ``kentreg_replay`` opens it (:func:`kentreg_ros.replay.open_input`)
-    and the poses are associated by stamp as it does.
+    The input is opened as ``kentreg_replay`` opens it
+    (:func:`kentreg_ros.io.bags.open_recording`) and the poses are associated by stamp as it
+    does.
 
     Raises
     ------
     SystemExit
         No reference poses, or a scan without one.
     """
-    from kentreg_ros.replay import associate, open_input  # noqa: PLC0415
+    from kentreg_ros.eval import GroundTruth, associate  # noqa: PLC0415
+    from kentreg_ros.io.bags import open_recording  # noqa: PLC0415
 
-    ns = argparse.Namespace(input=str(path), topic=None, gt=None, gt_topic='/ground_truth')
-    source, gt = open_input(ns)
-    if gt is None:
+    source, reference, origin = open_recording(path)
+    if reference is None:
         raise SystemExit(f'{path}: no reference poses (a pose file beside the scans or a bag)')
+    gt = GroundTruth(reference, origin)
     scans = list(source)
     stamps = np.array([s.stamp_ns for s in scans], dtype=np.int64)
     rows, gt_rows = associate(stamps, list(range(len(scans))), gt.trajectory)
@@ -506,9 +508,9 @@ def _kentreg_odometry(
 ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
     from kentreg_ros.core import KentRegConfig  # noqa: PLC0415
     from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: PLC0415
-    from kentreg_ros.replay import run_odometry  # noqa: PLC0415
+    from kentreg_ros.eval import run_odometry  # noqa: PLC0415
 
-    run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride, progress=False)
+    run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride)
     if run.error is not None:
         raise RuntimeError(run.error)
     ms = np.array([s.timings['total'] for s in run.steps])
@@ -546,7 +548,7 @@ def run_strides(
     sample: Sample, runners: Sequence[Runner], strides: Sequence[int], max_input_scans: int | None
 ) -> dict[str, Any]:
     """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
-    from kentreg_ros.replay import evaluate  # noqa: PLC0415
+    from kentreg_ros.eval import evaluate  # noqa: PLC0415
 
     scans = sample.scans[:max_input_scans]
     out: dict[str, Any] = {}

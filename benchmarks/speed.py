@@ -131,12 +131,12 @@ MARKERS = {
 
 
 def _scan_files(folder: Path) -> tuple[list[Path], Path]:
+    from kentreg_ros.io.poses import POSE_FILES_BESIDE_SCANS, pose_file_beside
     from kentreg_ros.io.scanfiles import list_scans
-    from kentreg_ros.replay import POSE_FILES_BESIDE_SCANS
 
     if not folder.is_dir():
         raise SystemExit(f'{folder}: no such folder (the raw BALM scans, see --help)')
-    poses = next((folder / n for n in POSE_FILES_BESIDE_SCANS if (folder / n).is_file()), None)
+    poses = pose_file_beside(folder)
     if poses is None:
         raise SystemExit(f'{folder}: no pose file ({", ".join(POSE_FILES_BESIDE_SCANS)})')
     return list_scans(folder), poses
@@ -203,9 +203,9 @@ def build_clouds(
         Per size: how the clouds were made, the voxel edge, the scans used, point counts.
     """
     from benchmarks.methods import voxel_downsample
+    from kentreg_ros.eval.groundtruth import GroundTruth
     from kentreg_ros.io.poses import read_poses
     from kentreg_ros.io.scanfiles import read_scan
-    from kentreg_ros.replay import GroundTruth
 
     files, pose_file = _scan_files(folder)
     T_world = GroundTruth(read_poses(pose_file), str(pose_file)).trajectory.T_world_sensor

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'kentreg_ros'
+BENCHMARKS = PACKAGE.parent / 'benchmarks'
 
 
 def imported_modules(path: Path, package: str) -> set[str]:
@@ -56,3 +57,25 @@ def test_imported_modules_resolves_relative_and_lazy_imports(tmp_path: Path) -> 
 def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
     outside = sorted(n for n in kentreg_imports(path) if not n.startswith('kentreg_ros.core'))
     assert outside == [], f'{path.name} imports {outside}'
+
+
+@pytest.mark.parametrize(
+    ('folder', 'forbidden'),
+    [
+        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.node')),
+        ('eval', ('kentreg_ros.cli', 'kentreg_ros.node', 'kentreg_ros.play')),
+    ],
+)
+def test_io_and_eval_never_import_the_command_lines_or_the_node(
+    folder: str, forbidden: tuple[str, ...]
+) -> None:
+    for path in modules(PACKAGE / folder):
+        bad = sorted(n for n in kentreg_imports(path) if n.startswith(forbidden))
+        assert bad == [], f'{folder}/{path.name} imports {bad}'
+
+
+@pytest.mark.parametrize('path', modules(BENCHMARKS), ids=lambda p: p.name)
+def test_benchmarks_never_import_a_command_line(path: Path) -> None:
+    names = imported_modules(path, 'benchmarks')
+    bad = sorted(n for n in names if n.startswith('kentreg_ros.cli'))
+    assert bad == [], f'{path.name} imports {bad}'

@@ -27,6 +27,7 @@ from kentreg_ros.io.pointcloud2 import (
 )
 from kentreg_ros.io.poses import (
     Trajectory,
+    pose_file_beside,
     read_poses,
     write_kitti,
     write_tum,
@@ -37,14 +38,16 @@ if TYPE_CHECKING:
     from kentreg_ros.io.bags import (
         BagScanSource,
         FilesScanSource,
+        Recording,
         Scan,
         ScanSource,
         bag_topics,
         is_bag,
+        open_recording,
         open_scan_source,
         read_ground_truth,
     )
-    from kentreg_ros.io.bagwriter import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter, write_odometry_mcap
 
 #: The names loaded on first use, and the module each comes from.
 _LAZY = {
@@ -52,16 +55,19 @@ _LAZY = {
         (
             'BagScanSource',
             'FilesScanSource',
+            'Recording',
             'Scan',
             'ScanSource',
             'bag_topics',
             'is_bag',
+            'open_recording',
             'open_scan_source',
             'read_ground_truth',
         ),
         'kentreg_ros.io.bags',
     ),
     'BagWriter': 'kentreg_ros.io.bagwriter',
+    'write_odometry_mcap': 'kentreg_ros.io.bagwriter',
 }
 
 
@@ -82,6 +88,7 @@ __all__ = [
     'FilesScanSource',
     'MessageFactory',
     'PoseFileError',
+    'Recording',
     'Scan',
     'ScanFileError',
     'ScanSource',
@@ -93,16 +100,19 @@ __all__ = [
     'is_bag',
     'list_scans',
     'load_config',
+    'open_recording',
     'open_scan_source',
     'parameters_from_yaml',
     'parse_overrides',
     'pointcloud2_to_array',
+    'pose_file_beside',
     'rclpy_factory',
     'read_ground_truth',
     'read_poses',
     'read_scan',
     'rosbags_factory',
     'write_kitti',
+    'write_odometry_mcap',
     'write_pcd',
     'write_tum',
 ]

@@ -8,6 +8,11 @@ Reading
     message before the fault has already been yielded. An MCAP file that rosbags cannot open
     (truncated: no summary, no footer) is streamed record by record with the ``mcap`` package,
     so the messages written before the cut are still delivered.
+Recordings
+    :func:`open_recording` opens a bag or a scan folder together with its reference poses (a
+    pose file, the bag's ``/ground_truth`` topic, or a pose file beside the scans), as
+    ``kentreg_replay`` and the benchmarks read their input.
+
 Writing is in :mod:`kentreg_ros.io.bagwriter`.
 """
 
@@ -24,14 +29,14 @@ import numpy as np
 from numpy.typing import DTypeLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.errors import InvalidPointCloudError
-from kentreg_ros.io.errors import BagError, PoseFileError
+from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,
     pointcloud2_to_array,
     stamp_to_ns,
 )
-from kentreg_ros.io.poses import Trajectory, read_poses
+from kentreg_ros.io.poses import Trajectory, pose_file_beside, read_poses
 from kentreg_ros.io.scanfiles import SCAN_SUFFIXES, list_scans, read_scan
 
 logger = logging.getLogger(__name__)
@@ -49,6 +54,8 @@ POSE_MSGTYPES = (
     PATH,
 )
 BAG_SUFFIXES = ('.bag', '.mcap', '.db3')
+#: Topic of the reference poses :func:`read_ground_truth` and :func:`open_recording` read.
+GROUND_TRUTH_TOPIC = '/ground_truth'
 DEFAULT_RATE_HZ = 10.0
 
 
@@ -544,7 +551,7 @@ def _matrix(translation: Any, rotation: Any) -> NDArray[np.float64]:
     return T
 
 
-def read_ground_truth(path: str | Path, *, topic: str = '/ground_truth') -> Trajectory:
+def read_ground_truth(path: str | Path, *, topic: str = GROUND_TRUTH_TOPIC) -> Trajectory:
     """Poses of a bag topic as a :class:`~kentreg_ros.io.poses.Trajectory`.
 
     Parameters
@@ -592,3 +599,101 @@ def read_ground_truth(path: str | Path, *, topic: str = '/ground_truth') -> Traj
     if not poses:
         raise BagError(f'{path}: topic {topic} has no poses.')
     return Trajectory(np.array(stamps, dtype=np.int64), np.stack(poses))
+
+
+# --- recordings: scans and reference poses ------------------------------------------------------
+
+
+class Recording(NamedTuple):
+    """A recorded input: its scans and, when known, the reference poses of the sensor.
+
+    Attributes
+    ----------
+    source : ScanSource
+        The scans.
+    reference : Trajectory or None
+        Reference poses ``T_world_sensor`` as read (not associated with the scans).
+    reference_origin : str
+        Where they came from: the pose file or the bag topic; ``''`` without them.
+    """
+
+    source: ScanSource
+    reference: Trajectory | None
+    reference_origin: str
+
+
+def open_recording(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    poses: str | Path | None = None,
+    poses_topic: str = GROUND_TRUTH_TOPIC,
+    fields: Sequence[str] | None = (),
+) -> Recording:
+    """Open a bag or a scan folder with its reference poses, wherever they are.
+
+    The reference is ``poses`` when given; otherwise, for a bag, its ``poses_topic`` (a bag
+    without that topic is logged at INFO, an unreadable one at WARNING: the scans can still be
+    read), and for a scan folder a pose file beside the scans (see
+    :func:`~kentreg_ros.io.poses.pose_file_beside`; an unreadable one is logged and ignored).
+    When a timed reference holds exactly one pose per scan of a folder, its times stamp the
+    scans.
+
+    Parameters
+    ----------
+    path : str or Path
+        A bag or a folder of scan files (see :func:`open_scan_source`).
+    topic : str, optional
+        Bags only: the PointCloud2 topic, needed when there are several.
+    poses : str or Path, optional
+        A pose file (KITTI, TUM, ETH, BALM; see :func:`~kentreg_ros.io.poses.read_poses`).
+    poses_topic : str
+        The bag topic of the reference poses (see :func:`read_ground_truth`).
+    fields : sequence of str, optional
+        Extra per-point fields to keep; ``()`` (default) none, None all.
+
+    Returns
+    -------
+    Recording
+
+    Raises
+    ------
+    ScanFileError
+        ``path`` does not exist.
+    BagError, ScanFileError, PoseFileError, ValueError
+        As :func:`open_scan_source` and :func:`~kentreg_ros.io.poses.read_poses`.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ScanFileError(f'{p}: no such file or folder')
+    reference: Trajectory | None = None
+    origin = ''
+    if poses is not None:
+        reference, origin = read_poses(poses), str(poses)
+    if is_bag(p):
+        source = open_scan_source(p, topic=topic, fields=fields)
+        if reference is None:
+            try:
+                reference, origin = read_ground_truth(p, topic=poses_topic), poses_topic
+            except KentRegError as exc:
+                # A bag without the topic is common (logged quietly); an unreadable topic is
+                # worth a warning, but the odometry can still run.
+                missing = poses_topic not in bag_topics(p)
+                level = logging.INFO if missing else logging.WARNING
+                logger.log(level, 'No ground truth from the bag: %s', _describe(exc))
+        return Recording(source, reference, origin)
+    if topic is not None:
+        raise ValueError(f'`topic` applies to bags; {p} is not a bag.')
+    if reference is None and p.is_dir():
+        beside = pose_file_beside(p)
+        if beside is not None:
+            try:
+                reference, origin = read_poses(beside), str(beside)
+                logger.info('Ground truth: %s (found beside the scans).', beside)
+            except KentRegError as exc:
+                logger.warning('Ignoring %s: %s', beside, exc)
+    stamps: Trajectory | None = None
+    if reference is not None and reference.stamps_ns is not None and p.is_dir():
+        if len(list_scans(p)) == len(reference.T_world_sensor):
+            stamps = reference  # one pose per scan: its times stamp the scans
+    return Recording(open_scan_source(p, fields=fields, poses=stamps), reference, origin)

@@ -1,17 +1,19 @@
-"""Bags out, through rosbags (>= 0.11): :class:`BagWriter`.
+"""Bags out, through rosbags (>= 0.11): :class:`BagWriter` and the odometry recording.
 
 :class:`BagWriter` writes a rosbag2 folder with one MCAP file (zstd-compressed chunks by
 default), readable by ``ros2 bag play``, rosbags, Foxglove and the ``mcap`` CLI: point clouds,
-poses, odometry, paths and TF.
+poses, odometry, paths and TF. :func:`write_odometry_mcap` writes the trajectory of an odometry
+run as one self-contained MCAP file, the record ``kentreg_replay`` leaves of every run.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
@@ -25,6 +27,15 @@ from kentreg_ros.io.pointcloud2 import (
     ns_to_sec_nanosec,
     rosbags_factory,
 )
+
+if TYPE_CHECKING:
+    from kentreg_ros.core.odometry import OdometryStep
+
+#: Topics of :func:`write_odometry_mcap`.
+ODOMETRY_TOPIC = '/kentreg/odometry'
+POSE_TOPIC = '/kentreg/pose'
+PATH_TOPIC = '/kentreg/path'
+TF_TOPIC = '/tf'
 
 
 class BagWriter:
@@ -275,3 +286,68 @@ def _remove_bag_folder(path: Path) -> None:
     if not is_bag_folder:
         raise BagError(f'{path} exists and is not a rosbag2 folder; not removing it.')
     shutil.rmtree(path)
+
+
+def write_odometry_mcap(
+    path: Path,
+    steps: Sequence[OdometryStep],
+    *,
+    odom_frame: str,
+    child_frame: str,
+) -> dict[str, int]:
+    """Write an odometry run as one MCAP file; return the message count per topic.
+
+    Per scan: nav_msgs/Odometry on :data:`ODOMETRY_TOPIC` (with the chained pose covariance),
+    geometry_msgs/PoseStamped on :data:`POSE_TOPIC` and the ``odom_frame`` -> ``child_frame``
+    transform on :data:`TF_TOPIC`, stamped with the scan's header stamp; then one nav_msgs/Path
+    of every pose on :data:`PATH_TOPIC`. The bag is written in a hidden folder beside ``path``
+    and its MCAP file moved to ``path``: a single self-contained file that rosbag2
+    (``ros2 bag play``/``info``) and Foxglove open as is.
+
+    Parameters
+    ----------
+    path : Path
+        The ``.mcap`` file to write (replaced if it exists); its folder must exist.
+    steps : sequence of OdometryStep
+        The run, in order.
+    odom_frame, child_frame : str
+        ``header.frame_id`` and ``child_frame_id`` of the poses.
+
+    Raises
+    ------
+    BagError
+        The bag cannot be written.
+    """
+    tmp = path.parent / f'.{path.stem}-{os.getpid()}'
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    with BagWriter(tmp, compress=True) as writer:
+        for step in steps:
+            writer.write_odometry(
+                ODOMETRY_TOPIC,
+                step.stamp_ns,
+                step.T_world_lidar,
+                frame_id=odom_frame,
+                child_frame_id=child_frame,
+                pose_covariance=step.covariance,
+            )
+            writer.write_pose(POSE_TOPIC, step.stamp_ns, step.T_world_lidar, frame_id=odom_frame)
+            writer.write_transform(
+                step.stamp_ns,
+                step.T_world_lidar,
+                frame_id=odom_frame,
+                child_frame_id=child_frame,
+                topic=TF_TOPIC,
+            )
+        if steps:
+            writer.write_path(
+                PATH_TOPIC,
+                steps[-1].stamp_ns,
+                [s.stamp_ns for s in steps],
+                np.stack([s.T_world_lidar for s in steps]),
+                frame_id=odom_frame,
+            )
+        counts = dict(writer.counts)
+    os.replace(writer.mcap_path, path)
+    shutil.rmtree(tmp)
+    return counts
