@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import drop_nonfinite
+from kentreg_ros.core.rotations import project_to_so3
 from kentreg_ros.eval import jsonable, orthonormalize
 from kentreg_ros.eval.metrics import failed_pairs, pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan
@@ -105,8 +106,7 @@ def load_balm(folder: Path = SHARED_DATA / 'balm') -> Sequence:
 def load_small_gicp_pair(folder: Path = SHARED_DATA / 'small_gicp_pair') -> Sequence:
     """The real small_gicp pair; scan 0 = target.ply, scan 1 = source.ply."""
     T = np.loadtxt(folder / 'T_target_source.txt').reshape(4, 4)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T[:3, :3] = project_to_so3(T[:3, :3])
     return Sequence(
         'small_gicp_pair',
         [folder / 'target.ply', folder / 'source.ply'],
@@ -211,7 +211,7 @@ def summarize(records: Iterable[Mapping[str, float]]) -> dict[str, Any]:
 
 def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     """``(fn(*args), milliseconds)``."""
-    import time  # noqa: PLC0415
+    import time
 
     t0 = time.perf_counter()
     out = fn(*args)
@@ -246,11 +246,11 @@ def machine_info() -> dict[str, Any]:
     versions = {}
     for mod in ('numpy', 'scipy', 'open3d', 'small_gicp', 'kiss_icp'):
         try:
-            from importlib.metadata import version  # noqa: PLC0415
+            from importlib.metadata import version
 
             dist = {'open3d': 'open3d-cpu', 'small_gicp': 'small_gicp', 'kiss_icp': 'kiss-icp'}
             versions[mod] = version(dist.get(mod, mod))
-        except Exception:  # noqa: BLE001  (a missing library is reported as such)
+        except Exception:  # a missing library is reported as such
             versions[mod] = None
     commit = os.environ.get('KENTREG_GIT_COMMIT', '')  # set when running from a `git archive`
     try:

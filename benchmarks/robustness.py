@@ -178,8 +178,8 @@ def load_sample(path: Path) -> Sample:
     SystemExit
         No reference poses, or a scan without one.
     """
-    from kentreg_ros.eval import GroundTruth, associate  # noqa: PLC0415
-    from kentreg_ros.io.bags import open_recording  # noqa: PLC0415
+    from kentreg_ros.eval import GroundTruth, associate
+    from kentreg_ros.io.bags import open_recording
 
     source, reference, origin = open_recording(path)
     if reference is None:
@@ -351,7 +351,7 @@ class Runner:
 
 def kentreg_runner() -> Runner:
     """kentreg with ``KentRegConfig()`` on raw scans (its automatic preprocessing)."""
-    from kentreg_ros.core import KentRegConfig, prepare_scan, register  # noqa: PLC0415
+    from kentreg_ros.core import KentRegConfig, prepare_scan, register
 
     cfg = KentRegConfig()
 
@@ -438,7 +438,7 @@ def register_pair(
             'voxel_m': runner.voxel(src),
             'info': info,
         }
-    except Exception as exc:  # noqa: BLE001  (a method that raises fails the pair)
+    except Exception as exc:  # a method that raises fails the pair
         logger.warning('%s raised: %s', runner.name, exc)
         return _raised(exc, src)
 
@@ -506,9 +506,9 @@ def _motion_stats(T_world: FloatArray) -> dict[str, float]:
 def _kentreg_odometry(
     scans: list[Any], stride: int
 ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
-    from kentreg_ros.core import KentRegConfig  # noqa: PLC0415
-    from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: PLC0415
-    from kentreg_ros.eval import run_odometry  # noqa: PLC0415
+    from kentreg_ros.core import KentRegConfig
+    from kentreg_ros.core.odometry import HEALTHS, Odometry
+    from kentreg_ros.eval import run_odometry
 
     run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride)
     if run.error is not None:
@@ -548,7 +548,7 @@ def run_strides(
     sample: Sample, runners: Sequence[Runner], strides: Sequence[int], max_input_scans: int | None
 ) -> dict[str, Any]:
     """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
-    from kentreg_ros.eval import evaluate  # noqa: PLC0415
+    from kentreg_ros.eval import evaluate
 
     scans = sample.scans[:max_input_scans]
     out: dict[str, Any] = {}
@@ -567,7 +567,7 @@ def run_strides(
                     poses, ms, extra = _kentreg_odometry(scans, stride)
                 else:
                     poses, ms, extra = _peer_odometry(runner, scans, stride)
-            except Exception as exc:  # noqa: BLE001  (a crashing pipeline is a result)
+            except Exception as exc:  # a crashing pipeline is a result
                 logger.exception('%s stride %d failed', runner.name, stride)
                 block['methods'][runner.name] = {'error': f'{type(exc).__name__}: {exc}'}
                 continue
@@ -634,7 +634,7 @@ def run_outliers(
             for runner in runners:
                 try:
                     tgt = runner.prepare(target)
-                except Exception as exc:  # noqa: BLE001
+                except Exception as exc:
                     logger.warning('%s cannot prepare the target: %s', runner.name, exc)
                     rec = _raised(exc)
                 else:
@@ -709,7 +709,7 @@ def run_turned(
         for runner in runners:
             try:
                 targets[runner.name] = runner.prepare(target_raw)
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 logger.warning('%s cannot prepare target %d: %s', runner.name, pair, exc)
         for angle in angles:
             T_turn = turn_transform(np.random.default_rng([seed, 3, trial, int(angle)]), angle)
@@ -951,8 +951,8 @@ def markdown(results: dict[str, Any]) -> str:
 
 def plot(results: dict[str, Any], path: Path) -> None:
     """Strides (failures, ATE), outliers (median e_R, failures) and turned (recovered)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
-    from matplotlib.figure import Figure  # noqa: PLC0415
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     fig = Figure(figsize=(15, 9), layout='constrained')
     FigureCanvasAgg(fig)
@@ -1144,7 +1144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = out / 'robustness.json'
     results: dict[str, Any] = {}
     if set(args.only) != set(TESTS) and previous.is_file():
-        import json  # noqa: PLC0415
+        import json
 
         kept = json.loads(previous.read_text())
         results.update({t: kept[t] for t in TESTS if t in kept and t not in args.only})
