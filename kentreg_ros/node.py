@@ -305,7 +305,8 @@ class KentRegNode(Node):
 
     def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
         try:
-            self.declare_parameters('', parameter_declarations())
+            # rclpy annotates `parameters` as an invariant List of a Union of tuples.
+            self.declare_parameters('', parameter_declarations())  # type: ignore[arg-type]
         except (
             InvalidParameterTypeException,
             InvalidParameterValueException,
@@ -405,7 +406,7 @@ class KentRegNode(Node):
             self._counters.add('nonfinite_points', cloud.n_dropped)
         scan = _Scan(
             points=cloud.points,
-            stamp_ns=cloud.stamp_ns,
+            stamp_ns=cloud.stamp_ns,  # type: ignore[arg-type]  # a PointCloud2 has a stamp
             frame_id=cloud.frame_id or '',
             received=received,
             n_nonfinite=cloud.n_dropped,
@@ -661,7 +662,7 @@ class KentRegNode(Node):
         super().destroy_node()
 
 
-def main(args: Sequence[str] | None = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
 
     Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid
