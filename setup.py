@@ -42,9 +42,10 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'kentreg_register = kentreg_ros.cli_register:main',
-            'kentreg_convert = kentreg_ros.convert:main',
-            'kentreg_replay = kentreg_ros.replay:main',
+            'kentreg = kentreg_ros.cli.__main__:main',
+            'kentreg_register = kentreg_ros.cli.register:main',
+            'kentreg_convert = kentreg_ros.cli.convert:main',
+            'kentreg_replay = kentreg_ros.cli.replay:main',
             'kentreg_node = kentreg_ros.node:main',
             'kentreg_play = kentreg_ros.play:main',
         ],

@@ -1,9 +1,11 @@
 """Median per-stage times of kentreg at about 3k / 10k / 30k points per scan.
 
-Scans: consecutive pairs of the real BALM sequence (``../shared/data/balm``) when present,
-otherwise a seeded synthetic room. For each size the target (model) scan is prepared once and
-cached, as in odometry; the timed work per pair is the new scan's preprocessing
-(crop, voxel downsampling, normals, outlier removal, clustering) plus ``register``.
+Scans: consecutive pairs of the real BALM sequence (``../shared/data/balm``, read with
+:func:`kentreg_ros.io.read_scan`) when present, otherwise a seeded synthetic room (walls, floor,
+ceiling and three boxes, 80k points, moved 5 deg / 0.3 m per scan). For each size the target
+(model) scan is prepared once and cached, as in odometry; the timed work per pair is the new
+scan's preprocessing (crop, voxel downsampling, normals, outlier removal, clustering) plus
+``register``.
 
 Usage::
 
@@ -28,6 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from kentreg_ros.core import KentRegConfig, prepare_scan, register  # noqa: E402
+from kentreg_ros.core.rotations import exp_so3, make_transform  # noqa: E402
+from kentreg_ros.io import read_scan  # noqa: E402
 
 BALM = ROOT.parent / 'shared' / 'data' / 'balm'
 STAGES_PREP = ('downsample', 'normals', 'outliers', 'clustering')
@@ -35,18 +39,40 @@ STAGES_REG = ('rotation', 'translation', 'refine')
 
 
 def load_balm_scan(i: int) -> np.ndarray:
-    raw = (BALM / f'full{i}.pcd').read_bytes()
-    start = raw.index(b'DATA binary\n') + len(b'DATA binary\n')
-    return np.frombuffer(raw[start:], dtype='<f4').reshape(-1, 8)[:, :3].astype(np.float64)
+    return np.asarray(read_scan(BALM / f'full{i}.pcd', fields=()).points, dtype=np.float64)
+
+
+def box_room(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` points (1 cm noise) on an 8 x 6 x 3 m room and three boxes turned about z."""
+    lo, ex, ey, ez = np.array([-4.0, -3.0, -1.0]), *np.diag([8.0, 6.0, 3.0])
+    faces = [(lo, ex, ey), (lo + ez, ex, ey), (lo, ex, ez), (lo + ey, ex, ez)]
+    faces += [(lo, ey, ez), (lo + ex, ey, ez)]
+    for i in range(3):
+        c = np.array([rng.uniform(-8 / 3, 8 / 3), rng.uniform(-2.0, 2.0), -1.0])
+        R = exp_so3(np.array([0.0, 0.0, rng.uniform(0, np.pi / 2)]) + 0.05 * i)
+        a, b, h = R @ [0.8, 0.0, 0.0], R @ [0.0, 0.6, 0.0], np.array([0.0, 0.0, 1.0])
+        faces += [(c, a, h), (c + b, a, h), (c, b, h), (c + a, b, h), (c + h, a, b)]
+    areas = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v in faces])
+    counts = rng.multinomial(n, areas / areas.sum())
+    pts = np.concatenate(
+        [
+            o + rng.random((k, 1)) * u + rng.random((k, 1)) * v
+            for (o, u, v), k in zip(faces, counts, strict=True)
+        ]
+    )
+    return pts + rng.normal(scale=0.01, size=pts.shape)
 
 
 def synthetic_scans(n: int) -> list[np.ndarray]:
-    sys.path.insert(0, str(ROOT / 'test'))
-    from scenes import box_room, random_transform, transform_points  # noqa: PLC0415
-
     rng = np.random.default_rng(0)
     base = box_room(rng, 80000)
-    return [transform_points(random_transform(rng, 5.0, 0.3), base) for _ in range(n)]
+    scans = []
+    for _ in range(n):
+        axis, direction = rng.normal(size=3), rng.normal(size=3)
+        R = exp_so3(axis / np.linalg.norm(axis) * np.radians(5.0))
+        T = make_transform(R, direction / np.linalg.norm(direction) * 0.3)
+        scans.append(base @ T[:3, :3].T + T[:3, 3])
+    return scans
 
 
 def main(argv: list[str] | None = None) -> int:

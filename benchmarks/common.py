@@ -21,20 +21,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import drop_nonfinite
-from kentreg_ros.core.metrics import pair_errors
+from kentreg_ros.core.rotations import project_to_so3
+from kentreg_ros.eval import jsonable, orthonormalize
+from kentreg_ros.eval.metrics import failed_pairs, pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan
 from kentreg_ros.io.poses import Trajectory
-from kentreg_ros.replay import jsonable, orthonormalize
 
 FloatArray = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('KENTREG_SHARED_DATA', ROOT.parent / 'shared' / 'data'))
 RESULTS = ROOT / 'benchmarks' / 'results'
-
-#: A pair fails when e_R > 2 deg or e_t > 0.2 m (the issue's and kentreg_replay's definition).
-FAIL_ROTATION_DEG = 2.0
-FAIL_TRANSLATION_M = 0.2
 
 
 def load_points(path: Path) -> FloatArray:
@@ -109,8 +106,7 @@ def load_balm(folder: Path = SHARED_DATA / 'balm') -> Sequence:
 def load_small_gicp_pair(folder: Path = SHARED_DATA / 'small_gicp_pair') -> Sequence:
     """The real small_gicp pair; scan 0 = target.ply, scan 1 = source.ply."""
     T = np.loadtxt(folder / 'T_target_source.txt').reshape(4, 4)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T[:3, :3] = project_to_so3(T[:3, :3])
     return Sequence(
         'small_gicp_pair',
         [folder / 'target.ply', folder / 'source.ply'],
@@ -161,27 +157,19 @@ def select_pairs(n_pairs: int, count: int | None) -> list[int]:
 
 
 def errors(T_est: FloatArray, T_true: FloatArray) -> tuple[float, float]:
-    """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.core.metrics.pair_errors)."""
+    """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.eval.metrics.pair_errors)."""
     e_R, e_t = pair_errors(T_est[None], T_true[None])
     return float(e_R[0]), float(e_t[0])
 
 
 def is_failure(e_R: float, e_t: float) -> bool:
     """e_R > 2 deg or e_t > 0.2 m, or a method that raised (NaN errors)."""
-    if not (np.isfinite(e_R) and np.isfinite(e_t)):
-        return True
-    return e_R > FAIL_ROTATION_DEG or e_t > FAIL_TRANSLATION_M
+    return bool(failed_pairs(e_R, e_t))
 
 
 def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
     """:func:`is_failure` of arrays of errors, element by element (NaN counts as failed)."""
-    e_R, e_t = np.asarray(e_R, dtype=np.float64), np.asarray(e_t, dtype=np.float64)
-    with np.errstate(invalid='ignore'):
-        return (
-            ~(np.isfinite(e_R) & np.isfinite(e_t))
-            | (e_R > FAIL_ROTATION_DEG)
-            | (e_t > FAIL_TRANSLATION_M)
-        )
+    return failed_pairs(e_R, e_t)
 
 
 def summarize(records: Iterable[Mapping[str, float]]) -> dict[str, Any]:
@@ -223,7 +211,7 @@ def summarize(records: Iterable[Mapping[str, float]]) -> dict[str, Any]:
 
 def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     """``(fn(*args), milliseconds)``."""
-    import time  # noqa: PLC0415
+    import time
 
     t0 = time.perf_counter()
     out = fn(*args)
@@ -258,11 +246,11 @@ def machine_info() -> dict[str, Any]:
     versions = {}
     for mod in ('numpy', 'scipy', 'open3d', 'small_gicp', 'kiss_icp'):
         try:
-            from importlib.metadata import version  # noqa: PLC0415
+            from importlib.metadata import version
 
             dist = {'open3d': 'open3d-cpu', 'small_gicp': 'small_gicp', 'kiss_icp': 'kiss-icp'}
             versions[mod] = version(dist.get(mod, mod))
-        except Exception:  # noqa: BLE001  (a missing library is reported as such)
+        except Exception:  # a missing library is reported as such
             versions[mod] = None
     commit = os.environ.get('KENTREG_GIT_COMMIT', '')  # set when running from a `git archive`
     try:

@@ -2,12 +2,12 @@
 
 Three pipelines get the same scans (read once into memory, so no pipeline pays for reading) and
 are evaluated against the same reference poses with the replay's own metrics
-(:func:`kentreg_ros.replay.associate` and :func:`kentreg_ros.replay.evaluate`):
+(:func:`kentreg_ros.eval.associate` and :func:`kentreg_ros.eval.evaluate`):
 
 ``kentreg``
     :class:`kentreg_ros.core.Odometry` with the configuration ``kentreg_replay`` uses (defaults,
     or ``--config`` / ``--set`` exactly as for the replay), run by
-    :func:`kentreg_ros.replay.run_odometry`: scan-to-previous-scan, constant-velocity start.
+    :func:`kentreg_ros.eval.run_odometry`: scan-to-previous-scan, constant-velocity start.
 ``kiss_icp``
     KISS-ICP's Python pipeline, ``kiss_icp.kiss_icp.KissICP``, configured by
     ``kiss_icp.config.load_config(None)`` as its own ``OdometryPipeline`` does: the default
@@ -67,19 +67,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import git_describe, machine_info, write_json  # noqa: E402
-from kentreg_ros.core import metrics  # noqa: E402
 from kentreg_ros.core.config import KentRegConfig  # noqa: E402
 from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: E402
 from kentreg_ros.core.registration import prepare_scan  # noqa: E402
-from kentreg_ros.io.bags import Scan  # noqa: E402
-from kentreg_ros.replay import (  # noqa: E402
-    GroundTruth,
-    associate,
-    effective_config,
-    evaluate,
-    open_input,
-    run_odometry,
-)
+from kentreg_ros.eval import GroundTruth, associate, evaluate, metrics, run_odometry  # noqa: E402
+from kentreg_ros.io.bags import Scan, open_recording  # noqa: E402
+from kentreg_ros.io.params import effective_config  # noqa: E402
 
 logger = logging.getLogger('benchmarks.odometry')
 
@@ -122,13 +115,12 @@ def pin_threads(threads: int, argv: Sequence[str]) -> None:
 
 def read_input(path: Path, topic: str | None) -> tuple[list[Scan], GroundTruth, str]:
     """Every scan of a bag or scan folder (with all extra fields) and its reference poses."""
-    ns = argparse.Namespace(input=str(path), topic=topic, gt=None, gt_topic='/ground_truth')
-    source, gt = open_input(ns)
-    if gt is None:
+    # Every per-point field is kept, e.g. times for KISS-ICP's deskewing.
+    source, reference, origin = open_recording(path, topic=topic, fields=None)
+    if reference is None:
         raise SystemExit(f'{path}: no reference poses (a /ground_truth topic or a pose file)')
-    source.fields = None  # keep every per-point field, e.g. times for KISS-ICP's deskewing
     scans = list(source)
-    return scans, gt, source.description
+    return scans, GroundTruth(reference, origin), source.description
 
 
 def point_times(scan: Scan) -> FloatArray:
@@ -157,8 +149,8 @@ class PipelineRun:
 
 def run_kentreg(scans: list[Scan], cfg: KentRegConfig) -> PipelineRun:
     """kentreg's odometry, run by the replay's own loop."""
-    run_odometry(scans[:2], Odometry(cfg), progress=False)  # warm-up, discarded
-    run = run_odometry(scans, Odometry(cfg), progress=False)
+    run_odometry(scans[:2], Odometry(cfg))  # warm-up, discarded
+    run = run_odometry(scans, Odometry(cfg))
     if run.error is not None or len(run.steps) != len(scans):
         raise RuntimeError(f'kentreg stopped after {len(run.steps)} scans: {run.error}')
     health = {k: sum(s.health == k for s in run.steps) for k in HEALTHS}

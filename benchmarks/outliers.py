@@ -58,15 +58,11 @@ from benchmarks.methods import (  # noqa: E402
     paper_voxel,
     voxel_downsample,
 )
+from kentreg_ros.core.preprocess import _voxel_keys  # noqa: E402
 
 logger = logging.getLogger('outliers')
 
 LEVELS = (0.0, 0.1, 0.2, 0.3, 0.4)
-
-
-def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
-    ijk = np.floor(points / voxel).astype(np.int64) + (1 << 20)
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
 def inject_outliers(
@@ -103,17 +99,19 @@ def inject_outliers(
     if n_out == 0:
         return clean, 0.0
     lo, hi = points.min(axis=0), points.max(axis=0)
-    occupied = np.unique(_voxel_keys(clean, voxel))
+    # Every point involved lies in the raw scan's box, so keys on its grid name voxels alike.
+    grid = (lo, hi)
+    occupied = np.unique(_voxel_keys(clean, voxel, grid))
     chosen = np.empty((0, 3))
     taken = occupied
     for _ in range(100):
         draw = rng.uniform(lo, hi, size=(2 * (n_out - len(chosen)) + 16, 3))
-        keys = _voxel_keys(draw, voxel)
+        keys = _voxel_keys(draw, voxel, grid)
         free = ~np.isin(keys, taken)
         _, first = np.unique(keys[free], return_index=True)
         new = draw[free][np.sort(first)][: n_out - len(chosen)]
         chosen = np.concatenate([chosen, new])
-        taken = np.union1d(taken, _voxel_keys(new, voxel))
+        taken = np.union1d(taken, _voxel_keys(new, voxel, grid))
         if len(chosen) == n_out:
             break
     else:
@@ -160,7 +158,7 @@ def run(
                     src, prep_ms = timed(m.prepare, source)
                     T, reg_ms = timed(m.register, src, tgt, init)
                     e_R, e_t = errors(T, truth)
-                except Exception as exc:  # noqa: BLE001  (a method that raises fails the trial)
+                except Exception as exc:  # a method that raises fails the trial
                     logger.warning('%s level %.0f%% trial %d: %s', m.name, level * 100, trial, exc)
                     prep_ms, reg_ms, e_R, e_t = (float('nan'),) * 4
                     rec['error'] = f'{type(exc).__name__}: {exc}'
@@ -249,10 +247,10 @@ def markdown(results: dict[str, Any]) -> str:
 
 def plot(results: dict[str, Any], path: Path) -> None:
     """Median (line) and interquartile range (band) of e_R and e_t, and failure rate, per level."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     levels = results['levels']
     x = np.array([float(k) * 100 for k in levels])

@@ -5,7 +5,7 @@ Three stress tests on the 50 real BALM scans (``../shared/data/balm``, or the re
 
 ``kentreg``
     ``KentRegConfig()`` as is: :class:`~kentreg_ros.core.odometry.Odometry` for the strides
-    (run by :func:`kentreg_ros.replay.run_odometry`, i.e. what ``kentreg_replay --stride N``
+    (run by :func:`kentreg_ros.eval.run_odometry`, i.e. what ``kentreg_replay --stride N``
     does) and ``register(source_raw, target_raw, init=...)`` for the pairs, on the *raw* scans,
     with its own automatic preprocessing (voxel size chosen per scan for
     ``preprocess.target_points``, normals, normal-outlier test). The pairs call
@@ -83,8 +83,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import (  # noqa: E402
-    FAIL_ROTATION_DEG,
-    FAIL_TRANSLATION_M,
     RESULTS,
     SHARED_DATA,
     errors,
@@ -104,6 +102,7 @@ from benchmarks.methods import (  # noqa: E402
     paper_voxel,
     voxel_downsample,
 )
+from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # noqa: E402
 
 logger = logging.getLogger('robustness')
 
@@ -170,20 +169,22 @@ class Sample:
 def load_sample(path: Path) -> Sample:
     """Every scan and its reference pose from a scan folder with a pose file, or a bag.
 
-    The input is opened as ``kentreg_replay`` opens it (:func:`kentreg_ros.replay.open_input`)
-    and the poses are associated by stamp as it does.
+    The input is opened as ``kentreg_replay`` opens it
+    (:func:`kentreg_ros.io.bags.open_recording`) and the poses are associated by stamp as it
+    does.
 
     Raises
     ------
     SystemExit
         No reference poses, or a scan without one.
     """
-    from kentreg_ros.replay import associate, open_input  # noqa: PLC0415
+    from kentreg_ros.eval import GroundTruth, associate
+    from kentreg_ros.io.bags import open_recording
 
-    ns = argparse.Namespace(input=str(path), topic=None, gt=None, gt_topic='/ground_truth')
-    source, gt = open_input(ns)
-    if gt is None:
+    source, reference, origin = open_recording(path)
+    if reference is None:
         raise SystemExit(f'{path}: no reference poses (a pose file beside the scans or a bag)')
+    gt = GroundTruth(reference, origin)
     scans = list(source)
     stamps = np.array([s.stamp_ns for s in scans], dtype=np.int64)
     rows, gt_rows = associate(stamps, list(range(len(scans))), gt.trajectory)
@@ -350,7 +351,7 @@ class Runner:
 
 def kentreg_runner() -> Runner:
     """kentreg with ``KentRegConfig()`` on raw scans (its automatic preprocessing)."""
-    from kentreg_ros.core import KentRegConfig, prepare_scan, register  # noqa: PLC0415
+    from kentreg_ros.core import KentRegConfig, prepare_scan, register
 
     cfg = KentRegConfig()
 
@@ -437,7 +438,7 @@ def register_pair(
             'voxel_m': runner.voxel(src),
             'info': info,
         }
-    except Exception as exc:  # noqa: BLE001  (a method that raises fails the pair)
+    except Exception as exc:  # a method that raises fails the pair
         logger.warning('%s raised: %s', runner.name, exc)
         return _raised(exc, src)
 
@@ -505,11 +506,11 @@ def _motion_stats(T_world: FloatArray) -> dict[str, float]:
 def _kentreg_odometry(
     scans: list[Any], stride: int
 ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
-    from kentreg_ros.core import KentRegConfig  # noqa: PLC0415
-    from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: PLC0415
-    from kentreg_ros.replay import run_odometry  # noqa: PLC0415
+    from kentreg_ros.core import KentRegConfig
+    from kentreg_ros.core.odometry import HEALTHS, Odometry
+    from kentreg_ros.eval import run_odometry
 
-    run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride, progress=False)
+    run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride)
     if run.error is not None:
         raise RuntimeError(run.error)
     ms = np.array([s.timings['total'] for s in run.steps])
@@ -547,7 +548,7 @@ def run_strides(
     sample: Sample, runners: Sequence[Runner], strides: Sequence[int], max_input_scans: int | None
 ) -> dict[str, Any]:
     """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
-    from kentreg_ros.replay import evaluate  # noqa: PLC0415
+    from kentreg_ros.eval import evaluate
 
     scans = sample.scans[:max_input_scans]
     out: dict[str, Any] = {}
@@ -566,7 +567,7 @@ def run_strides(
                     poses, ms, extra = _kentreg_odometry(scans, stride)
                 else:
                     poses, ms, extra = _peer_odometry(runner, scans, stride)
-            except Exception as exc:  # noqa: BLE001  (a crashing pipeline is a result)
+            except Exception as exc:  # a crashing pipeline is a result
                 logger.exception('%s stride %d failed', runner.name, stride)
                 block['methods'][runner.name] = {'error': f'{type(exc).__name__}: {exc}'}
                 continue
@@ -633,7 +634,7 @@ def run_outliers(
             for runner in runners:
                 try:
                     tgt = runner.prepare(target)
-                except Exception as exc:  # noqa: BLE001
+                except Exception as exc:
                     logger.warning('%s cannot prepare the target: %s', runner.name, exc)
                     rec = _raised(exc)
                 else:
@@ -708,7 +709,7 @@ def run_turned(
         for runner in runners:
             try:
                 targets[runner.name] = runner.prepare(target_raw)
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 logger.warning('%s cannot prepare target %d: %s', runner.name, pair, exc)
         for angle in angles:
             T_turn = turn_transform(np.random.default_rng([seed, 3, trial, int(angle)]), angle)
@@ -950,8 +951,8 @@ def markdown(results: dict[str, Any]) -> str:
 
 def plot(results: dict[str, Any], path: Path) -> None:
     """Strides (failures, ATE), outliers (median e_R, failures) and turned (recovered)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
-    from matplotlib.figure import Figure  # noqa: PLC0415
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     fig = Figure(figsize=(15, 9), layout='constrained')
     FigureCanvasAgg(fig)
@@ -1143,7 +1144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = out / 'robustness.json'
     results: dict[str, Any] = {}
     if set(args.only) != set(TESTS) and previous.is_file():
-        import json  # noqa: PLC0415
+        import json
 
         kept = json.loads(previous.read_text())
         results.update({t: kept[t] for t in TESTS if t in kept and t not in args.only})

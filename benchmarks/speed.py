@@ -71,6 +71,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import git_describe, machine_info  # noqa: E402
+from kentreg_ros.eval.metrics import (  # noqa: E402
+    FAIL_ROTATION_DEG,
+    FAIL_TRANSLATION_M,
+    failed_pairs,
+)
 
 logger = logging.getLogger('benchmarks.speed')
 
@@ -126,12 +131,12 @@ MARKERS = {
 
 
 def _scan_files(folder: Path) -> tuple[list[Path], Path]:
+    from kentreg_ros.io.poses import POSE_FILES_BESIDE_SCANS, pose_file_beside
     from kentreg_ros.io.scanfiles import list_scans
-    from kentreg_ros.replay import POSE_FILES_BESIDE_SCANS
 
     if not folder.is_dir():
         raise SystemExit(f'{folder}: no such folder (the raw BALM scans, see --help)')
-    poses = next((folder / n for n in POSE_FILES_BESIDE_SCANS if (folder / n).is_file()), None)
+    poses = pose_file_beside(folder)
     if poses is None:
         raise SystemExit(f'{folder}: no pose file ({", ".join(POSE_FILES_BESIDE_SCANS)})')
     return list_scans(folder), poses
@@ -198,9 +203,9 @@ def build_clouds(
         Per size: how the clouds were made, the voxel edge, the scans used, point counts.
     """
     from benchmarks.methods import voxel_downsample
+    from kentreg_ros.eval.groundtruth import GroundTruth
     from kentreg_ros.io.poses import read_poses
     from kentreg_ros.io.scanfiles import read_scan
-    from kentreg_ros.replay import GroundTruth
 
     files, pose_file = _scan_files(folder)
     T_world = GroundTruth(read_poses(pose_file), str(pose_file)).trajectory.T_world_sensor
@@ -264,7 +269,7 @@ def build_clouds(
 
 
 def _pair_error(T_est: FloatArray, T_ref: FloatArray) -> tuple[float, float]:
-    from kentreg_ros.core.metrics import pair_errors
+    from kentreg_ros.eval.metrics import pair_errors
 
     e_R, e_t = pair_errors(T_est[None], T_ref[None])
     return float(e_R[0]), float(e_t[0])
@@ -343,7 +348,7 @@ def summarize_cell(samples: list[dict[str, Any]]) -> dict[str, Any]:
         'max_e_R_deg': float(np.max(e_R)),
         'median_e_t_m': float(np.median(e_t)),
         'max_e_t_m': float(np.max(e_t)),
-        'n_failed': int(np.sum((e_R > 2.0) | (e_t > 0.2))),
+        'n_failed': int(np.sum(failed_pairs(e_R, e_t))),
         'n_pairs': int(e_R.size),
     }
 
@@ -356,7 +361,8 @@ def format_table(report: dict[str, Any]) -> str:
     lines = [
         f'Median ms per pair (source preparation + registration) and ratio to small_gicp GICP; '
         f'{report["threads"]} thread(s), {report["pairs"]} pairs x {report["repeats"]} repeats '
-        f'x {report["rounds"]} rounds per cell; failures (e_R > 2 deg or e_t > 0.2 m) out of '
+        f'x {report["rounds"]} rounds per cell; failures (e_R > {FAIL_ROTATION_DEG:g} deg or '
+        f'e_t > {FAIL_TRANSLATION_M:g} m) out of '
         f'{report["pairs"]} pairs.',
         '',
         f'| method | {head} |',

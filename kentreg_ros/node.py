@@ -63,10 +63,11 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from kentreg_ros.core.config import NODE_NAME, KentRegConfig, iter_fields
+from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
 from kentreg_ros.node_params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
 
@@ -304,7 +305,8 @@ class KentRegNode(Node):
 
     def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
         try:
-            self.declare_parameters('', parameter_declarations())
+            # rclpy annotates `parameters` as an invariant List of a Union of tuples.
+            self.declare_parameters('', parameter_declarations())  # type: ignore[arg-type]
         except (
             InvalidParameterTypeException,
             InvalidParameterValueException,
@@ -404,7 +406,7 @@ class KentRegNode(Node):
             self._counters.add('nonfinite_points', cloud.n_dropped)
         scan = _Scan(
             points=cloud.points,
-            stamp_ns=cloud.stamp_ns,
+            stamp_ns=cloud.stamp_ns,  # type: ignore[arg-type]  # a PointCloud2 has a stamp
             frame_id=cloud.frame_id or '',
             received=received,
             n_nonfinite=cloud.n_dropped,
@@ -660,7 +662,7 @@ class KentRegNode(Node):
         super().destroy_node()
 
 
-def main(args: Sequence[str] | None = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
 
     Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid

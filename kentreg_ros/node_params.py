@@ -12,8 +12,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from kentreg_ros.core.config import NODE_NAME, KentRegConfig
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.io.params import NODE_NAME
 
 __all__ = [
     'NODE_PARAMETERS',
@@ -213,7 +214,7 @@ def dump_parameter_file(
     node_name: str = NODE_NAME,
 ) -> str:
     """The shipped parameter file: every registration and node parameter with its default."""
-    import yaml  # noqa: PLC0415
+    import yaml
 
     cfg = config if config is not None else KentRegConfig()
     params: dict[str, Any] = cfg.to_dict()

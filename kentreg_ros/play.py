@@ -47,7 +47,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kentreg_ros.cli_args import non_negative_float, non_negative_int, positive_float, positive_int
+from kentreg_ros.cli.common import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.io.errors import BagError
 

@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from kentreg_ros import docs
-from kentreg_ros.core.config import NODE_NAME, KentRegConfig, iter_fields
+from kentreg_ros.core.config import KentRegConfig, iter_fields
+from kentreg_ros.io.params import NODE_NAME
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 README = REPO_ROOT / 'README.md'

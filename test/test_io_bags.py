@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -13,13 +14,14 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from kentreg_ros.io.bags import (
-    BagWriter,
     bag_topics,
     is_bag,
+    open_recording,
     open_scan_source,
     read_ground_truth,
 )
-from kentreg_ros.io.errors import BagError, PoseFileError
+from kentreg_ros.io.bagwriter import BagWriter
+from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
 from kentreg_ros.io.pointcloud2 import (
     MessageFactory,
     array_to_pointcloud2,
@@ -280,6 +282,49 @@ def test_scan_folder_source(tmp_path: Path) -> None:
     assert len(one) == 1
     with pytest.raises(ValueError, match='`topic` applies to bags'):
         open_scan_source(tmp_path, topic='/points')
+
+
+def test_open_recording_finds_the_reference_poses(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    scans = _scans(3, points=50, seed=8)
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[:, 0, 3] = [0.0, 0.5, 1.0]
+    stamps = T0 + np.arange(3) * 500_000_000
+    bag = tmp_path / 'bag'
+    with BagWriter(bag) as writer:
+        for i, (pts, _) in enumerate(scans):
+            writer.write_pointcloud('/points', int(stamps[i]), pts)
+            writer.write_pose('/ground_truth', int(stamps[i]), T[i])
+    source, reference, origin = open_recording(bag)
+    assert origin == '/ground_truth' and reference is not None
+    np.testing.assert_array_equal(reference.stamps_ns, stamps)
+    assert [s.stamp_ns for s in source] == stamps.tolist()
+    assert all(not s.extras for s in source)  # x, y, z only by default
+    with caplog.at_level(logging.INFO, logger='kentreg_ros.io.bags'):
+        assert open_recording(bag, poses_topic='/other').reference is None
+    assert 'No ground truth from the bag' in caplog.text
+    # A scan folder with BALM's alidarPose.csv beside the scans: its times stamp the scans.
+    folder = tmp_path / 'scans'
+    folder.mkdir()
+    lines = []
+    for i, (pts, intensity) in enumerate(scans):
+        write_pcd(folder / f'full{i}.pcd', pts, {'intensity': intensity})
+        lines += [','.join(f'{v:g}' for v in row) + ',' for row in T[i, :3]]
+        lines.append(f'0,0,0,{stamps[i] / 1e9:.1f},')
+    (folder / 'alidarPose.csv').write_text('\n'.join(lines) + '\n')
+    source, reference, origin = open_recording(folder, fields=None)
+    assert origin == str(folder / 'alidarPose.csv') and reference is not None
+    assert [s.stamp_ns for s in source] == stamps.tolist()
+    assert all(list(s.extras) == ['intensity'] for s in source)
+    tum = tmp_path / 'gt.tum'
+    tum.write_text('1.0 0 0 0 0 0 0 1\n')
+    source, reference, origin = open_recording(folder, poses=tum)
+    assert origin == str(tum) and reference is not None and len(reference.T_world_sensor) == 1
+    with pytest.raises(ScanFileError, match='no_such: no such file or folder'):
+        open_recording(tmp_path / 'no_such')
+    with pytest.raises(ValueError, match='`topic` applies to bags'):
+        open_recording(folder, topic='/points')
 
 
 def test_rosbags_factory_messages_serialize() -> None:

@@ -1,4 +1,4 @@
-"""kentreg_convert: scan folders and files (+ poses) to rosbag2 MCAP; one-line errors."""
+"""kentreg_convert: scan folders and files (+ poses) to rosbag2 MCAP; one-line errors, exit 2."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kentreg_ros.convert import downsample_scan, main
+from kentreg_ros.cli.convert import downsample_scan, main
 from kentreg_ros.io.bags import bag_topics, open_scan_source, read_ground_truth
 from kentreg_ros.io.poses import read_poses, write_kitti, write_tum
 from kentreg_ros.io.scanfiles import write_pcd
@@ -150,7 +150,7 @@ def test_convert_errors_are_one_line(
     argv = [str(folder), '-o', str(tmp_path / 'out'), '-q'] + [
         a.format(tmp=tmp_path) for a in args
     ]
-    assert main(argv) == 1
+    assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and err.startswith('kentreg_convert: error: ')
     assert message in err
@@ -163,14 +163,17 @@ def test_convert_refuses_to_overwrite_and_bad_arguments(
     folder, _ = _folder(tmp_path, n=1)
     out = tmp_path / 'out'
     assert main([str(folder), '-o', str(out), '-q']) == 0
-    assert main([str(folder), '-o', str(out), '-q']) == 1
+    assert main([str(folder), '-o', str(out), '-q']) == 2
     assert 'exists; not overwriting' in capsys.readouterr().err
     assert main([str(folder), '-o', str(out), '-q', '--overwrite']) == 0
-    assert main([str(tmp_path / 'missing'), '-o', str(tmp_path / 'o2'), '-q']) == 1
+    assert main([str(tmp_path / 'missing'), '-o', str(tmp_path / 'o2'), '-q']) == 2
     assert 'neither a bag' in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exc:
-        main([str(folder), '-o', str(out), '--rate', '0'])
-    assert exc.value.code == 2
+    for bad in (['--rate', '0'], ['--voxel-size', '-1'], ['--times', 't.txt'], ['--bogus']):
+        assert main([str(folder), '-o', str(tmp_path / 'o3'), *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.count('\n') == 1 and err.startswith('kentreg_convert: error: ')
+        assert bad[0] in err
+    assert not (tmp_path / 'o3').exists()
 
 
 def test_convert_stops_at_a_bad_scan_and_keeps_what_came_before(
@@ -180,7 +183,7 @@ def test_convert_stops_at_a_bad_scan_and_keeps_what_came_before(
     raw = (folder / 'full2.pcd').read_bytes()
     (folder / 'full2.pcd').write_bytes(raw[: len(raw) - 100])
     out = tmp_path / 'out'
-    assert main([str(folder), '-o', str(out), '-q']) == 1
+    assert main([str(folder), '-o', str(out), '-q']) == 2
     err = capsys.readouterr().err
     assert 'full2.pcd: PCD binary data is truncated' in err
     assert f'(2 scan(s) written to {out} before this)' in err
@@ -199,10 +202,14 @@ def test_convert_truncated_bag_keeps_messages_before_the_cut(
     cut = tmp_path / 'cut.mcap'
     cut.write_bytes(raw[: int(len(raw) * 0.7)])
     out = tmp_path / 'rescued'
-    assert main([str(cut), '-o', str(out), '-q']) == 1
-    err = capsys.readouterr().err
-    assert 'MCAP file is truncated or corrupt after' in err and err.count('\n') == 1
+    assert main([str(cut), '-o', str(out), '-q']) == 2
+    # The reader says once (a warning, shown with -q too) that it salvages the records; the
+    # error that ends the conversion is one line.
+    warning, error = capsys.readouterr().err.splitlines()
+    assert warning.startswith('kentreg_convert: WARNING: ') and 'one by one' in warning
+    assert error.startswith('kentreg_convert: error: ')
+    assert 'MCAP file is truncated or corrupt after' in error
     assert 1 <= len(list(open_scan_source(out))) < 6
     cut.write_bytes(raw[:5000])
-    assert main([str(cut), '-o', str(tmp_path / 'nothing'), '-q']) == 1
+    assert main([str(cut), '-o', str(tmp_path / 'nothing'), '-q']) == 2
     assert 'truncated or corrupt before any complete chunk' in capsys.readouterr().err

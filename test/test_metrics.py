@@ -1,4 +1,4 @@
-"""Tests of kentreg_ros.core.metrics on synthetic trajectories with known errors."""
+"""Tests of kentreg_ros.eval.metrics and eval.kitti on synthetic trajectories with known errors."""
 
 from __future__ import annotations
 
@@ -9,12 +9,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.core.errors import DegenerateSceneError
-from kentreg_ros.core.metrics import (
-    KITTI_LENGTHS,
+from kentreg_ros.eval.kitti import KITTI_LENGTHS, kitti_segment_errors
+from kentreg_ros.eval.metrics import (
+    FAIL_ROTATION_DEG,
+    FAIL_TRANSLATION_M,
     align_umeyama,
     as_poses,
     ate,
-    kitti_segment_errors,
+    failed_pairs,
     pair_errors,
     relative_poses,
     rotation_error_deg,
@@ -119,6 +121,17 @@ def test_pair_errors_of_known_perturbation() -> None:
 
 # --------------------------------------------------------------------------------------------
 # Trajectories
+
+
+def test_failed_pairs_use_the_papers_thresholds_and_fail_nan() -> None:
+    assert (FAIL_ROTATION_DEG, FAIL_TRANSLATION_M) == (2.0, 0.2)
+    e_R = np.array([0.1, 2.0, 2.01, 0.1, np.nan, 0.1, np.inf])
+    e_t = np.array([0.01, 0.2, 0.0, 0.21, 0.0, np.nan, 0.0])
+    np.testing.assert_array_equal(
+        failed_pairs(e_R, e_t), [False, False, True, True, True, True, True]
+    )
+    with pytest.raises(ValueError, match='broadcastable'):
+        failed_pairs(np.zeros(3), np.zeros(2))
 
 
 def test_relative_poses_chain_back_to_absolute_trajectory() -> None:

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from kentreg_ros.core.config import KentRegConfig, load_config, parameters_from_yaml
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.io.params import load_config, parameters_from_yaml
 from kentreg_ros.node_params import NODE_PARAMETERS, dump_parameter_file, node_settings
 
 REPO = Path(__file__).resolve().parents[1]

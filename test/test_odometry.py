@@ -9,10 +9,10 @@ from scipy.spatial.transform import Rotation
 import kentreg_ros.core.odometry as odometry_module
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.core.metrics import rpe
 from kentreg_ros.core.odometry import Odometry, OdometryStep
 from kentreg_ros.core.registration import PreparedScan
 from kentreg_ros.core.rotations import rotation_angle
+from kentreg_ros.eval.metrics import rpe
 
 N_POINTS = 8000
 STEP_NS = 100_000_000  # 10 Hz

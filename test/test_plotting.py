@@ -1,4 +1,4 @@
-"""Tests of kentreg_ros.plotting: the trajectory figure is written as a real PNG."""
+"""Tests of kentreg_ros.eval.plotting: the trajectory figure is written as a real PNG."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kentreg_ros.core.metrics import rpe
+from kentreg_ros.eval.metrics import rpe
 
 pytest.importorskip('matplotlib', reason='matplotlib is optional; pip install matplotlib')
 
-from kentreg_ros.plotting import plot_trajectory  # noqa: E402
+from kentreg_ros.eval.plotting import plot_trajectory  # noqa: E402
 
 PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 

@@ -20,8 +20,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.config import KentRegConfig, dump_config, load_config
-from kentreg_ros.replay import associate, main
+from kentreg_ros.cli.replay import main
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.eval.groundtruth import associate
+from kentreg_ros.io.params import dump_config, load_config
 
 pytest.importorskip('rosbags', reason='the replay CLI reads bags with rosbags')
 pytest.importorskip('mcap', reason='the output is checked with the mcap reader')
@@ -230,8 +232,8 @@ def test_replay_stride_processes_every_third_scan_with_original_stamps(
 
 
 def test_run_odometry_stride_selects_start_plus_multiples() -> None:
+    from kentreg_ros.eval.run import run_odometry
     from kentreg_ros.io.bags import Scan
-    from kentreg_ros.replay import run_odometry
 
     class Recorder:
         """Stands in for Odometry: records what it was given."""
@@ -249,14 +251,22 @@ def test_run_odometry_stride_selects_start_plus_multiples() -> None:
 
     scans = [Scan(1000 * i, 'lidar', np.zeros((1, 3)), {}) for i in range(10)]
     odom = Recorder()
-    run = run_odometry(scans, odom, start=1, stride=4, progress=False)  # type: ignore[arg-type]
+    run = run_odometry(scans, odom, start=1, stride=4)  # type: ignore[arg-type]
     assert run.input_indices == [1, 5, 9] and odom.stamps == [1000, 5000, 9000]
     odom = Recorder()
-    run = run_odometry(scans, odom, start=2, stride=3, max_scans=2, progress=False)  # type: ignore[arg-type]
+    run = run_odometry(scans, odom, start=2, stride=3, max_scans=2)  # type: ignore[arg-type]
     assert run.input_indices == [2, 5] and odom.stamps == [2000, 5000]
     odom = Recorder()
-    run = run_odometry(scans, odom, start=9, stride=5, progress=False)  # type: ignore[arg-type]
+    run = run_odometry(scans, odom, start=9, stride=5)  # type: ignore[arg-type]
     assert run.input_indices == [9]
+    seen: list[object] = []
+    run = run_odometry(scans, Recorder(), stride=3, on_step=seen.append)  # type: ignore[arg-type]
+    assert run.input_indices == [0, 3, 6, 9] and seen == run.steps
+    with pytest.raises(ValueError, match='start 10: the input has only 10 scans'):
+        run_odometry(scans, Recorder(), start=10)  # type: ignore[arg-type]
+    for stride in (0, True, 1.5):
+        with pytest.raises(ValueError, match='stride: expected a positive integer'):
+            run_odometry(scans, Recorder(), stride=stride)  # type: ignore[arg-type]
 
 
 def test_replay_paper_mode_config_runs_end_to_end(sample_bag: Path, tmp_path: Path) -> None:
@@ -296,7 +306,7 @@ def test_replay_scan_folder_uses_pose_file_beside_scans(shared_data: Path, tmp_p
 def test_replay_counts_rejected_scan_of_synthetic_bag(tmp_path: Path) -> None:
     from test_odometry import STEP_NS, observe, true_trajectory
 
-    from kentreg_ros.io.bags import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter
 
     rng = np.random.default_rng(11)
     T_true = true_trajectory(4)
@@ -401,7 +411,7 @@ def test_replay_bad_input_exits_2_with_one_line(
 def test_replay_module_subprocess_bad_input(repo_root: Path, tmp_path: Path) -> None:
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
     proc = subprocess.run(
-        [sys.executable, '-m', 'kentreg_ros.replay', str(tmp_path / 'nothing_here')],
+        [sys.executable, '-m', 'kentreg_ros.cli.replay', str(tmp_path / 'nothing_here')],
         capture_output=True, text=True, env=env, timeout=60, check=False,
     )  # fmt: skip
     assert proc.returncode == 2

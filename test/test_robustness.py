@@ -14,8 +14,8 @@ from scenes import transform_points as move
 from kentreg_ros.core import InvalidPointCloudError, KentRegConfig, prepare_scan, register
 from kentreg_ros.core.odometry import Odometry
 from kentreg_ros.core.rotations import exp_so3, make_transform, rotation_angle
-
-FAIL_DEG, FAIL_M = 2.0, 0.2  # the paper's per-pair failure thresholds
+from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG as FAIL_DEG
+from kentreg_ros.eval.metrics import FAIL_TRANSLATION_M as FAIL_M
 
 
 def _plane(rng: np.random.Generator, n: int) -> np.ndarray:

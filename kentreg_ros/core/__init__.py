@@ -1,6 +1,6 @@
 """Registration core of kentreg_ros: numpy/scipy only, never imports rclpy or rosbags."""
 
-from kentreg_ros.core.config import KentRegConfig, load_config
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import (
     ConfigError,
     DegenerateSceneError,
@@ -25,7 +25,6 @@ __all__ = [
     'RegistrationResult',
     'as_points',
     'drop_nonfinite',
-    'load_config',
     'prepare_scan',
     'register',
     'voxel_downsample',

@@ -1,8 +1,9 @@
 """Configuration of the registrar and the odometry: one frozen dataclass tree.
 
 :class:`KentRegConfig` is the single source of defaults, ranges and validation. The ROS node
-declares one parameter per field (dotted names such as ``em.max_iterations``), the replay CLI
-reads the same YAML file, and every output directory gets the effective configuration back.
+declares one parameter per field (dotted names such as ``em.max_iterations``), the command
+lines read the same YAML file (:mod:`kentreg_ros.io.params` reads and writes it), and every output
+directory gets the effective configuration back.
 
 Every field carries metadata: a one-line ``description`` and either a numeric ``range``
 (inclusive) or a tuple of ``choices``. :func:`iter_fields` walks the tree with that metadata.
@@ -14,12 +15,9 @@ import dataclasses
 import types
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
-from pathlib import Path
 from typing import Any, get_type_hints
 
 from kentreg_ros.core.errors import ConfigError
-
-NODE_NAME = 'kentreg_node'
 
 
 def _f(
@@ -360,7 +358,7 @@ class KentRegConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> KentRegConfig:
         """Build a config from a nested and/or dotted mapping; unknown keys are an error."""
-        return _from_mapping(cls, _nest(data), '')
+        return _from_mapping(cls, nest_keys(data), '')
 
     def to_dict(self) -> dict[str, Any]:
         """Nested plain-dict form (YAML-ready)."""
@@ -373,7 +371,7 @@ class KentRegConfig:
     def with_updates(self, updates: Mapping[str, Any]) -> KentRegConfig:
         """A copy with dotted or nested overrides applied (validated)."""
         merged = self.to_flat_dict()
-        flat_updates = _flatten(_nest(updates))
+        flat_updates = flatten_keys(nest_keys(updates))
         unknown = sorted(set(flat_updates) - set(merged))
         if unknown:
             raise ConfigError(
@@ -411,7 +409,14 @@ def _validate_value(name: str, value: Any, f: dataclasses.Field) -> None:
             raise ConfigError(f'Expected `{name}` in [{lo}, {hi}], got {value!r}.')
 
 
-def _nest(data: Mapping[str, Any]) -> dict[str, Any]:
+def nest_keys(data: Mapping[str, Any]) -> dict[str, Any]:
+    """``{'em.max_iterations': 9}`` and ``{'em': {...}}`` alike as one nested mapping.
+
+    Raises
+    ------
+    ConfigError
+        A key that is not a string, or one that is both a section and a scalar.
+    """
     out: dict[str, Any] = {}
     for key, value in data.items():
         if not isinstance(key, str):
@@ -427,17 +432,18 @@ def _nest(data: Mapping[str, Any]) -> dict[str, Any]:
             existing = node.setdefault(parts[-1], {})
             if not isinstance(existing, dict):
                 raise ConfigError(f'Configuration key {key!r} conflicts with a scalar value.')
-            existing.update(_nest(value))
+            existing.update(nest_keys(value))
         else:
             node[parts[-1]] = value
     return out
 
 
-def _flatten(data: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+def flatten_keys(data: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """A nested mapping as ``{'em.max_iterations': 9, ...}`` (dotted ROS parameter names)."""
     out: dict[str, Any] = {}
     for key, value in data.items():
         if isinstance(value, Mapping):
-            out.update(_flatten(value, f'{prefix}{key}.'))
+            out.update(flatten_keys(value, f'{prefix}{key}.'))
         else:
             out[f'{prefix}{key}'] = value
     return out
@@ -493,58 +499,3 @@ def _coerce(name: str, value: Any, hint: Any) -> Any:
             raise ConfigError(f'Expected `{name}` to be a string, got {value!r}.')
         return value
     return value
-
-
-def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
-    """Read a parameter file and return its flat ``{dotted_name: value}`` mapping.
-
-    Accepts the ROS 2 form ``<node_name>: {ros__parameters: {...}}`` (the node key may carry
-    a namespace, ``/ns/<node_name>`` or ``/**/<node_name>``, or be ``/**``) and a plain mapping
-    of the same keys, nested or dotted.
-    """
-    import yaml  # noqa: PLC0415  (keep the core importable without PyYAML for library users)
-
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(
-            f'Cannot read configuration file {str(path)!r}: {exc.strerror}.'
-        ) from exc
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f'Configuration file {str(path)!r} is not valid YAML: {exc}.') from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f'Expected a mapping at the top of {str(path)!r}, got {type(data)}.')
-    # ROS keys name the node: `kentreg_node`, `/kentreg_node`, `/robot1/kentreg_node`,
-    # `/**/kentreg_node` (any namespace) or `/**` (every node).
-    keys = [k for k in data if isinstance(k, str)]
-    candidates = [k for k in keys if k in (node_name, '/' + node_name)]
-    candidates += [k for k in keys if k.endswith('/' + node_name) and k not in candidates]
-    candidates += [k for k in keys if k == '/**']
-    for key in candidates:
-        section = data.get(key)
-        if isinstance(section, dict) and 'ros__parameters' in section:
-            data = section['ros__parameters'] or {}
-            break
-    return _flatten(_nest(data))
-
-
-def load_config(
-    path: str | Path, node_name: str = NODE_NAME, ignore_prefixes: tuple[str, ...] = ('node.',)
-) -> KentRegConfig:
-    """Load a :class:`KentRegConfig` from a YAML file (see :func:`parameters_from_yaml`).
-
-    Keys under ``ignore_prefixes`` belong to the ROS node only and are skipped here.
-    """
-    params = parameters_from_yaml(path, node_name)
-    params = {k: v for k, v in params.items() if not k.startswith(ignore_prefixes)}
-    return KentRegConfig.from_dict(params)
-
-
-def dump_config(config: KentRegConfig, node_name: str = NODE_NAME) -> str:
-    """YAML text in the ``<node_name>: ros__parameters:`` form, loadable by both consumers."""
-    import yaml  # noqa: PLC0415
-
-    return yaml.safe_dump({node_name: {'ros__parameters': config.to_dict()}}, sort_keys=False)

@@ -1,14 +1,22 @@
-"""Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags.
+"""Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags, parameter files.
 
-Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles` and
-:mod:`~kentreg_ros.io.poses` need only numpy/scipy; the bag names (``open_scan_source``,
-``BagWriter``, ...) load rosbags on first use, so a ROS node without rosbags can still import
-this package.
+Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles`,
+:mod:`~kentreg_ros.io.poses` and :mod:`~kentreg_ros.io.params` need only numpy/scipy/PyYAML; the
+bag names (``open_scan_source``, ``BagWriter``, ...) load rosbags on first use, so a ROS node
+without rosbags can still import this package.
 """
 
 from typing import TYPE_CHECKING, Any
 
 from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
+from kentreg_ros.io.params import (
+    NODE_NAME,
+    dump_config,
+    effective_config,
+    load_config,
+    parameters_from_yaml,
+    parse_overrides,
+)
 from kentreg_ros.io.pointcloud2 import (
     CloudArrays,
     MessageFactory,
@@ -19,6 +27,7 @@ from kentreg_ros.io.pointcloud2 import (
 )
 from kentreg_ros.io.poses import (
     Trajectory,
+    pose_file_beside,
     read_poses,
     write_kitti,
     write_tum,
@@ -28,40 +37,50 @@ from kentreg_ros.io.scanfiles import list_scans, read_scan, write_pcd
 if TYPE_CHECKING:
     from kentreg_ros.io.bags import (
         BagScanSource,
-        BagWriter,
         FilesScanSource,
+        Recording,
         Scan,
         ScanSource,
         bag_topics,
         is_bag,
+        open_recording,
         open_scan_source,
         read_ground_truth,
     )
+    from kentreg_ros.io.bagwriter import BagWriter, write_odometry_mcap
 
-_BAG_NAMES = frozenset(
-    {
-        'BagScanSource',
-        'BagWriter',
-        'FilesScanSource',
-        'Scan',
-        'ScanSource',
-        'bag_topics',
-        'is_bag',
-        'open_scan_source',
-        'read_ground_truth',
-    }
-)
+#: The names loaded on first use, and the module each comes from.
+_LAZY = {
+    **dict.fromkeys(
+        (
+            'BagScanSource',
+            'FilesScanSource',
+            'Recording',
+            'Scan',
+            'ScanSource',
+            'bag_topics',
+            'is_bag',
+            'open_recording',
+            'open_scan_source',
+            'read_ground_truth',
+        ),
+        'kentreg_ros.io.bags',
+    ),
+    'BagWriter': 'kentreg_ros.io.bagwriter',
+    'write_odometry_mcap': 'kentreg_ros.io.bagwriter',
+}
 
 
 def __getattr__(name: str) -> Any:
-    if name in _BAG_NAMES:
-        from kentreg_ros.io import bags
+    if name in _LAZY:
+        import importlib
 
-        return getattr(bags, name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
 
 
 __all__ = [
+    'NODE_NAME',
     'BagError',
     'BagScanSource',
     'BagWriter',
@@ -69,22 +88,31 @@ __all__ = [
     'FilesScanSource',
     'MessageFactory',
     'PoseFileError',
+    'Recording',
     'Scan',
     'ScanFileError',
     'ScanSource',
     'Trajectory',
     'array_to_pointcloud2',
     'bag_topics',
+    'dump_config',
+    'effective_config',
     'is_bag',
     'list_scans',
+    'load_config',
+    'open_recording',
     'open_scan_source',
+    'parameters_from_yaml',
+    'parse_overrides',
     'pointcloud2_to_array',
+    'pose_file_beside',
     'rclpy_factory',
     'read_ground_truth',
     'read_poses',
     'read_scan',
     'rosbags_factory',
     'write_kitti',
+    'write_odometry_mcap',
     'write_pcd',
     'write_tum',
 ]

@@ -1,4 +1,4 @@
-"""Bags in and out, through rosbags (>= 0.11): one iterator for bags and scan folders alike.
+"""Bags in, through rosbags (>= 0.11): one iterator for bags and scan folders alike.
 
 Reading
     rosbag2 (``.db3`` or ``.mcap``, the file or its folder) and ROS 1 ``.bag`` files, through
@@ -8,37 +8,35 @@ Reading
     message before the fault has already been yielded. An MCAP file that rosbags cannot open
     (truncated: no summary, no footer) is streamed record by record with the ``mcap`` package,
     so the messages written before the cut are still delivered.
-Writing
-    :class:`BagWriter` writes a rosbag2 folder with one MCAP file (zstd-compressed chunks by
-    default), readable by ``ros2 bag play``, rosbags, Foxglove and the ``mcap`` CLI.
+Recordings
+    :func:`open_recording` opens a bag or a scan folder together with its reference poses (a
+    pose file, the bag's ``/ground_truth`` topic, or a pose file beside the scans), as
+    ``kentreg_replay`` and the benchmarks read their input.
+
+Writing is in :mod:`kentreg_ros.io.bagwriter`.
 """
 
 from __future__ import annotations
 
 import abc
 import logging
-import shutil
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import Any, NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike, DTypeLike, NDArray
+from numpy.typing import DTypeLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.errors import InvalidPointCloudError
-from kentreg_ros.io.errors import BagError, PoseFileError
+from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,
-    array_to_pointcloud2,
-    ns_to_sec_nanosec,
     pointcloud2_to_array,
-    rosbags_factory,
     stamp_to_ns,
 )
-from kentreg_ros.io.poses import Trajectory, read_poses
+from kentreg_ros.io.poses import Trajectory, pose_file_beside, read_poses
 from kentreg_ros.io.scanfiles import SCAN_SUFFIXES, list_scans, read_scan
 
 logger = logging.getLogger(__name__)
@@ -56,6 +54,8 @@ POSE_MSGTYPES = (
     PATH,
 )
 BAG_SUFFIXES = ('.bag', '.mcap', '.db3')
+#: Topic of the reference poses :func:`read_ground_truth` and :func:`open_recording` read.
+GROUND_TRUTH_TOPIC = '/ground_truth'
 DEFAULT_RATE_HZ = 10.0
 
 
@@ -551,7 +551,7 @@ def _matrix(translation: Any, rotation: Any) -> NDArray[np.float64]:
     return T
 
 
-def read_ground_truth(path: str | Path, *, topic: str = '/ground_truth') -> Trajectory:
+def read_ground_truth(path: str | Path, *, topic: str = GROUND_TRUTH_TOPIC) -> Trajectory:
     """Poses of a bag topic as a :class:`~kentreg_ros.io.poses.Trajectory`.
 
     Parameters
@@ -601,254 +601,99 @@ def read_ground_truth(path: str | Path, *, topic: str = '/ground_truth') -> Traj
     return Trajectory(np.array(stamps, dtype=np.int64), np.stack(poses))
 
 
-# --- writing ---------------------------------------------------------------------------------
+# --- recordings: scans and reference poses ------------------------------------------------------
 
 
-class BagWriter:
-    """Write a rosbag2 MCAP bag: point clouds, poses, odometry, paths, TF.
+class Recording(NamedTuple):
+    """A recorded input: its scans and, when known, the reference poses of the sensor.
 
-    Use as a context manager. The output is a rosbag2 folder ``<path>/`` holding
-    ``<name>.mcap`` and ``metadata.yaml`` (what ``ros2 bag play <path>`` expects); a path ending
-    in ``.mcap`` is taken without the suffix. The bag is closed properly even when the ``with``
-    block raises, so what was written before an error stays readable.
+    Attributes
+    ----------
+    source : ScanSource
+        The scans.
+    reference : Trajectory or None
+        Reference poses ``T_world_sensor`` as read (not associated with the scans).
+    reference_origin : str
+        Where they came from: the pose file or the bag topic; ``''`` without them.
+    """
+
+    source: ScanSource
+    reference: Trajectory | None
+    reference_origin: str
+
+
+def open_recording(
+    path: str | Path,
+    *,
+    topic: str | None = None,
+    poses: str | Path | None = None,
+    poses_topic: str = GROUND_TRUTH_TOPIC,
+    fields: Sequence[str] | None = (),
+) -> Recording:
+    """Open a bag or a scan folder with its reference poses, wherever they are.
+
+    The reference is ``poses`` when given; otherwise, for a bag, its ``poses_topic`` (a bag
+    without that topic is logged at INFO, an unreadable one at WARNING: the scans can still be
+    read), and for a scan folder a pose file beside the scans (see
+    :func:`~kentreg_ros.io.poses.pose_file_beside`; an unreadable one is logged and ignored).
+    When a timed reference holds exactly one pose per scan of a folder, its times stamp the
+    scans.
 
     Parameters
     ----------
     path : str or Path
-        Folder to create.
-    compress : bool
-        zstd-compress the MCAP chunks (default True; ``ros2 bag`` reads them natively).
-    overwrite : bool
-        Replace an existing rosbag2 folder (only one holding nothing but bag files).
-    custom_data : dict of str to str, optional
-        Stored in ``metadata.yaml`` (``custom_data``), e.g. provenance.
-    typestore : rosbags Typestore, optional
-        Default: ROS 2 Jazzy.
+        A bag or a folder of scan files (see :func:`open_scan_source`).
+    topic : str, optional
+        Bags only: the PointCloud2 topic, needed when there are several.
+    poses : str or Path, optional
+        A pose file (KITTI, TUM, ETH, BALM; see :func:`~kentreg_ros.io.poses.read_poses`).
+    poses_topic : str
+        The bag topic of the reference poses (see :func:`read_ground_truth`).
+    fields : sequence of str, optional
+        Extra per-point fields to keep; ``()`` (default) none, None all.
+
+    Returns
+    -------
+    Recording
+
+    Raises
+    ------
+    ScanFileError
+        ``path`` does not exist.
+    BagError, ScanFileError, PoseFileError, ValueError
+        As :func:`open_scan_source` and :func:`~kentreg_ros.io.poses.read_poses`.
     """
-
-    def __init__(
-        self,
-        path: str | Path,
-        *,
-        compress: bool = True,
-        overwrite: bool = False,
-        custom_data: Mapping[str, str] | None = None,
-        typestore: Any = None,
-    ) -> None:
-        p = Path(path)
-        if p.suffix.lower() == '.mcap':
-            p = p.with_suffix('')
-        self.path = p
-        self.compress = compress
-        self.overwrite = overwrite
-        self.custom_data = dict(custom_data or {})
-        self.typestore = typestore if typestore is not None else _default_typestore()
-        self._factory = rosbags_factory(self.typestore)
-        self._writer: Any = None
-        self._connections: dict[str, Any] = {}
-        self.counts: dict[str, int] = {}
-
-    @property
-    def mcap_path(self) -> Path:
-        """The MCAP file inside the bag folder."""
-        return self.path / f'{self.path.name}.mcap'
-
-    def open(self) -> None:
-        """Create the bag folder and start writing."""
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
-        if self.path.exists():
-            if not self.overwrite:
-                raise BagError(f'{self.path} exists; not overwriting (use overwrite).')
-            _remove_bag_folder(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if self.compress:
-            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        for key, value in self.custom_data.items():
-            writer.set_custom_data(key, str(value))
-        try:
-            writer.open()
-        except Exception as exc:
-            raise BagError(f'{self.path}: cannot create bag ({_describe(exc)}).') from exc
-        self._writer = writer
-
-    def close(self) -> None:
-        """Finish the MCAP summary and metadata.yaml."""
-        if self._writer is not None:
-            writer, self._writer = self._writer, None
-            writer.close()
-
-    def __enter__(self) -> BagWriter:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        """Write any rosbags message of the writer's typestore, logged at ``stamp_ns``."""
-        if self._writer is None:
-            raise BagError(f'{self.path}: writer is not open.')
-        msgtype = msg.__msgtype__
-        connection = self._connections.get(topic)
-        if connection is None:
-            connection = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
-            self._connections[topic] = connection
-            self.counts[topic] = 0
-        elif connection.msgtype != msgtype:
-            raise BagError(
-                f'{self.path}: topic {topic} already carries {connection.msgtype}, not {msgtype}.'
-            )
-        self._writer.write(connection, int(stamp_ns), self.typestore.serialize_cdr(msg, msgtype))
-        self.counts[topic] += 1
-
-    def _header(self, stamp_ns: int, frame_id: str) -> Any:
-        sec, nanosec = ns_to_sec_nanosec(stamp_ns)
-        return self._factory.header(
-            stamp=self._factory.time(sec=sec, nanosec=nanosec), frame_id=frame_id
-        )
-
-    def _pose(self, T: ArrayLike) -> Any:
-        types = self.typestore.types
-        M = np.asarray(T, dtype=np.float64)
-        if M.shape != (4, 4):
-            raise ValueError(f'Expected a pose of shape (4, 4), got {M.shape}.')
-        x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
-        return types['geometry_msgs/msg/Pose'](
-            position=types['geometry_msgs/msg/Point'](*(float(v) for v in M[:3, 3])),
-            orientation=types['geometry_msgs/msg/Quaternion'](
-                float(x), float(y), float(z), float(w)
-            ),
-        )
-
-    def write_pointcloud(
-        self,
-        topic: str,
-        stamp_ns: int,
-        points: ArrayLike,
-        *,
-        extra: Mapping[str, ArrayLike] | None = None,
-        frame_id: str = 'lidar',
-        xyz_dtype: DTypeLike = np.float32,
-    ) -> None:
-        """Write a PointCloud2 (see :func:`~kentreg_ros.io.pointcloud2.array_to_pointcloud2`)."""
-        msg = array_to_pointcloud2(
-            points,
-            extra=extra,
-            frame_id=frame_id,
-            stamp_ns=stamp_ns,
-            xyz_dtype=xyz_dtype,
-            factory=self._factory,
-        )
-        self.write(topic, msg, stamp_ns)
-
-    def write_pose(
-        self, topic: str, stamp_ns: int, T_frame_child: ArrayLike, *, frame_id: str = 'world'
-    ) -> None:
-        """Write a PoseStamped: the pose (4, 4) of the child in ``frame_id``."""
-        msg = self.typestore.types[POSESTAMPED](
-            header=self._header(stamp_ns, frame_id), pose=self._pose(T_frame_child)
-        )
-        self.write(topic, msg, stamp_ns)
-
-    def write_odometry(
-        self,
-        topic: str,
-        stamp_ns: int,
-        T_frame_child: ArrayLike,
-        *,
-        frame_id: str = 'odom',
-        child_frame_id: str = 'base_link',
-        pose_covariance: ArrayLike | None = None,
-    ) -> None:
-        """Write an Odometry: pose (4, 4) of ``child_frame_id`` in ``frame_id``, zero twist.
-
-        ``pose_covariance`` is the 6x6 covariance of (x, y, z, rot_x, rot_y, rot_z); default 0.
-        """
-        types = self.typestore.types
-        cov = np.zeros(36) if pose_covariance is None else np.asarray(pose_covariance, float)
-        if cov.size != 36:
-            raise ValueError(f'Expected a 6x6 `pose_covariance`, got shape {cov.shape}.')
-        zero = types['geometry_msgs/msg/Vector3'](0.0, 0.0, 0.0)
-        msg = types[ODOMETRY](
-            header=self._header(stamp_ns, frame_id),
-            child_frame_id=child_frame_id,
-            pose=types['geometry_msgs/msg/PoseWithCovariance'](
-                pose=self._pose(T_frame_child), covariance=cov.reshape(36).copy()
-            ),
-            twist=types['geometry_msgs/msg/TwistWithCovariance'](
-                twist=types['geometry_msgs/msg/Twist'](linear=zero, angular=zero),
-                covariance=np.zeros(36),
-            ),
-        )
-        self.write(topic, msg, stamp_ns)
-
-    def write_path(
-        self,
-        topic: str,
-        stamp_ns: int,
-        stamps_ns: ArrayLike,
-        T_frame_child: ArrayLike,
-        *,
-        frame_id: str = 'world',
-    ) -> None:
-        """Write a nav_msgs Path of poses (N, 4, 4) timed ``stamps_ns`` (N,)."""
-        T = np.asarray(T_frame_child, dtype=np.float64)
-        stamps = np.asarray(stamps_ns, dtype=np.int64)
-        if T.ndim != 3 or T.shape[1:] != (4, 4) or stamps.shape != (len(T),):
-            raise ValueError(
-                f'Expected poses (N, 4, 4) and stamps (N,), got {T.shape} and {stamps.shape}.'
-            )
-        posestamped = self.typestore.types[POSESTAMPED]
-        poses = [
-            posestamped(header=self._header(int(s), frame_id), pose=self._pose(M))
-            for s, M in zip(stamps, T, strict=True)
-        ]
-        msg = self.typestore.types[PATH](header=self._header(stamp_ns, frame_id), poses=poses)
-        self.write(topic, msg, stamp_ns)
-
-    def write_transform(
-        self,
-        stamp_ns: int,
-        T_frame_child: ArrayLike,
-        *,
-        frame_id: str,
-        child_frame_id: str,
-        topic: str = '/tf',
-    ) -> None:
-        """Write a tf2_msgs TFMessage with one transform ``frame_id`` -> ``child_frame_id``."""
-        types = self.typestore.types
-        pose = self._pose(T_frame_child)
-        transform = types['geometry_msgs/msg/Transform'](
-            translation=types['geometry_msgs/msg/Vector3'](
-                pose.position.x, pose.position.y, pose.position.z
-            ),
-            rotation=pose.orientation,
-        )
-        stamped = types['geometry_msgs/msg/TransformStamped'](
-            header=self._header(stamp_ns, frame_id),
-            child_frame_id=child_frame_id,
-            transform=transform,
-        )
-        self.write(topic, types['tf2_msgs/msg/TFMessage'](transforms=[stamped]), stamp_ns)
-
-
-def _remove_bag_folder(path: Path) -> None:
-    entries = list(path.iterdir()) if path.is_dir() else []
-    is_bag_folder = (
-        path.is_dir()
-        and (path / 'metadata.yaml').is_file()
-        and all(
-            e.is_file() and e.suffix.lower() in ('.mcap', '.db3', '.yaml', '.zstd')
-            for e in entries
-        )
-    )
-    if not is_bag_folder:
-        raise BagError(f'{path} exists and is not a rosbag2 folder; not removing it.')
-    shutil.rmtree(path)
+    p = Path(path)
+    if not p.exists():
+        raise ScanFileError(f'{p}: no such file or folder')
+    reference: Trajectory | None = None
+    origin = ''
+    if poses is not None:
+        reference, origin = read_poses(poses), str(poses)
+    if is_bag(p):
+        source = open_scan_source(p, topic=topic, fields=fields)
+        if reference is None:
+            try:
+                reference, origin = read_ground_truth(p, topic=poses_topic), poses_topic
+            except KentRegError as exc:
+                # A bag without the topic is common (logged quietly); an unreadable topic is
+                # worth a warning, but the odometry can still run.
+                missing = poses_topic not in bag_topics(p)
+                level = logging.INFO if missing else logging.WARNING
+                logger.log(level, 'No ground truth from the bag: %s', _describe(exc))
+        return Recording(source, reference, origin)
+    if topic is not None:
+        raise ValueError(f'`topic` applies to bags; {p} is not a bag.')
+    if reference is None and p.is_dir():
+        beside = pose_file_beside(p)
+        if beside is not None:
+            try:
+                reference, origin = read_poses(beside), str(beside)
+                logger.info('Ground truth: %s (found beside the scans).', beside)
+            except KentRegError as exc:
+                logger.warning('Ignoring %s: %s', beside, exc)
+    stamps: Trajectory | None = None
+    if reference is not None and reference.stamps_ns is not None and p.is_dir():
+        if len(list_scans(p)) == len(reference.T_world_sensor):
+            stamps = reference  # one pose per scan: its times stamp the scans
+    return Recording(open_scan_source(p, fields=fields, poses=stamps), reference, origin)

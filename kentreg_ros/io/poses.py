@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 
 #: Pose file formats :func:`read_poses` knows.
 POSE_FORMATS = ('kitti', 'tum', 'eth', 'balm')
+#: Names of the pose files :func:`pose_file_beside` looks for in a scan folder (BALM, ETH, other).
+POSE_FILES_BESIDE_SCANS = ('alidarPose.csv', 'pose_scanner_leica.csv', 'poses.csv')
 _ROTATION_TOLERANCE = 1e-3
 
 
@@ -251,6 +253,19 @@ def read_poses(
     if fmt == 'kitti':
         return read_kitti_poses(path, times=times)
     return {'tum': read_tum_poses, 'eth': read_eth_poses, 'balm': read_balm_poses}[fmt](path)
+
+
+def pose_file_beside(folder: str | Path) -> Path | None:
+    """The pose file of a scan folder: the first of :data:`POSE_FILES_BESIDE_SCANS` in it.
+
+    Each name is tried as written, then in lower case; None when the folder holds none.
+    """
+    folder = Path(folder)
+    for name in POSE_FILES_BESIDE_SCANS:
+        for candidate in (folder / name, folder / name.lower()):
+            if candidate.is_file():
+                return candidate
+    return None
 
 
 def _as_poses(T_world_sensor: ArrayLike) -> NDArray[np.float64]:

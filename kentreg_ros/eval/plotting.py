@@ -1,5 +1,8 @@
 """Trajectory plots for evaluation runs (matplotlib, imported lazily; not part of the core).
 
+:func:`plot_trajectory` draws any estimate over any reference; :func:`plot_run` draws an odometry
+run as ``kentreg_replay`` writes it to ``trajectory.png``.
+
 matplotlib is an optional dependency (extras ``test`` and ``bench``). The figure is drawn with
 the object-oriented API on an Agg canvas, so no pyplot state or global backend is touched and
 the function is safe in headless processes and worker threads.
@@ -15,10 +18,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.metrics import as_poses
+from kentreg_ros.eval.metrics import as_poses
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+
+    from kentreg_ros.eval.report import Evaluation
+    from kentreg_ros.eval.run import OdometryRun
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +63,7 @@ def plot_trajectory(
 
     The left panel shows the x-y positions of the estimate over the ground truth with equal axes
     and start (circle) and end (square) markers. The ground truth is drawn as given: align the
-    trajectories first (e.g. with :func:`kentreg_ros.core.metrics.ate`'s ``T_gt_est``) if they
+    trajectories first (e.g. with :func:`kentreg_ros.eval.metrics.ate`'s ``T_gt_est``) if they
     do not share a world frame. Each given error series adds a panel on the right, plotted
     against the pair index.
 
@@ -70,7 +76,7 @@ def plot_trajectory(
     T_gt : array_like, shape (M, 4, 4), optional
         Ground-truth poses in the same world frame.
     e_R_deg : array_like, shape (P,), optional
-        Rotation error of each pair in degrees (e.g. :func:`~kentreg_ros.core.metrics.rpe`'s
+        Rotation error of each pair in degrees (e.g. :func:`~kentreg_ros.eval.metrics.rpe`'s
         ``e_R_deg``).
     e_t : array_like, shape (P,), optional
         Translation error of each pair in metres.
@@ -155,3 +161,36 @@ def plot_trajectory(
     fig.savefig(path, dpi=120)
     logger.debug('Wrote trajectory plot %s', path)
     return path
+
+
+def plot_run(
+    path_png: str | os.PathLike[str],
+    run: OdometryRun,
+    evaluation: Evaluation | None = None,
+    *,
+    title: str = '',
+) -> Path:
+    """Write the PNG of an odometry run (:func:`plot_trajectory`).
+
+    Without an evaluation the estimate is drawn alone. With one, the estimated poses that have
+    a reference are mapped into the reference frame by the ATE alignment ``T_gt_est`` (the
+    identity below 3 poses) and drawn over it, with the per-pair errors on the right.
+
+    Raises
+    ------
+    ImportError
+        matplotlib is not installed.
+    """
+    if evaluation is None:
+        return plot_trajectory(path_png, run.poses, title=title)
+    ate = evaluation.metrics['ate']
+    T_gt_est = np.asarray(ate['T_gt_est']) if ate is not None else np.eye(4)
+    pairs = evaluation.metrics['pairs']
+    return plot_trajectory(
+        path_png,
+        T_gt_est @ run.poses[evaluation.scan_rows],
+        evaluation.T_gt,
+        e_R_deg=pairs['e_R_deg'],
+        e_t=pairs['e_t_m'],
+        title=title,
+    )

@@ -32,19 +32,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros import __version__
+from kentreg_ros.cli import common
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.preprocess import voxel_downsample
+from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC
 
-logger = logging.getLogger('kentreg_convert')
+logger = logging.getLogger('kentreg_ros.cli.convert')
+
+PROG = 'kentreg_convert'
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog='kentreg_convert',
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface of ``kentreg_convert``."""
+    parser = common.ArgumentParser(
+        prog=PROG,
         description='Turn a scan folder (PCD, PLY, KITTI .bin, ETH CSV) or a bag into a rosbag2 '
         'MCAP with /points (PointCloud2) and /ground_truth (PoseStamped).',
     )
-    parser.add_argument(
+    add = parser.add_argument
+    add(
         'inputs',
         nargs='+',
         type=Path,
@@ -52,75 +58,64 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help='a scan folder (natural order: full0, full1, ..., full10), a bag, or scan files '
         'in the order to write them',
     )
-    parser.add_argument(
+    add(
         '-o',
         '--output',
         type=Path,
         required=True,
         help='rosbag2 folder to create (OUT/OUT.mcap + metadata.yaml)',
     )
-    parser.add_argument(
+    add(
         '--poses',
         type=Path,
         help='pose file: KITTI, TUM, ETH pose_scanner_leica.csv or BALM '
         'alidarPose.csv; one pose per scan',
     )
-    parser.add_argument(
+    add(
         '--pose-format',
         choices=['auto', 'kitti', 'tum', 'eth', 'balm'],
         default='auto',
         help='pose file format (default: detect)',
     )
-    parser.add_argument('--times', type=Path, help='KITTI times.txt for KITTI poses')
-    parser.add_argument(
+    add('--times', type=Path, help='KITTI times.txt for KITTI poses')
+    add(
         '--rate',
-        type=float,
+        type=common.positive_float,
         help='stamp scans at this rate in Hz (default: the pose file times, '
         'or 10 Hz without them)',
     )
-    parser.add_argument(
+    add(
         '--start-time',
-        type=float,
+        type=common.non_negative_float,
         default=0.0,
         help='first stamp in seconds when stamping by rate (default 0)',
     )
-    parser.add_argument('--topic', help='PointCloud2 topic of an input bag with several')
-    parser.add_argument(
+    add('--topic', help='PointCloud2 topic of an input bag with several')
+    add(
         '--voxel-size',
-        type=float,
+        type=common.non_negative_float,
         default=0.0,
         help='voxel downsample to this size in metres (centroids; fields '
         'from the nearest original point); 0 keeps every point',
     )
-    parser.add_argument(
+    add(
         '--fields',
         default=None,
         help="comma-separated extra fields to keep (default all, 'none' for x y z only)",
     )
-    parser.add_argument('--frame-id', default='lidar', help='sensor frame (default lidar)')
-    parser.add_argument('--world-frame', default='world', help='ground truth frame')
-    parser.add_argument('--points-topic', default='/points')
-    parser.add_argument('--gt-topic', default='/ground_truth')
-    parser.add_argument(
-        '--no-compress', action='store_true', help='write uncompressed MCAP chunks (default zstd)'
-    )
-    parser.add_argument(
+    add('--frame-id', default='lidar', help='sensor frame (default lidar)')
+    add('--world-frame', default='world', help='ground truth frame')
+    add('--points-topic', default='/points')
+    add('--gt-topic', default=GROUND_TRUTH_TOPIC)
+    add('--no-compress', action='store_true', help='write uncompressed MCAP chunks (default zstd)')
+    add(
         '--overwrite',
         action='store_true',
         help='replace OUTPUT if it is an existing rosbag2 folder',
     )
-    parser.add_argument('-q', '--quiet', action='store_true', help='no progress bar or summary')
-    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
-    args = parser.parse_args(argv)
-    if args.rate is not None and not args.rate > 0.0:
-        parser.error(f'--rate must be > 0, got {args.rate}')
-    if args.voxel_size < 0.0:
-        parser.error(f'--voxel-size must be >= 0, got {args.voxel_size}')
-    if args.start_time < 0.0:
-        parser.error(f'--start-time must be >= 0, got {args.start_time}')
-    if args.times is not None and args.poses is None:
-        parser.error('--times needs --poses (a KITTI pose file)')
-    return args
+    add('-q', '--quiet', action='store_true', help='no progress bar or summary')
+    add('--version', action='version', version=f'%(prog)s {__version__}')
+    return parser
 
 
 def _field_list(text: str | None) -> list[str] | None:
@@ -217,16 +212,7 @@ def _open_source(args: argparse.Namespace, fields: list[str] | None) -> Any:
 def _write_scans(
     args: argparse.Namespace, source: Any, poses: Any, writer: Any, progress: dict[str, Any]
 ) -> None:
-    from tqdm import tqdm
-
-    bar = tqdm(
-        total=len(source),
-        unit='scan',
-        file=sys.stderr,
-        disable=args.quiet or None,
-        desc='kentreg_convert',
-    )
-    with bar:
+    with common.progress_bar(PROG, len(source), enabled=not args.quiet, terminal_only=True) as bar:
         for index, (stamp_ns, _frame, points, extras) in enumerate(source):
             if args.voxel_size > 0.0:
                 points, extras = downsample_scan(points, extras, args.voxel_size)
@@ -239,11 +225,12 @@ def _write_scans(
                 )
             progress['scans'] = index + 1
             progress['points'] += len(points)
-            bar.update()
+            if bar is not None:
+                bar.update()
 
 
 def _convert(args: argparse.Namespace, progress: dict[str, Any]) -> None:
-    from kentreg_ros.io.bags import BagWriter
+    from kentreg_ros.io.bagwriter import BagWriter
     from kentreg_ros.io.errors import PoseFileError
 
     fields = _field_list(args.fields)
@@ -256,7 +243,7 @@ def _convert(args: argparse.Namespace, progress: dict[str, Any]) -> None:
     logger.info('Reading %s.', source.description)
     custom = {
         'kentreg_convert.version': __version__,
-        'kentreg_convert.command': shlex.join(['kentreg_convert', *progress.get('argv', [])]),
+        'kentreg_convert.command': shlex.join([PROG, *progress.get('argv', [])]),
     }
     progress['points'] = 0
     writer = BagWriter(
@@ -287,23 +274,27 @@ def _convert(args: argparse.Namespace, progress: dict[str, Any]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``kentreg_convert``; returns the exit code."""
-    args = _parse_args(argv)
-    logging.basicConfig(
-        level=logging.WARNING if args.quiet else logging.INFO,
-        format='kentreg_convert: %(message)s',
-        stream=sys.stderr,
-    )
+    """Entry point of ``kentreg_convert``; returns the exit status (0, 2 on bad input, 130)."""
+    return common.run_main(PROG, lambda: _main(argv))
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.times is not None and args.poses is None:
+        raise common.CliError('--times needs --poses (a KITTI pose file)')
+    level = logging.WARNING if args.quiet else logging.INFO
     progress: dict[str, Any] = {'argv': list(sys.argv[1:] if argv is None else argv)}
-    try:
-        _convert(args, progress)
-    except (KentRegError, OSError, ValueError) as exc:
-        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if progress.get('output'):
-            text += f' ({progress.get("scans", 0)} scan(s) written to {args.output} before this)'
-        print(f'kentreg_convert: error: {text}', file=sys.stderr)
-        return 1
-    return 0
+    with common.logging_to_stderr(PROG, level, info_level=False):
+        try:
+            _convert(args, progress)
+        except (common.CliError, KentRegError, OSError, ValueError) as exc:
+            if not progress.get('output'):
+                raise
+            raise common.CliError(
+                f'{common.one_line(exc)} ({progress.get("scans", 0)} scan(s) written to '
+                f'{args.output} before this)'
+            ) from exc
+    return common.EXIT_OK
 
 
 if __name__ == '__main__':

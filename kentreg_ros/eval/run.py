@@ -1,0 +1,179 @@
+"""A measured run of the odometry over recorded scans: what ``kentreg_replay`` and the benchmarks
+time and evaluate.
+
+:func:`run_odometry` feeds the scans of a recording, in order and at CPU speed (none is dropped),
+to the same :class:`~kentreg_ros.core.odometry.Odometry` the ROS node runs, and records every
+step with the time spent reading. The loop itself stays in the core (``Odometry.step``); this is
+the harness around it that selects the scans, times them and keeps a partial run when the input
+breaks or the user interrupts.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Callable, Generator, Iterator
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core.odometry import Odometry, OdometryStep
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+
+class ScanLike(Protocol):
+    """One scan: what :func:`run_odometry` reads of a :class:`kentreg_ros.io.bags.Scan`."""
+
+    @property
+    def stamp_ns(self) -> int: ...
+
+    @property
+    def frame_id(self) -> str: ...
+
+    @property
+    def points(self) -> NDArray[np.floating]: ...
+
+
+class ScanSequence(Protocol):
+    """Scans in order with their count: a :class:`kentreg_ros.io.bags.ScanSource` or a list."""
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[ScanLike]: ...
+
+
+@dataclass
+class OdometryRun:
+    """What the odometry did with the scans of one input.
+
+    Attributes
+    ----------
+    steps : list of OdometryStep
+        One per processed scan, in order.
+    input_indices : list of int
+        The index in the input of each processed scan (``start + k * stride``).
+    read_ms : list of float
+        Milliseconds spent reading each processed scan (skipped scans included).
+    elapsed_s : float
+        Wall time of the whole run, reading included.
+    interrupted : bool
+        Ctrl-C ended the run early; ``steps`` holds the scans processed before it.
+    error : str or None
+        The first line of the read error that ended the run early (a damaged bag), or None.
+    """
+
+    steps: list[OdometryStep] = field(default_factory=list)
+    input_indices: list[int] = field(default_factory=list)
+    read_ms: list[float] = field(default_factory=list)
+    elapsed_s: float = 0.0
+    interrupted: bool = False
+    error: str | None = None
+
+    @property
+    def poses(self) -> FloatArray:
+        """``T_world_lidar`` of every step, shape (N, 4, 4)."""
+        if not self.steps:
+            return np.zeros((0, 4, 4))
+        return np.stack([s.T_world_lidar for s in self.steps])
+
+    @property
+    def stamps_ns(self) -> NDArray[np.int64]:
+        """Stamps of the processed scans, shape (N,)."""
+        return np.array([s.stamp_ns for s in self.steps], dtype=np.int64)
+
+
+def run_odometry(
+    source: ScanSequence,
+    odometry: Odometry,
+    *,
+    start: int = 0,
+    max_scans: int | None = None,
+    stride: int = 1,
+    on_step: Callable[[OdometryStep], object] | None = None,
+) -> OdometryRun:
+    """Feed the scans ``start, start + stride, ...`` of ``source`` (at most ``max_scans``).
+
+    The scans in between are read and skipped (a bag is sequential); the processed scans keep
+    their own stamps, so the odometry sees ``stride`` times the gaps. ``max_scans`` counts
+    processed scans, and :attr:`OdometryRun.input_indices` records which input scans they were.
+
+    A read error in the middle of the input (a damaged bag) ends the run early; the scans read
+    before it are kept and the error is recorded in :attr:`OdometryRun.error`. Ctrl-C does the
+    same with :attr:`OdometryRun.interrupted`. A generator source is closed at the end (a bag
+    is closed now, not at garbage collection).
+
+    Parameters
+    ----------
+    source : ScanSequence
+        The scans, e.g. :func:`kentreg_ros.io.open_scan_source` or a list of
+        :class:`kentreg_ros.io.Scan`.
+    odometry : Odometry
+        The odometry to step (usually fresh).
+    start : int
+        Index of the first scan processed, ``0 <= start < len(source)``.
+    max_scans : int, optional
+        Most scans processed.
+    stride : int
+        Process every ``stride``-th scan, ``>= 1``.
+    on_step : callable, optional
+        Called with each step after it ran (a progress bar).
+
+    Returns
+    -------
+    OdometryRun
+
+    Raises
+    ------
+    ValueError
+        ``start`` beyond the input, or ``stride`` not a positive integer.
+    """
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
+    run = OdometryRun()
+    n_total = len(source)
+    if start >= n_total:
+        raise ValueError(f'start {start}: the input has only {n_total} scans')
+    indices = range(start, n_total, stride)
+    if max_scans is not None:
+        indices = indices[:max_scans]
+    reader = iter(source)
+    scans = itertools.islice(reader, indices.start, indices.stop, indices.step)
+    t_run = time.perf_counter()
+    try:
+        for index in indices:
+            t0 = time.perf_counter()
+            try:
+                scan = next(scans)
+            except StopIteration:
+                break
+            except KentRegError as exc:
+                text = str(exc).strip()
+                run.error = text.splitlines()[0] if text else type(exc).__name__
+                break
+            run.read_ms.append((time.perf_counter() - t0) * 1e3)
+            step = odometry.step(scan.points, scan.stamp_ns, frame_id=scan.frame_id)
+            run.steps.append(step)
+            run.input_indices.append(index)
+            if on_step is not None:
+                on_step(step)
+            logger.debug(
+                'Scan %d: %s in %.0f ms (%s)',
+                index,
+                step.health,
+                step.timings['total'],
+                step.message,
+            )
+    except KeyboardInterrupt:
+        run.interrupted = True
+    finally:
+        if isinstance(reader, Generator):
+            reader.close()
+    run.elapsed_s = time.perf_counter() - t_run
+    return run

@@ -1,0 +1,85 @@
+"""Parameter files (kentreg_ros.io.params): the ROS 2 YAML form, round trip, overrides."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.io.params import (
+    dump_config,
+    effective_config,
+    load_config,
+    parameters_from_yaml,
+    parse_overrides,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_yaml_equals_the_defaults() -> None:
+    assert load_config(REPO / 'config' / 'kentreg.yaml') == KentRegConfig()
+
+
+def test_round_trip_through_yaml(tmp_path: Path) -> None:
+    cfg = KentRegConfig().with_updates({'em.max_iterations': 7, 'mode': 'paper'})
+    path = tmp_path / 'c.yaml'
+    path.write_text(dump_config(cfg))
+    assert load_config(path) == cfg
+
+
+def test_plain_and_dotted_yaml_forms(tmp_path: Path) -> None:
+    path = tmp_path / 'c.yaml'
+    path.write_text('em.max_iterations: 9\nnormals:\n  k_neighbors: 20\n')
+    cfg = load_config(path)
+    assert cfg.em.max_iterations == 9 and cfg.normals.k_neighbors == 20
+    assert parameters_from_yaml(path) == {'em.max_iterations': 9, 'normals.k_neighbors': 20}
+
+
+@pytest.mark.parametrize('key', ['kentreg_node', '/kentreg_node', '/robot1/kentreg_node',
+                                 '/**/kentreg_node', '/**'])  # fmt: skip
+def test_ros_parameter_file_node_keys(tmp_path: Path, key: str) -> None:
+    path = tmp_path / 'c.yaml'
+    other = 'other_node:\n  ros__parameters:\n    em:\n      max_iterations: 3\n'
+    path.write_text(f'{other}{key!r}:\n  ros__parameters:\n    em:\n      max_iterations: 9\n')
+    assert parameters_from_yaml(path) == {'em.max_iterations': 9}
+
+
+def test_missing_and_invalid_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match='Cannot read'):
+        load_config(tmp_path / 'missing.yaml')
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('em: [1, 2\n')
+    with pytest.raises(ConfigError, match='not valid YAML'):
+        load_config(bad)
+
+
+def test_overrides_are_yaml_scalars_and_text_otherwise() -> None:
+    assert parse_overrides(
+        ['em.max_iterations=30', ' refine.normal_weight = false', 'mode=paper', 'x=', 'y=[1, 2']
+    ) == {
+        'em.max_iterations': 30,
+        'refine.normal_weight': False,
+        'mode': 'paper',
+        'x': '',
+        'y': '[1, 2',
+    }
+
+
+@pytest.mark.parametrize('item', ['mode', '=paper', ' =1'])
+def test_override_without_key_or_equals_is_rejected(item: str) -> None:
+    with pytest.raises(ConfigError, match=f'Expected KEY=VALUE, got {item!r}'):
+        parse_overrides([item])
+
+
+def test_effective_config_applies_overrides_on_top_of_the_file(tmp_path: Path) -> None:
+    path = tmp_path / 'c.yaml'
+    path.write_text(dump_config(KentRegConfig.paper()))
+    cfg = effective_config(path, ['em.max_iterations=7'])
+    assert cfg.mode == 'paper' and cfg.em.max_iterations == 7
+    assert effective_config() == KentRegConfig()
+    assert effective_config(None, {'normals.k_neighbors': 20}).normals.k_neighbors == 20
+    with pytest.raises(ConfigError, match='Unknown configuration key'):
+        effective_config(None, ['em.no_such_key=1'])

@@ -1,0 +1,81 @@
+"""One direction of traffic: which kentreg_ros packages each package may import.
+
+The imports are read from the source (every ``import`` and ``from ... import`` statement,
+also those inside functions and under ``if TYPE_CHECKING:``), so a lazy import counts too.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'kentreg_ros'
+BENCHMARKS = PACKAGE.parent / 'benchmarks'
+
+
+def imported_modules(path: Path, package: str) -> set[str]:
+    """Absolute names of every module ``path`` imports (relative imports resolved)."""
+    tree = ast.parse(path.read_text(encoding='utf-8'), filename=str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split('.')
+                base = parts[: len(parts) - node.level + 1]
+                module = '.'.join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ''
+            names.add(module)
+            names.update(f'{module}.{alias.name}' for alias in node.names)
+    return names
+
+
+def kentreg_imports(path: Path) -> set[str]:
+    package = '.'.join(path.relative_to(PACKAGE.parent).with_suffix('').parts[:-1])
+    return {n for n in imported_modules(path, package) if n.split('.')[0] == 'kentreg_ros'}
+
+
+def modules(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob('*.py') if '__pycache__' not in p.parts)
+
+
+def test_imported_modules_resolves_relative_and_lazy_imports(tmp_path: Path) -> None:
+    src = tmp_path / 'm.py'
+    src.write_text(
+        'from . import errors\nfrom ..io import bags\n'
+        'def f():\n    import kentreg_ros.eval.metrics as m\n'
+    )
+    names = imported_modules(src, 'kentreg_ros.core')
+    assert {'kentreg_ros.core.errors', 'kentreg_ros.io.bags', 'kentreg_ros.eval.metrics'} <= names
+
+
+@pytest.mark.parametrize('path', modules(PACKAGE / 'core'), ids=lambda p: p.name)
+def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
+    outside = sorted(n for n in kentreg_imports(path) if not n.startswith('kentreg_ros.core'))
+    assert outside == [], f'{path.name} imports {outside}'
+
+
+@pytest.mark.parametrize(
+    ('folder', 'forbidden'),
+    [
+        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.node')),
+        ('eval', ('kentreg_ros.cli', 'kentreg_ros.node', 'kentreg_ros.play')),
+    ],
+)
+def test_io_and_eval_never_import_the_command_lines_or_the_node(
+    folder: str, forbidden: tuple[str, ...]
+) -> None:
+    for path in modules(PACKAGE / folder):
+        bad = sorted(n for n in kentreg_imports(path) if n.startswith(forbidden))
+        assert bad == [], f'{folder}/{path.name} imports {bad}'
+
+
+@pytest.mark.parametrize('path', modules(BENCHMARKS), ids=lambda p: p.name)
+def test_benchmarks_never_import_a_command_line(path: Path) -> None:
+    names = imported_modules(path, 'benchmarks')
+    bad = sorted(n for n in names if n.startswith('kentreg_ros.cli') or n == 'scenes')
+    assert bad == [], f'{path.name} imports {bad}'
