@@ -21,8 +21,8 @@ from kentreg_ros.core import (
     RegistrationResult,
     prepare_scan,
     register,
-    registration,
 )
+from kentreg_ros.core import scan as scan_module
 from kentreg_ros.core.rotations import exp_so3, make_transform
 
 needs_pair = pytest.mark.skipif(
@@ -78,7 +78,7 @@ def test_prepared_scans_are_reusable_and_give_the_same_result(
     cfg = KentRegConfig()
     prepared: list[object] = []  # what register() prepares itself (counted, not timed)
     monkeypatch.setattr(
-        registration, 'prepare_scan', lambda p, **kw: prepared.append(p) or prepare_scan(p, **kw)
+        scan_module, 'prepare_scan', lambda p, **kw: prepared.append(p) or prepare_scan(p, **kw)
     )
     direct = register(source, target, config=cfg)
     assert len(prepared) == 2

@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.covariance import prediction_covariance, propagate_covariance
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
 from kentreg_ros.core.registration import (
     STATUS_DEGENERATE,
@@ -46,7 +47,6 @@ from kentreg_ros.core.registration import (
 from kentreg_ros.core.rotations import (
     check_transform,
     exp_so3,
-    hat,
     invert_transform,
     log_so3,
     make_transform,
@@ -80,8 +80,6 @@ ACCEPTED = (HEALTH_OK, HEALTH_RECOVERED, HEALTH_DEGENERATE, HEALTH_AMBIGUOUS)
 
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
-#: Smallest standard deviations (m, rad) of a predicted step (fall-back or rejected scan).
-PREDICTION_MIN_STD = (0.05, float(np.radians(1.0)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,59 +169,6 @@ def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
     if factor == 1.0:
         return T.copy()
     return make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
-
-
-def _prediction_covariance(T_model_pred: FloatArray) -> FloatArray:
-    """Isotropic covariance of a step known only by prediction, as large as the motion."""
-    std_t = max(float(np.linalg.norm(T_model_pred[:3, 3])), PREDICTION_MIN_STD[0])
-    std_r = max(rotation_angle(T_model_pred[:3, :3]), PREDICTION_MIN_STD[1])
-    return np.diag([std_t**2] * 3 + [std_r**2] * 3)
-
-
-def propagate_covariance(
-    cov_world_model: ArrayLike,
-    T_world_model: ArrayLike,
-    T_model_curr: ArrayLike,
-    cov_step: ArrayLike,
-) -> FloatArray:
-    """Covariance of ``T_world_curr = T_world_model @ T_model_curr``, to first order.
-
-    Parameters
-    ----------
-    cov_world_model : array_like, shape (6, 6)
-        Covariance of ``T_world_model`` in the order (x, y, z, rot_x, rot_y, rot_z), for the
-        errors ``R_true = exp(w) R`` and ``p_true = p + v`` (world axes, at the pose's own
-        position: the usual reading of a nav_msgs/Odometry pose covariance).
-    T_world_model, T_model_curr : array_like, shape (4, 4)
-    cov_step : array_like, shape (6, 6)
-        Covariance of ``T_model_curr`` for the left perturbation ``T_true = exp(delta) T`` in
-        the model frame, (x, y, z, rot_x, rot_y, rot_z): what
-        :attr:`~kentreg_ros.core.registration.RegistrationResult.covariance` gives.
-
-    Returns
-    -------
-    ndarray, shape (6, 6)
-        Covariance of ``T_world_curr`` in the convention of ``cov_world_model``.
-
-    Notes
-    -----
-    With ``R = R_world_model`` and ``d = R t_model_curr`` (the step in world axes),
-    ``v_curr = v_model - [d]x w_model + R v_step - [d]x R w_step`` and
-    ``w_curr = w_model + R w_step``.
-    """
-    cov_m = np.asarray(cov_world_model, dtype=np.float64)
-    T_wm = np.asarray(T_world_model, dtype=np.float64)
-    T_mc = np.asarray(T_model_curr, dtype=np.float64)
-    R = T_wm[:3, :3]
-    d_hat = hat(R @ T_mc[:3, 3])
-    J_model = np.eye(6)
-    J_model[:3, 3:] = -d_hat
-    J_step = np.zeros((6, 6))
-    J_step[:3, :3] = R
-    J_step[:3, 3:] = -d_hat @ R
-    J_step[3:, 3:] = R
-    cov = J_model @ cov_m @ J_model.T + J_step @ np.asarray(cov_step, np.float64) @ J_step.T
-    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
 
 def _as_stamp(stamp_ns: int) -> int:
@@ -617,7 +562,7 @@ class Odometry:
             if health in ACCEPTED and result is not None:
                 cov_step = np.asarray(result.covariance, dtype=np.float64)
             else:
-                cov_step = _prediction_covariance(pending.T_model_pred)
+                cov_step = prediction_covariance(pending.T_model_pred)
             T_model_curr = invert_transform(self._T_world_model) @ T_world_curr
             covariance = propagate_covariance(
                 self._cov_model, self._T_world_model, T_model_curr, cov_step

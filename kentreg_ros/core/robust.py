@@ -1,0 +1,345 @@
+"""``mode='robust'``: the rotation from the Kent mixture EM (one rotation shared by all
+clusters), the translation from plane offsets and point-to-plane, the joint refinement, the
+balanced fit; without a start, the rotation hypotheses of :mod:`kentreg_ros.core.search` are
+verified the same way and the best-fitting pose wins."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.correspondence import NearestNeighborCache
+from kentreg_ros.core.em import (
+    EMResult,
+    shared_rotation_em,
+)
+from kentreg_ros.core.refine import refine_joint
+from kentreg_ros.core.result import (
+    RegistrationResult,
+    finish_result,
+    information_to_covariance,
+    rotation_degenerate,
+)
+from kentreg_ros.core.rotations import (
+    make_transform,
+    rotation_angle,
+)
+from kentreg_ros.core.scan import PreparedScan, elapsed_ms
+from kentreg_ros.core.search import distinct_best, mixture_overlap, twist_hypotheses
+from kentreg_ros.core.translation import (
+    centroid_translation,
+    degenerate_directions,
+    plane_offset_translation,
+    point_to_plane_translation,
+)
+from kentreg_ros.core.verify import Fit, FitGates, balanced_fit, rms_displacement
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+
+#: Nearest-neighbour gates shrink to this many sampling spacings: two samplings of one surface
+#: put corresponding points up to about one spacing apart, so two keep every true match while
+#: a point off the surface by more finds none.
+GATE_FLOOR_SPACINGS = 2.0
+#: The robust (Geman-McClure) scale never drops below this share of the spacing: voxel
+#: centroids of two scans of one plane scatter about it by the sensor noise averaged over a
+#: voxel's returns, a few percent of the spacing for LiDARs (1-3 cm of noise, tens of returns
+#: per 0.1-0.5 m voxel); the floor keeps a noise-free synthetic scene from shrinking the kernel
+#: to nothing.
+NOISE_FLOOR_SPACINGS = 1.0 / 32.0
+#: Target points sampled to measure the spacing of a cloud with no voxel grid.
+SPACING_SAMPLE = 500
+
+
+def sampling_spacing(src: PreparedScan, tgt: PreparedScan) -> float:
+    """The clouds' sampling step: the larger voxel edge, or (no voxel grid) the median distance
+    between neighbouring target points."""
+    voxel = max(src.voxel_size, tgt.voxel_size)
+    if voxel > 0.0:
+        return voxel
+    step = max(1, len(tgt) // SPACING_SAMPLE)
+    d = tgt.tree.query(tgt.points[::step], k=2)[0][:, 1]
+    return float(np.median(d))
+
+
+@dataclass
+class _Candidate:
+    """One pose under consideration, with what its stages found."""
+
+    T: FloatArray
+    em: EMResult
+    fit: Fit
+    stages: dict[str, FloatArray]
+    iterations: int
+    converged: bool
+    inlier: float
+    covariance: FloatArray
+    H_trans: FloatArray
+    refined: bool = False
+
+
+@dataclass(frozen=True)
+class _Gates:
+    """Scales of one registration, from the sampling spacing (see the constants above)."""
+
+    max_gate: float
+    min_gate: float
+    noise_floor: float
+    fit: FitGates
+
+
+def _gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig) -> _Gates:
+    spacing = sampling_spacing(src, tgt)
+    min_gate = GATE_FLOOR_SPACINGS * spacing
+    max_gate = max(cfg.refine.max_correspondence_distance, min_gate)
+    noise_floor = NOISE_FLOOR_SPACINGS * spacing
+    return _Gates(max_gate, min_gate, noise_floor, FitGates.for_spacing(spacing))
+
+
+#: EM passes for ranking a search hypothesis: the annealing from ``em.kappa_cap_start`` = 20 by
+#: doubling reaches the concentrations of real normal clusters (up to a few hundred) in 4-5
+#: passes, which brings a hypothesis within a degree or so of its optimum: enough for the fit
+#: gates (20 deg, 2 voxels) to tell right from wrong. The winners' EM is then continued.
+SEARCH_EM_PASSES = 6
+
+
+def _rotation_stage(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    R0: FloatArray,
+    cfg: KentRegConfig,
+    *,
+    max_iterations: int | None = None,
+    anneal: bool = True,
+) -> EMResult:
+    em_cfg = cfg.em
+    return shared_rotation_em(
+        src.clusters.bins,
+        tgt.clusters,
+        R0,
+        outlier_weight=em_cfg.outlier_weight,
+        use_beta=em_cfg.kent_beta,
+        rotation=em_cfg.rotation,
+        kappa_cap_start=em_cfg.kappa_cap_start if anneal else em_cfg.kappa_cap_end,
+        kappa_cap_end=em_cfg.kappa_cap_end,
+        kappa_cap_growth=em_cfg.kappa_cap_growth,
+        max_iterations=max_iterations or em_cfg.max_iterations,
+        tolerance=em_cfg.tolerance,
+    )
+
+
+def _local(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T0: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    timings: dict[str, float],
+    *,
+    em: EMResult | None = None,
+    refine: bool = True,
+) -> _Candidate:
+    """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit."""
+    stages: dict[str, FloatArray] = {}
+    if em is None:
+        t0 = time.perf_counter()
+        em = _rotation_stage(src, tgt, T0[:3, :3], cfg)
+        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
+    R = em.R
+    stages['rotation'] = make_transform(R, T0[:3, 3])
+    iterations = em.iterations
+    t0 = time.perf_counter()
+    tr_cfg = cfg.translation
+    H_t: FloatArray | None = None
+    sigma2_t = 0.0
+    # One correspondence cache for the translation and refinement loops (same source points,
+    # same target tree): points that moved less than their certified radius skip the query.
+    neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
+    inlier = em.inlier_fraction
+    if tr_cfg.method == 'centroid':
+        t = centroid_translation(R, src.points, tgt.points)
+    else:
+        t = T0[:3, 3].copy()
+        if tr_cfg.cross_correlation:
+            t, _ = plane_offset_translation(
+                R,
+                t,
+                src.points,
+                src.normals,
+                tgt.points,
+                tgt.normals,
+                tgt.centers,
+                bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
+                max_shift=tr_cfg.max_shift,
+            )
+            stages['cross_correlation'] = make_transform(R, t)
+        tres = point_to_plane_translation(
+            R,
+            t,
+            src.points,
+            tgt.points,
+            tgt.normals,
+            tgt.tree,
+            max_iterations=tr_cfg.max_iterations,
+            max_distance=max(tr_cfg.max_correspondence_distance, gates.min_gate),
+            min_distance=gates.min_gate,
+            noise_floor=gates.noise_floor,
+            degeneracy_ratio=tr_cfg.degeneracy_ratio,
+            tolerance=tr_cfg.tolerance,
+            neighbors=neighbors,
+        )
+        t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
+        inlier = tres.inlier_fraction
+        iterations += tres.iterations
+    timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
+    T = make_transform(R, t)
+    stages['translation'] = T
+    converged = em.converged
+    t0 = time.perf_counter()
+    refined = refine and cfg.refine.method != 'none'
+    if refined:
+        ref = refine_joint(
+            T,
+            src.points,
+            src.normals,
+            tgt.points,
+            tgt.normals,
+            tgt.tree,
+            method=cfg.refine.method,
+            normal_weight=cfg.refine.normal_weight,
+            max_iterations=cfg.refine.max_iterations,
+            max_distance=gates.max_gate,
+            min_distance=gates.min_gate,
+            tolerance=cfg.refine.tolerance,
+            noise_floor=gates.noise_floor,
+            neighbors=neighbors,
+            max_step_scale=cfg.refine.max_step_scale,
+        )
+        T = ref.T
+        stages['refine'] = T
+        iterations += ref.iterations
+        converged = ref.converged
+        inlier = ref.inlier_fraction
+        # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
+        perm = [3, 4, 5, 0, 1, 2]
+        info = ref.hessian[np.ix_(perm, perm)]
+        covariance = max(ref.sigma2, 1e-12) * information_to_covariance(info)
+        H_trans = info[:3, :3]
+    else:
+        covariance = np.zeros((6, 6))
+        covariance[3:, 3:] = information_to_covariance(em.hessian)
+        if H_t is not None:
+            covariance[:3, :3] = max(sigma2_t, 1e-12) * information_to_covariance(H_t)
+        else:
+            covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
+        H_trans = H_t if H_t is not None else np.eye(3)
+    timings['refine'] = timings.get('refine', 0.0) + elapsed_ms(t0)
+    t0 = time.perf_counter()
+    fit = balanced_fit(
+        T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
+    )
+    timings['fit'] = timings.get('fit', 0.0) + elapsed_ms(t0)
+    return _Candidate(
+        T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined
+    )
+
+
+def _search_candidates(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    timings: dict[str, float],
+) -> tuple[list[_Candidate], int]:
+    """Start-free search: twist hypotheses ranked by the mixture overlap, the distinct best
+    refined by the EM and placed by the translation stage, then verified by their fit; every
+    candidate that fits nearly as well as the best is refined in full."""
+    scfg = cfg.search
+    t0 = time.perf_counter()
+    hyp = twist_hypotheses(src.clusters, tgt.clusters, scfg.twist_step_deg)
+    cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
+    scores = mixture_overlap(hyp, src.clusters, tgt.clusters, cap)
+    chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
+    starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
+    timings['search'] = elapsed_ms(t0)
+    cheap: list[_Candidate] = []
+    seen: list[FloatArray] = []
+    for R0 in starts:
+        t0 = time.perf_counter()
+        em = _rotation_stage(src, tgt, R0, cfg, max_iterations=SEARCH_EM_PASSES)
+        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
+        if any(rotation_angle(em.R.T @ R) < np.radians(scfg.min_separation_deg) for R in seen):
+            continue  # converged onto a rotation already under consideration
+        seen.append(em.R)
+        T0 = make_transform(em.R, T_init[:3, 3])
+        cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False))
+    best_cheap = max(c.fit.score for c in cheap)
+    out: list[_Candidate] = []
+    for cand in sorted(cheap, key=lambda c: -c.fit.score):
+        if cand.fit.score >= scfg.ambiguity_ratio * best_cheap or not out:
+            t0 = time.perf_counter()
+            em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
+            timings['rotation'] += elapsed_ms(t0)
+            T0 = make_transform(em.R, T_init[:3, 3])
+            out.append(_local(src, tgt, T0, cfg, gates, timings, em=em))
+    return out, len(hyp)
+
+
+def register_robust(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    T_init: FloatArray,
+    cfg: KentRegConfig,
+    timings: dict[str, float],
+    search: bool,
+) -> RegistrationResult:
+    gates = _gates(src, tgt, cfg)
+    n_hypotheses = 0
+    if search:
+        candidates, n_hypotheses = _search_candidates(src, tgt, T_init, cfg, gates, timings)
+    else:
+        candidates = [_local(src, tgt, T_init, cfg, gates, timings)]
+    candidates.sort(key=lambda c: -c.fit.score)
+    best = candidates[0]
+    distinct = [
+        c
+        for c in candidates[1:]
+        if rms_displacement(src.points, c.T, best.T) > 2.0 * gates.fit.distance
+    ]
+    ambiguous = any(c.fit.score >= cfg.search.ambiguity_ratio * best.fit.score for c in distinct)
+    tr_cfg = cfg.translation
+    deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
+    rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
+    degenerate = len(deg_dirs) > 0 or rot_degenerate
+    result = finish_result(
+        best.T,
+        best.converged,
+        best.iterations,
+        best.em,
+        best.inlier,
+        best.covariance,
+        degenerate,
+        deg_dirs,
+        rot_degenerate,
+        timings,
+        best.stages,
+        'robust',
+        src,
+        tgt,
+        list(best.em.log_likelihood),
+    )
+    return replace(
+        result,
+        fit=best.fit.score,
+        hypotheses=n_hypotheses,
+        ambiguous=ambiguous,
+        alternatives=tuple((c.T, c.fit.score) for c in distinct),
+    )
