@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -100,3 +102,16 @@ def test_missing_markers_are_an_error(tmp_path: Path, capsys: pytest.CaptureFixt
     assert 'expected one line' in capsys.readouterr().err
     with pytest.raises(ValueError, match='found 0 and 0'):
         docs.replace_block('no markers', 'table')
+
+
+def test_readmes_quote_the_committed_benchmark_results() -> None:
+    """Every generated block of README.md and benchmarks/README.md equals what
+    benchmarks/render_readme.py computes from benchmarks/results/ (numbers from one source)."""
+    proc = subprocess.run(
+        [sys.executable, str(REPO_ROOT / 'benchmarks' / 'render_readme.py'), '--check'],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
