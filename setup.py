@@ -20,8 +20,12 @@ setup(
     install_requires=['numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'setuptools'],
     extras_require={
         'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60', 'python-lzf>=0.2.4', 'matplotlib>=3.7'],
+        # small_gicp's C++ KD-tree: exact neighbour queries about twice as fast as scipy's
+        # (kentreg_ros.core.neighbors; benchmarks/per_scan.py); scipy is used without it.
+        'fast': ['small-gicp>=1.0'],
         'test': [
             'pytest>=7',
+            'small-gicp>=1.0',
             'ruff>=0.5',
             'mypy>=1.8',
             'rosbags>=0.11',

@@ -17,12 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
+
+from kentreg_ros.core.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
-
-#: Re-queries of at least this many points use all cores.
-PARALLEL_QUERY_MIN = 4096
 
 
 def _row_norms(v: FloatArray) -> FloatArray:
@@ -35,7 +33,7 @@ class NearestNeighborCache:
 
     Parameters
     ----------
-    tree : cKDTree
+    tree : NeighborIndex
         Tree on ``target``.
     target : ndarray, shape (M, 3)
         The points the tree was built on.
@@ -49,7 +47,7 @@ class NearestNeighborCache:
     n_calls : int
     """
 
-    def __init__(self, tree: cKDTree, target: FloatArray, n_queries: int) -> None:
+    def __init__(self, tree: NeighborIndex, target: FloatArray, n_queries: int) -> None:
         if len(target) != tree.n:
             raise ValueError(
                 f'Expected `target` to hold the {tree.n} points of `tree`, got {len(target)}.'
@@ -94,12 +92,7 @@ class NearestNeighborCache:
         valid = np.where(has, dist <= lower, gate < lower)
         redo = np.flatnonzero(~valid)
         if len(redo):
-            # Threads pay off only for large batches (measured: below ~3000 points the
-            # thread start-up costs more than it saves).
-            workers = -1 if len(redo) >= PARALLEL_QUERY_MIN else 1
-            d2, i2 = self._tree.query(
-                np.take(x, redo, axis=0), k=2, distance_upper_bound=gate, workers=workers
-            )
+            d2, i2 = self._tree.query(np.take(x, redo, axis=0), k=2, distance_upper_bound=gate)
             found = np.isfinite(d2[:, 0])
             self._x0[redo] = x[redo]
             self._idx[redo] = np.where(found, i2[:, 0], -1)

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
-from scipy.spatial import cKDTree
 
 from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -49,7 +49,7 @@ def estimate_normals(
     k: int = 15,
     *,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
-    tree: cKDTree | None = None,
+    tree: NeighborIndex | None = None,
 ) -> NormalEstimate:
     """Estimate unit surface normals by PCA over the k nearest neighbours.
 
@@ -60,7 +60,7 @@ def estimate_normals(
         Neighbourhood size (the paper uses 15); ``N >= k`` is required.
     viewpoint : array_like, shape (3,)
         Normals are flipped so that ``n . (viewpoint - x) > 0``.
-    tree : cKDTree, optional
+    tree : NeighborIndex, optional
         A tree already built on ``points``.
 
     Raises
@@ -76,8 +76,8 @@ def estimate_normals(
             f'Expected at least k={k} points to estimate normals, got {n}.'
         )
     if tree is None:
-        tree = cKDTree(points)
-    _, idx = tree.query(points, k=k, workers=-1)
+        tree = NeighborIndex(points)
+    _, idx = tree.query(points, k=k)
     idx = np.asarray(idx, dtype=np.intp)
     cov = neighbourhood_covariances(points, idx)
     evals, normals, mid = smallest_eigenpairs_3x3(cov)

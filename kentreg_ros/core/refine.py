@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from kentreg_ros.core.correspondence import NearestNeighborCache
+from kentreg_ros.core.neighbors import NeighborIndex
 from kentreg_ros.core.rotations import exp_so3, hat, project_to_so3
 from kentreg_ros.core.translation import geman_mcclure_weights, robust_scale
 
@@ -100,7 +100,7 @@ def refine_joint(
     source_normals: FloatArray,
     target: FloatArray,
     target_normals: FloatArray,
-    target_tree: cKDTree,
+    target_tree: NeighborIndex,
     *,
     method: str = 'point_to_plane',
     normal_weight: bool = True,
@@ -121,7 +121,7 @@ def refine_joint(
         Start (the decoupled rotation/translation estimate).
     source, source_normals : ndarray, shape (N, 3)
     target, target_normals : ndarray, shape (M, 3)
-    target_tree : cKDTree
+    target_tree : NeighborIndex
         Tree on ``target``.
     method : {'plane_to_plane', 'point_to_plane'}
     normal_weight : bool

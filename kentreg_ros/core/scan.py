@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from kentreg_ros.core.clustering import spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
@@ -22,6 +21,7 @@ from kentreg_ros.core.em import (
 )
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
 from kentreg_ros.core.kent import fit_kent_moments_batch
+from kentreg_ros.core.neighbors import NeighborIndex
 from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask, planar_mask
 from kentreg_ros.core.preprocess import as_points, crop_range, downsample
 
@@ -49,7 +49,7 @@ class PreparedScan:
         Cluster mean directions.
     clusters : ModelClusters
         Kent frames of the clusters (used when this scan is the model).
-    tree : cKDTree
+    tree : NeighborIndex
         Tree on ``points``.
     voxel_size : float
         Voxel edge used (0 if the input was used as is).
@@ -71,7 +71,7 @@ class PreparedScan:
     labels: NDArray[np.intp]
     centers: FloatArray
     clusters: ModelClusters
-    tree: cKDTree
+    tree: NeighborIndex
     voxel_size: float
     viewpoint: FloatArray
     n_input: int
@@ -149,7 +149,7 @@ def prepare_scan(
                 f'(k_neighbors={k}), got {len(pts)} (from {n_input} input points).'
             )
         t0 = time.perf_counter()
-        tree = cKDTree(pts)
+        tree = NeighborIndex(pts)
         est = estimate_normals(pts, k, viewpoint=vp, tree=tree)
         nrm, flat, nbrs = est.normals, est.flatness, est.neighbors
         timings['normals'] = elapsed_ms(t0)
@@ -168,8 +168,8 @@ def prepare_scan(
                 f'Expected at least {max(k, MIN_POINTS)} points, got {len(pts)}.'
             )
         t0 = time.perf_counter()
-        tree = cKDTree(pts)
-        _, nbrs = tree.query(pts, k=k, workers=-1)
+        tree = NeighborIndex(pts)
+        _, nbrs = tree.query(pts, k=k)
         flat = np.zeros(len(pts))  # given normals are trusted
         timings['normals'] = elapsed_ms(t0)
     t0 = time.perf_counter()
@@ -184,7 +184,7 @@ def prepare_scan(
         )
     if n_out:
         pts, nrm = pts[keep], nrm[keep]
-        tree = cKDTree(pts)
+        tree = NeighborIndex(pts)
     timings['outliers'] = elapsed_ms(t0)
     t0 = time.perf_counter()
     labels, centers = spherical_kmeans(

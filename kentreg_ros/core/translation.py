@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from kentreg_ros.core.correspondence import NearestNeighborCache
+from kentreg_ros.core.neighbors import NeighborIndex
 
 #: Fewest correspondences for the 3-DOF solve (a few times the unknowns).
 MIN_CORRESPONDENCES = 10
@@ -182,7 +182,7 @@ def point_to_plane_translation(
     source: FloatArray,
     target: FloatArray,
     target_normals: FloatArray,
-    target_tree: cKDTree,
+    target_tree: NeighborIndex,
     *,
     max_iterations: int = 20,
     max_distance: float = 1.0,

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from kentreg_ros.core.correspondence import NearestNeighborCache
+from kentreg_ros.core.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -83,7 +83,7 @@ def balanced_fit(
     target_centers: FloatArray,
     gates: FitGates,
     *,
-    target_tree: cKDTree | None = None,
+    target_tree: NeighborIndex | None = None,
     target_points: FloatArray | None = None,
     neighbors: NearestNeighborCache | None = None,
 ) -> Fit:
@@ -98,7 +98,7 @@ def balanced_fit(
         Mean directions of the target's normal clusters; a source point belongs to the
         cluster whose centre is nearest its rotated normal.
     gates : FitGates
-    target_tree, target_points : cKDTree and ndarray (M, 3), optional
+    target_tree, target_points : NeighborIndex and ndarray (M, 3), optional
         The target's tree and points, when ``neighbors`` is not given.
     neighbors : NearestNeighborCache, optional
         A correspondence cache over the target for these source points (e.g. the

@@ -1,0 +1,76 @@
+"""Exact k-nearest-neighbour queries on a fixed point set.
+
+:class:`NeighborIndex` answers ``query(x, k, distance_upper_bound)`` with the conventions of
+``scipy.spatial.cKDTree.query`` (distances, indices; ``inf`` and ``n`` where no neighbour lies
+within the bound). It uses small_gicp's KD-tree (nanoflann, C++) when small_gicp is installed and
+scipy's cKDTree otherwise: both are exact, so results agree up to the order of equidistant
+neighbours. small_gicp answers the queries this package makes about twice as fast on one thread
+(measured: 15 neighbours of 10k points 13.5 against 26 ms, 2 neighbours 3.5 against 6.7 ms),
+and neighbour queries are the largest cost of preparing and registering a scan
+(``benchmarks/per_scan.py``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+FloatArray = NDArray[np.float64]
+
+#: Whether small_gicp's KD-tree is used (it is an optional, compiled dependency).
+HAVE_SMALL_GICP = importlib.util.find_spec('small_gicp') is not None
+
+
+class NeighborIndex:
+    """Exact nearest-neighbour index of ``points`` (N, 3), built once, queried many times.
+
+    Attributes
+    ----------
+    n : int
+        Number of indexed points (the "no neighbour" index, as in cKDTree).
+    backend : str
+        ``'small_gicp'`` or ``'scipy'``.
+    """
+
+    def __init__(self, points: FloatArray, *, backend: str | None = None) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        self.n = len(pts)
+        self.backend = backend or ('small_gicp' if HAVE_SMALL_GICP else 'scipy')
+        if self.backend == 'small_gicp':
+            import small_gicp  # compiled, optional: imported only when used
+
+            self._tree = small_gicp.KdTree(pts, num_threads=1)
+        elif self.backend == 'scipy':
+            self._tree = cKDTree(pts)
+        else:
+            raise ValueError(f"Expected backend 'small_gicp' or 'scipy', got {self.backend!r}.")
+
+    def query(
+        self, x: FloatArray, k: int = 1, *, distance_upper_bound: float = np.inf
+    ) -> tuple[FloatArray, NDArray[np.intp]]:
+        """Distances and indices of the ``k`` nearest points of every row of ``x``.
+
+        Shapes ``(M,)`` for ``k = 1``, ``(M, k)`` otherwise; beyond ``distance_upper_bound`` (or
+        when fewer than ``k`` points exist) the distance is ``inf`` and the index ``n``.
+        """
+        queries = np.ascontiguousarray(x, dtype=np.float64)
+        if self.backend == 'scipy':
+            dist, idx = self._tree.query(queries, k=k, distance_upper_bound=distance_upper_bound)
+            return np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.intp)
+        kk = min(k, self.n)
+        raw_idx, sq = self._tree.batch_knn_search(queries, kk, num_threads=1)
+        idx = np.asarray(raw_idx).astype(np.intp)
+        dist = np.sqrt(np.asarray(sq, dtype=np.float64))
+        if kk < k:
+            pad = k - kk
+            dist = np.pad(dist, ((0, 0), (0, pad)), constant_values=np.inf)
+            idx = np.pad(idx, ((0, 0), (0, pad)), constant_values=self.n)
+        missing = ~(dist <= distance_upper_bound) | (idx < 0) | (idx >= self.n)
+        dist[missing] = np.inf
+        idx[missing] = self.n
+        if k == 1:
+            return dist[:, 0], idx[:, 0]
+        return dist, idx

@@ -1,0 +1,46 @@
+"""NeighborIndex: both backends give the exact k nearest neighbours with cKDTree's conventions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from kentreg_ros.core.neighbors import HAVE_SMALL_GICP, NeighborIndex
+
+NO_SMALL_GICP = 'small_gicp is not installed (pip install -e .[fast])'
+BACKENDS = [
+    'scipy',
+    pytest.param(
+        'small_gicp', marks=pytest.mark.skipif(not HAVE_SMALL_GICP, reason=NO_SMALL_GICP)
+    ),
+]
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+@pytest.mark.parametrize(('k', 'bound'), [(1, np.inf), (2, 0.05), (15, np.inf), (15, 0.08)])
+def test_neighbours_equal_a_direct_kd_tree_query(backend: str, k: int, bound: float) -> None:
+    rng = np.random.default_rng(k)
+    points = rng.random((3000, 3))
+    queries = rng.random((500, 3)) * 1.2 - 0.1  # some outside the cloud
+    dist, idx = NeighborIndex(points, backend=backend).query(
+        queries, k, distance_upper_bound=bound
+    )
+    ref_d, ref_i = cKDTree(points).query(queries, k=k, distance_upper_bound=bound)
+    # Exact either way: equal distances (to rounding of the squared distances), equal indices
+    # wherever no two neighbours are equidistant (random points: everywhere).
+    np.testing.assert_allclose(dist, ref_d, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(idx, ref_i)
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+def test_more_neighbours_asked_than_points_are_padded_like_ckdtree(backend: str) -> None:
+    points = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    dist, idx = NeighborIndex(points, backend=backend).query(np.zeros((1, 3)), 3)
+    np.testing.assert_allclose(dist, [[0.0, 1.0, np.inf]])
+    np.testing.assert_array_equal(idx, [[0, 1, 2]])
+
+
+def test_unknown_backend_is_refused() -> None:
+    with pytest.raises(ValueError, match='backend'):
+        NeighborIndex(np.zeros((3, 3)), backend='faiss')
