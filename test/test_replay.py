@@ -244,7 +244,11 @@ def test_run_odometry_stride_selects_start_plus_multiples() -> None:
             self.stamps: list[int] = []
 
         def step(
-            self, points: np.ndarray, stamp_ns: int, frame_id: str | None = None
+            self,
+            points: np.ndarray,
+            stamp_ns: int,
+            frame_id: str | None = None,
+            point_times: np.ndarray | None = None,
         ) -> SimpleNamespace:
             self.stamps.append(stamp_ns)
             return SimpleNamespace(health='ok', message='', timings={'total': 0.0})

@@ -286,6 +286,13 @@ class OdometryConfig:
         'Start each registration from the last accepted motion (scaled to the time gap); a '
         'step that fell back never feeds it.',
     )
+    deskew: str = _f(
+        'auto',
+        "Move every point to the scan stamp's time with the motion of the sweep (constant "
+        'velocity, iterated with the registration) when the scans carry per-point times '
+        '(auto), always (on: warns once when they do not), or never (off).',
+        choices=('auto', 'on', 'off'),
+    )
     max_angular_speed_deg: float = _f(
         360.0,
         'Fastest plausible turn of the sensor (deg/s); a step turning more than this times its '

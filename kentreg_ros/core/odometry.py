@@ -34,7 +34,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.covariance import prediction_covariance, propagate_covariance
+from kentreg_ros.core.deskew import deskew, relative_point_times, twist_of
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
+from kentreg_ros.core.preprocess import as_points
 from kentreg_ros.core.registration import (
     STATUS_DEGENERATE,
     STATUS_FAILED,
@@ -52,116 +54,30 @@ from kentreg_ros.core.rotations import (
     make_transform,
     rotation_angle,
 )
+from kentreg_ros.core.step import (
+    ACCEPTED,
+    HEALTH_AMBIGUOUS,
+    HEALTH_DEGENERATE,
+    HEALTH_FELL_BACK,
+    HEALTH_FIRST,
+    HEALTH_OK,
+    HEALTH_RECOVERED,
+    HEALTH_REJECTED,
+    HEALTHS,
+    OdometryStep,
+)
 from kentreg_ros.core.verify import FitGates, rms_displacement
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-HEALTH_FIRST = 'first'
-HEALTH_OK = 'ok'
-HEALTH_RECOVERED = 'recovered'
-HEALTH_DEGENERATE = 'degenerate'
-HEALTH_AMBIGUOUS = 'ambiguous'
-HEALTH_FELL_BACK = 'fell_back'
-HEALTH_REJECTED = 'rejected'
-#: Every health value of an :class:`OdometryStep`, in order of severity.
-HEALTHS = (
-    HEALTH_FIRST,
-    HEALTH_OK,
-    HEALTH_RECOVERED,
-    HEALTH_DEGENERATE,
-    HEALTH_AMBIGUOUS,
-    HEALTH_FELL_BACK,
-    HEALTH_REJECTED,
-)
-#: Healths whose pose comes from a registration (they feed the velocity and the fit window).
-ACCEPTED = (HEALTH_OK, HEALTH_RECOVERED, HEALTH_DEGENERATE, HEALTH_AMBIGUOUS)
-
+#: Deskew once more with the registered motion when it moves the sweep's points by more than
+#: this many voxel edges from where the predicted motion put them: below half a voxel the
+#: difference is under the sampling resolution of the scan.
+DESKEW_ITERATE_SPACINGS = 0.5
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
-
-
-@dataclass(frozen=True, eq=False)
-class OdometryStep:
-    """What :meth:`Odometry.step` did with one scan.
-
-    Attributes
-    ----------
-    index : int
-        0-based number of the scan since the start (or the last :meth:`Odometry.reset`).
-    stamp_ns : int
-        Acquisition time of the scan, integer nanoseconds.
-    frame_id : str or None
-        Sensor frame of the scan, as given.
-    T_world_lidar : ndarray, shape (4, 4)
-        Pose of the scan in the odometry (world) frame.
-    T_prev_curr : ndarray, shape (4, 4)
-        Motion since the previous scan's pose: maps points of this scan into the previous
-        scan's frame (identity for the first scan).
-    T_model_pred : ndarray, shape (4, 4)
-        The prediction in the model's frame, the ``init`` given to the registration.
-    model_index : int
-        Index of the scan used as the model (target); ``-1`` when there was none.
-    result : RegistrationResult or None
-        The registration result; None for the first scan, a rejected scan, or a registration
-        that raised.
-    health : str
-        ``'first'`` (became the first model), ``'ok'`` (the registration from the prediction
-        was used), ``'recovered'`` (that one was doubtful; the search found a better-fitting
-        pose, which was used), ``'degenerate'`` (estimate used, but some direction is poorly
-        constrained), ``'ambiguous'`` (distinct poses fit about equally; the one nearest the
-        prediction was used), ``'fell_back'`` (nothing plausible fitted: the pose is the
-        prediction) or ``'rejected'`` (the cloud is unusable: the pose is the prediction and
-        the model is kept).
-    fit : float
-        Balanced fit of the pose used (NaN without a registration or in paper mode).
-    searched : bool
-        The start-free search ran for this step.
-    message : str
-        Human-readable explanation of the health.
-    timings : dict of str to float
-        Milliseconds: ``'preprocess'`` (:func:`prepare_scan` of this scan), ``'register'``
-        (total of :func:`register`), the registration stages (``'rotation'``,
-        ``'translation'``, ``'refine'``) when it ran, and ``'total'`` for the whole step.
-    n_points : int
-        Points given.
-    n_prepared : int
-        Points kept after preprocessing (0 if rejected).
-    covariance : ndarray, shape (6, 6)
-        First-order covariance of ``T_world_lidar`` in the order (x, y, z, rot_x, rot_y, rot_z)
-        of nav_msgs/Odometry: position error in world axes, rotation error about world axes
-        (see :func:`propagate_covariance`). The registration covariances are chained; a
-        predicted step adds an isotropic uncertainty as large as the predicted motion (at least
-        :data:`PREDICTION_MIN_STD`). It grows without bound, as odometry drift does.
-    """
-
-    index: int
-    stamp_ns: int
-    frame_id: str | None
-    T_world_lidar: FloatArray
-    T_prev_curr: FloatArray
-    T_model_pred: FloatArray
-    model_index: int
-    result: RegistrationResult | None
-    health: str
-    message: str
-    timings: dict[str, float] = field(default_factory=dict)
-    n_points: int = 0
-    n_prepared: int = 0
-    covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
-    fit: float = float('nan')
-    searched: bool = False
-
-    @property
-    def ok(self) -> bool:
-        """True when the pose comes from a registration (or is the first pose)."""
-        return self.health == HEALTH_FIRST or self.health in ACCEPTED
-
-    @property
-    def stamp(self) -> float:
-        """Acquisition time in seconds (float; use ``stamp_ns`` for exact values)."""
-        return self.stamp_ns * 1e-9
 
 
 def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
@@ -266,6 +182,9 @@ class Odometry:
         self._model_stamp = 0
         self._fits: deque[float] = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
+        self._warned_no_times = False
+        # Raw points and times of a model prepared before any motion was known (see _deskewed).
+        self._model_sweep: tuple[FloatArray, FloatArray] | None = None
 
     @property
     def config(self) -> KentRegConfig:
@@ -385,7 +304,12 @@ class Odometry:
         return ''
 
     def step(
-        self, points: ArrayLike, stamp_ns: int, *, frame_id: str | None = None
+        self,
+        points: ArrayLike,
+        stamp_ns: int,
+        *,
+        frame_id: str | None = None,
+        point_times: ArrayLike | None = None,
     ) -> OdometryStep:
         """Register a new scan against the previous one and return its pose.
 
@@ -397,6 +321,12 @@ class Odometry:
             Acquisition time, integer nanoseconds (e.g. the message header stamp).
         frame_id : str, optional
             Sensor frame of the scan; recorded in the step.
+        point_times : array_like, shape (N,), optional
+            The driver's per-point acquisition times (any unit, relative or absolute, see
+            :func:`kentreg_ros.core.deskew.relative_point_times`). With ``odometry.deskew``
+            'auto' or 'on' every point is moved to the stamp's time with the motion of the
+            sweep (constant velocity, re-estimated from the registration; see
+            :meth:`_deskewed`).
 
         Returns
         -------
@@ -438,7 +368,11 @@ class Odometry:
 
         t0 = time.perf_counter()
         try:
-            scan = prepare_scan(points, config=self._config, voxel_size_hint=self._voxel_size_hint)
+            times = self._sweep_times(points, point_times, stamp)
+            swept = points
+            if times is not None:
+                swept = deskew(as_points(points), times, self._predicted_twist(stamp))
+            scan = prepare_scan(swept, config=self._config, voxel_size_hint=self._voxel_size_hint)
         except InvalidPointCloudError as exc:
             pending.timings['preprocess'] = elapsed_ms(t0)
             message = f'Rejected the scan: {exc} The pose is the prediction.'
@@ -449,10 +383,15 @@ class Odometry:
         self._voxel_size_hint = scan.voxel_size
         if self._model is None:
             message = 'First scan: it becomes the model.'
-            return self._record(pending, T_world_pred, None, HEALTH_FIRST, message, scan)
+            first = self._record(pending, T_world_pred, None, HEALTH_FIRST, message, scan)
+            if times is not None:
+                self._model_sweep = (as_points(points), times)
+            return first
 
         t0 = time.perf_counter()
         choice = self._register(scan, pending, stamp - self._model_stamp)
+        if times is not None and choice.health != HEALTH_FELL_BACK:
+            scan, choice = self._deskewed(points, times, scan, choice, stamp)
         pending.timings['register'] = elapsed_ms(t0)
         if choice.result is not None:
             for stage in ('rotation', 'translation', 'refine', 'search'):
@@ -469,6 +408,73 @@ class Odometry:
         T_world_curr = self._T_world_model @ choice.T
         return self._record(
             pending, T_world_curr, choice.result, choice.health, choice.message, scan
+        )
+
+    def _sweep_times(
+        self, points: ArrayLike, point_times: ArrayLike | None, stamp: int
+    ) -> FloatArray | None:
+        """Seconds from the stamp of every point, when the scan is to be deskewed."""
+        mode = self._config.odometry.deskew
+        if mode == 'off' or point_times is None:
+            if mode == 'on' and point_times is None and not self._warned_no_times:
+                logger.warning('odometry.deskew is on but the scans carry no per-point times.')
+                self._warned_no_times = True
+            return None
+        times = relative_point_times(point_times, stamp)
+        if len(times) != int(np.shape(points)[0]):
+            raise InvalidPointCloudError(
+                f'Expected one time per point ({np.shape(points)[0]}), got {len(times)}.'
+            )
+        return times if np.ptp(times) > 0.0 else None
+
+    def _predicted_twist(self, stamp: int) -> FloatArray:
+        """The sensor's velocity during the sweep: the last accepted motion (zero before one)."""
+        if self._velocity is None:
+            return np.zeros(6)
+        motion, gap = self._velocity
+        return twist_of(motion, gap * 1e-9)
+
+    def _deskewed(
+        self, points: ArrayLike, times: FloatArray, scan: PreparedScan, choice: _Choice, stamp: int
+    ) -> tuple[PreparedScan, _Choice]:
+        """Deskew again with the motion just registered when it moves the sweep's points by more
+        than half a voxel from where the predicted motion put them; register once more from the
+        pose found (the registration and the deskewing converge together: constant velocity
+        within the sweep, iterated with the registration)."""
+        assert self._model is not None
+        twist = twist_of(choice.T, (stamp - self._model_stamp) * 1e-9)
+        change = twist - self._predicted_twist(stamp)
+        reach = float(np.max(np.linalg.norm(scan.points, axis=1))) if len(scan) else 0.0
+        shift = (np.linalg.norm(change[:3]) * reach + np.linalg.norm(change[3:])) * np.ptp(times)
+        spacing = max(scan.voxel_size, 1e-9)
+        if shift <= DESKEW_ITERATE_SPACINGS * spacing:
+            return scan, choice
+        try:
+            if self._model_sweep is not None:
+                # The model was prepared before any motion was known (the first scan): its sweep
+                # moved like this one (constant velocity), so deskew it now, once.
+                model_points, model_times = self._model_sweep
+                self._model = prepare_scan(
+                    deskew(model_points, model_times, twist),
+                    config=self._config,
+                    voxel_size_hint=self._model.voxel_size,
+                )
+                self._model_sweep = None
+            again = prepare_scan(
+                deskew(as_points(points), times, twist),
+                config=self._config,
+                voxel_size_hint=scan.voxel_size,
+            )
+            result = register(again, self._model, init=choice.T, config=self._config)
+        except (KentRegError, np.linalg.LinAlgError):
+            return scan, choice
+        if (
+            result.status == STATUS_FAILED
+            or not result.fit >= choice.fit * self._config.search.ambiguity_ratio
+        ):
+            return scan, choice
+        return again, _Choice(
+            result, result.T_target_source, result.fit, choice.health, choice.message
         )
 
     def _register(self, scan: PreparedScan, pending: _Pending, gap: int) -> _Choice:
@@ -575,6 +581,7 @@ class Odometry:
             if np.isfinite(pending.fit):
                 self._fits.append(pending.fit)
         if new_model is not None:
+            self._model_sweep = None
             # A fall-back still moves the model on: the scan is valid and its predicted pose is
             # the best estimate; the next registration then bridges one scan gap, not two.
             self._model = new_model

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry import Odometry, OdometryStep
+from kentreg_ros.io.pointcloud2 import point_time_field
 
 logger = logging.getLogger(__name__)
 
@@ -158,7 +159,12 @@ def run_odometry(
                 run.error = text.splitlines()[0] if text else type(exc).__name__
                 break
             run.read_ms.append((time.perf_counter() - t0) * 1e3)
-            step = odometry.step(scan.points, scan.stamp_ns, frame_id=scan.frame_id)
+            step = odometry.step(
+                scan.points,
+                scan.stamp_ns,
+                frame_id=scan.frame_id,
+                point_times=point_time_field(getattr(scan, 'extras', None)),
+            )
             run.steps.append(step)
             run.input_indices.append(index)
             if on_step is not None:

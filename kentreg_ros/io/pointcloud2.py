@@ -58,6 +58,18 @@ PADDING_FIELDS = frozenset({'', '_'})
 #: Names of per-point time fields written by common LiDAR drivers; kept like any other field.
 POINT_TIME_FIELDS = ('t', 'time', 'timestamp', 'offset_time', 'time_offset')
 
+
+def point_time_field(extras: Mapping[str, Any] | None) -> NDArray[Any] | None:
+    """The per-point times among a cloud's extra fields (the first of
+    :data:`POINT_TIME_FIELDS` present, one value per point), or None."""
+    for name in POINT_TIME_FIELDS:
+        if extras and name in extras:
+            values = np.asarray(extras[name])
+            if values.ndim == 1 or (values.ndim == 2 and values.shape[1] == 1):
+                return values.ravel()
+    return None
+
+
 _warned_not_dense = False
 
 

@@ -1,0 +1,114 @@
+"""What :meth:`kentreg_ros.core.odometry.Odometry.step` reports: the step and its health."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.core.result import RegistrationResult
+
+FloatArray = NDArray[np.float64]
+
+HEALTH_FIRST = 'first'
+HEALTH_OK = 'ok'
+HEALTH_RECOVERED = 'recovered'
+HEALTH_DEGENERATE = 'degenerate'
+HEALTH_AMBIGUOUS = 'ambiguous'
+HEALTH_FELL_BACK = 'fell_back'
+HEALTH_REJECTED = 'rejected'
+#: Every health value of an :class:`OdometryStep`, in order of severity.
+HEALTHS = (
+    HEALTH_FIRST,
+    HEALTH_OK,
+    HEALTH_RECOVERED,
+    HEALTH_DEGENERATE,
+    HEALTH_AMBIGUOUS,
+    HEALTH_FELL_BACK,
+    HEALTH_REJECTED,
+)
+#: Healths whose pose comes from a registration (they feed the velocity and the fit window).
+ACCEPTED = (HEALTH_OK, HEALTH_RECOVERED, HEALTH_DEGENERATE, HEALTH_AMBIGUOUS)
+
+
+@dataclass(frozen=True, eq=False)
+class OdometryStep:
+    """What :meth:`Odometry.step` did with one scan.
+
+    Attributes
+    ----------
+    index : int
+        0-based number of the scan since the start (or the last :meth:`Odometry.reset`).
+    stamp_ns : int
+        Acquisition time of the scan, integer nanoseconds.
+    frame_id : str or None
+        Sensor frame of the scan, as given.
+    T_world_lidar : ndarray, shape (4, 4)
+        Pose of the scan in the odometry (world) frame.
+    T_prev_curr : ndarray, shape (4, 4)
+        Motion since the previous scan's pose: maps points of this scan into the previous
+        scan's frame (identity for the first scan).
+    T_model_pred : ndarray, shape (4, 4)
+        The prediction in the model's frame, the ``init`` given to the registration.
+    model_index : int
+        Index of the scan used as the model (target); ``-1`` when there was none.
+    result : RegistrationResult or None
+        The registration result; None for the first scan, a rejected scan, or a registration
+        that raised.
+    health : str
+        ``'first'`` (became the first model), ``'ok'`` (the registration from the prediction
+        was used), ``'recovered'`` (that one was doubtful; the search found a better-fitting
+        pose, which was used), ``'degenerate'`` (estimate used, but some direction is poorly
+        constrained), ``'ambiguous'`` (distinct poses fit about equally; the one nearest the
+        prediction was used), ``'fell_back'`` (nothing plausible fitted: the pose is the
+        prediction) or ``'rejected'`` (the cloud is unusable: the pose is the prediction and
+        the model is kept).
+    fit : float
+        Balanced fit of the pose used (NaN without a registration or in paper mode).
+    searched : bool
+        The start-free search ran for this step.
+    message : str
+        Human-readable explanation of the health.
+    timings : dict of str to float
+        Milliseconds: ``'preprocess'`` (:func:`prepare_scan` of this scan), ``'register'``
+        (total of :func:`register`), the registration stages (``'rotation'``,
+        ``'translation'``, ``'refine'``) when it ran, and ``'total'`` for the whole step.
+    n_points : int
+        Points given.
+    n_prepared : int
+        Points kept after preprocessing (0 if rejected).
+    covariance : ndarray, shape (6, 6)
+        First-order covariance of ``T_world_lidar`` in the order (x, y, z, rot_x, rot_y, rot_z)
+        of nav_msgs/Odometry: position error in world axes, rotation error about world axes
+        (see :func:`propagate_covariance`). The registration covariances are chained; a
+        predicted step adds an isotropic uncertainty as large as the predicted motion (at least
+        :data:`PREDICTION_MIN_STD`). It grows without bound, as odometry drift does.
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str | None
+    T_world_lidar: FloatArray
+    T_prev_curr: FloatArray
+    T_model_pred: FloatArray
+    model_index: int
+    result: RegistrationResult | None
+    health: str
+    message: str
+    timings: dict[str, float] = field(default_factory=dict)
+    n_points: int = 0
+    n_prepared: int = 0
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    fit: float = float('nan')
+    searched: bool = False
+
+    @property
+    def ok(self) -> bool:
+        """True when the pose comes from a registration (or is the first pose)."""
+        return self.health == HEALTH_FIRST or self.health in ACCEPTED
+
+    @property
+    def stamp(self) -> float:
+        """Acquisition time in seconds (float; use ``stamp_ns`` for exact values)."""
+        return self.stamp_ns * 1e-9
