@@ -204,3 +204,14 @@ def test_spherical_kmeans_handles_more_clusters_than_points() -> None:
     x = exp_so3([0.1, 0.2, 0.3])[:2]
     labels, centers = spherical_kmeans(x, 5)
     assert len(centers) == 2 and set(labels) == {0, 1}
+
+
+def test_a_cloud_already_downsampled_at_the_voxel_keeps_its_samples() -> None:
+    rng = np.random.default_rng(8)
+    raw = np.column_stack(
+        [rng.uniform(0, 20, 60000), rng.uniform(0, 20, 60000), rng.normal(scale=0.01, size=60000)]
+    )
+    once = voxel_downsample(raw, 0.25)  # one point per voxel of this grid
+    again, grid = downsample(once, voxel_size=0.25)
+    # Dropping single-return voxels would leave nothing: they are the cloud's samples here.
+    assert grid.min_points == 1 and len(again) == len(once)

@@ -157,6 +157,10 @@ def count_voxels(points: FloatArray, voxel_size: float) -> int:
 #: component, pi0 = 0.1 by default, and the robust kernels) absorbs a few percent of stray
 #: points; more than that and outliers start to shape normals and clusters.
 MAX_ISOLATED_SHARE = 0.1
+#: A returns-per-voxel floor that leaves fewer voxels than this has met a cloud already
+#: sampled at the voxel size (every return alone in its voxel, e.g. downsampled before): its
+#: single returns are its samples, not strays, and a registration needs hundreds of them.
+MIN_KEPT_VOXELS = 100
 #: Largest returns-per-voxel floor the isolated-return test may raise to.
 MAX_MIN_VOXEL_POINTS = 8
 
@@ -440,6 +444,14 @@ def downsample(
         probe.measure_rate(voxel_size)
         m = probe.floor(voxel_size, max(int(min_voxel_points), 1))
         size = voxel_size
+        if m > 1 and probe.kept(size, m) < MIN_KEPT_VOXELS <= probe.kept(size, 1):
+            logger.warning(
+                'Almost every voxel of %.3g holds a single return: the cloud looks already '
+                'downsampled at this size, so its single returns are its samples; keeping them '
+                '(preprocess.min_voxel_points applies to raw scans).',
+                size,
+            )
+            m = 1
     else:
         grid = _choose_grid(
             probe, points, target_points, voxel_size_hint, max(int(min_voxel_points), 1)
