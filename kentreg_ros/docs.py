@@ -2,7 +2,7 @@
 
 Every :class:`~kentreg_ros.core.config.KentRegConfig` field (dotted names such as
 ``em.max_iterations``, read by the node and by ``kentreg_replay --config``) and every ``node.*``
-parameter of the node (:data:`kentreg_ros.node_params.NODE_PARAMETERS`) becomes one row of a
+parameter of the node (:data:`kentreg_ros.ros.params.NODE_PARAMETERS`) becomes one row of a
 markdown table: name, ROS type, default, allowed values, description. The README holds the table
 between the markers :data:`BEGIN` and :data:`END`; a test keeps it equal to the rendering.
 
@@ -32,7 +32,7 @@ PROG = 'python3 -m kentreg_ros.docs'
 BEGIN = '<!-- BEGIN parameters -->'
 END = '<!-- END parameters -->'
 #: Where the ``node.*`` parameters are defined (rclpy-free module of the node).
-NODE_PARAMETER_MODULES = ('kentreg_ros.node_params', 'kentreg_ros.node')
+NODE_PARAMETER_MODULES = ('kentreg_ros.ros.params', 'kentreg_ros.ros.node')
 
 _ROS_TYPES = {bool: 'bool', int: 'integer', float: 'double', str: 'string'}
 
@@ -109,7 +109,7 @@ def _load_node_parameters() -> Sequence[Any] | None:
     for module_name in NODE_PARAMETER_MODULES:
         try:
             module = importlib.import_module(module_name)
-        except ImportError as exc:  # node.py needs rclpy; node_params does not
+        except ImportError as exc:  # ros.node needs rclpy; ros.params does not
             logger.debug('Cannot import %s: %s', module_name, exc)
             continue
         params = getattr(module, 'NODE_PARAMETERS', None)
@@ -124,7 +124,7 @@ def node_parameters(parameters: Sequence[Any] | None = None) -> list[ParameterDo
     Parameters
     ----------
     parameters : sequence, optional
-        :class:`~kentreg_ros.node_params.NodeParameter` objects or ``(name, default,
+        :class:`~kentreg_ros.ros.params.NodeParameter` objects or ``(name, default,
         description)`` tuples; default: ``NODE_PARAMETERS`` of the node, or none when the node
         module is not available.
     """

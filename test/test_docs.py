@@ -42,7 +42,7 @@ def test_rendering_has_one_row_per_config_field_with_default_and_range() -> None
 def test_rendering_lists_the_node_parameters_when_the_node_defines_them() -> None:
     params = docs._load_node_parameters()
     if params is None:
-        pytest.skip('no NODE_PARAMETERS in kentreg_ros.node_params / kentreg_ros.node')
+        pytest.skip('no NODE_PARAMETERS in kentreg_ros.ros.params / kentreg_ros.ros.node')
     block = docs.render_parameters()
     for p in params:
         name = p[0] if isinstance(p, tuple) else p.name

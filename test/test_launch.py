@@ -138,7 +138,7 @@ def test_launch_description_starts_the_node_with_remap_parameters_and_defaults(
 
 def test_launch_refers_to_files_and_executable_the_package_installs() -> None:
     setup_py = (REPO_ROOT / 'setup.py').read_text(encoding='utf-8')
-    assert "'kentreg_node = kentreg_ros.node:main'" in setup_py
+    assert "'kentreg_node = kentreg_ros.ros.node:main'" in setup_py
     assert "glob('launch/*.py')" in setup_py and "glob('config/*.yaml')" in setup_py
     assert (REPO_ROOT / 'config' / 'kentreg.yaml').is_file()
     assert (REPO_ROOT / 'resource' / 'kentreg_ros').is_file()
@@ -204,7 +204,11 @@ def test_package_xml_declares_every_ros_package_the_node_player_and_launch_impor
     assert manifest.findtext('export/build_type') == 'ament_python'
     exec_depends = {e.text for e in manifest.findall('exec_depend')}
     imported = set()
-    for module in ('kentreg_ros/node.py', 'kentreg_ros/play.py', 'launch/kentreg.launch.py'):
+    for module in (
+        'kentreg_ros/ros/node.py',
+        'kentreg_ros/ros/play.py',
+        'launch/kentreg.launch.py',
+    ):
         if (REPO_ROOT / module).is_file():
             imported |= _top_level_imports(REPO_ROOT / module)
     assert {'rclpy', 'sensor_msgs', 'launch_ros', 'rosgraph_msgs'} <= imported

@@ -62,8 +62,8 @@ def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
 @pytest.mark.parametrize(
     ('folder', 'forbidden'),
     [
-        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.node')),
-        ('eval', ('kentreg_ros.cli', 'kentreg_ros.node', 'kentreg_ros.play')),
+        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros')),
+        ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros')),
     ],
 )
 def test_io_and_eval_never_import_the_command_lines_or_the_node(

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from ros_env import ros_env, unique_topic
 
-from kentreg_ros.play import Timing, main
+from kentreg_ros.ros.play import Timing, main
 
 pytest.importorskip('rclpy', reason='rclpy is not installed (pip install -e .[ros])')
 
@@ -100,7 +100,7 @@ def _start_play(repo_root: Path, *args: str) -> subprocess.Popen[str]:
         'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path]),
     }
     return subprocess.Popen(
-        [sys.executable, '-m', 'kentreg_ros.play', *args],
+        [sys.executable, '-m', 'kentreg_ros.ros.play', *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

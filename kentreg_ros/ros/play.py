@@ -56,7 +56,7 @@ from kentreg_ros.cli.common import (
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.io.errors import BagError
 
-logger = logging.getLogger('kentreg_ros.play')  # also when run as __main__
+logger = logging.getLogger('kentreg_ros.ros.play')  # also when run as __main__
 
 PROG = 'kentreg_play'
 NODE_NAME = 'kentreg_play'

@@ -69,7 +69,7 @@ from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import log_so3
 from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
-from kentreg_ros.node_params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
+from kentreg_ros.ros.params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros

@@ -9,7 +9,7 @@ import pytest
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.io.params import load_config, parameters_from_yaml
-from kentreg_ros.node_params import NODE_PARAMETERS, dump_parameter_file, node_settings
+from kentreg_ros.ros.params import NODE_PARAMETERS, dump_parameter_file, node_settings
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 def test_shipped_parameter_file_is_the_generated_one() -> None:
     shipped = (REPO / 'config' / 'kentreg.yaml').read_text()
     assert shipped == dump_parameter_file(), (
-        'config/kentreg.yaml is stale: python3 -m kentreg_ros.node_params > config/kentreg.yaml'
+        'config/kentreg.yaml is stale: python3 -m kentreg_ros.ros.params > config/kentreg.yaml'
     )
 
 

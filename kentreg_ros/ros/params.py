@@ -222,8 +222,8 @@ def dump_parameter_file(
     header = (
         '# kentreg parameters: read by kentreg_node (ros2 run / launch) and by kentreg_replay\n'
         '# --config (which ignores the node section). Every key is documented in README.md\n'
-        '# (parameter table), kentreg_ros/core/config.py and kentreg_ros/node_params.py.\n'
-        '# Regenerate: python3 -m kentreg_ros.node_params > config/kentreg.yaml\n'
+        '# (parameter table), kentreg_ros/core/config.py and kentreg_ros/ros/params.py.\n'
+        '# Regenerate: python3 -m kentreg_ros.ros.params > config/kentreg.yaml\n'
     )
     body = yaml.safe_dump({node_name: {'ros__parameters': params}}, sort_keys=False)
     return header + body
