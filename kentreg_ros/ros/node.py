@@ -41,7 +41,7 @@ import rclpy.clock
 import rclpy.logging
 import rclpy.time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry as OdometryMsg
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import (
@@ -68,7 +68,14 @@ from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import log_so3
 from kentreg_ros.io.params import NODE_NAME
-from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
+from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+from kentreg_ros.ros.messages import (
+    covariance_to_msg,
+    pose_to_msg,
+    stamp_to_msg,
+    transform_from_msg,
+    transform_to_msg,
+)
 from kentreg_ros.ros.params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
@@ -198,21 +205,6 @@ def pose_covariance_in_base(
     J[3:, 3:] = R_bl
     J[:3, 3:] = _skew(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
     return J @ cov_world_lidar @ J.T
-
-
-def _pose_msg(T: FloatArray) -> Any:
-    pose = Pose()
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (
-        float(v) for v in q
-    )
-    return pose
-
-
-def _stamp_msg(stamp_ns: int) -> Any:
-    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
-    return rclpy.time.Time(seconds=sec, nanoseconds=nanosec).to_msg()
 
 
 class KentRegNode(Node):
@@ -488,11 +480,7 @@ class KentRegNode(Node):
                 f'using node.base_to_lidar={list(settings.base_to_lidar)}.'
             )
             return fallback
-        T = np.eye(4)
-        q = tf.rotation
-        T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-        T[:3, 3] = [tf.translation.x, tf.translation.y, tf.translation.z]
-        return T
+        return transform_from_msg(tf)
 
     def _process(self, scan: _Scan, settings: NodeSettings) -> None:
         log = self.get_logger()
@@ -544,8 +532,8 @@ class KentRegNode(Node):
         assert self._T_base_lidar is not None  # set before any step
         T_bl = self._T_base_lidar
         T_odom_base = T_bl @ step.T_world_lidar @ _invert(T_bl)
-        stamp = _stamp_msg(step.stamp_ns)
-        pose = _pose_msg(T_odom_base)
+        stamp = stamp_to_msg(step.stamp_ns)
+        pose = pose_to_msg(T_odom_base)
 
         odom = OdometryMsg()
         odom.header.stamp = stamp
@@ -553,7 +541,7 @@ class KentRegNode(Node):
         odom.child_frame_id = settings.base_frame
         odom.pose.pose = pose
         cov = pose_covariance_in_base(step.covariance, T_bl, T_odom_base)
-        odom.pose.covariance = [float(v) for v in cov.ravel()]
+        odom.pose.covariance = covariance_to_msg(cov)
         twist_cov = np.eye(6) * UNKNOWN_VARIANCE
         if prev_stamp is not None and step.index > 0 and step.stamp_ns > prev_stamp:
             dt = (step.stamp_ns - prev_stamp) * 1e-9
@@ -571,7 +559,7 @@ class KentRegNode(Node):
                 J = np.zeros((6, 6))
                 J[:3, :3] = J[3:, 3:] = T_bl[:3, :3]
                 twist_cov = J @ np.asarray(step.result.covariance) @ J.T / dt**2
-        odom.twist.covariance = [float(v) for v in twist_cov.ravel()]
+        odom.twist.covariance = covariance_to_msg(twist_cov)
         self._pub_odom.publish(odom)
 
         pose_msg = PoseStamped()
@@ -590,10 +578,7 @@ class KentRegNode(Node):
             tf = TransformStamped()
             tf.header = odom.header
             tf.child_frame_id = settings.base_frame
-            tf.transform.translation.x = pose.position.x
-            tf.transform.translation.y = pose.position.y
-            tf.transform.translation.z = pose.position.z
-            tf.transform.rotation = pose.orientation
+            tf.transform = transform_to_msg(T_odom_base)
             self._tf_broadcaster.sendTransform(tf)
 
     def _publish_diagnostics(self) -> None:

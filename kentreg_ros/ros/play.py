@@ -267,6 +267,8 @@ def _ros() -> Any:
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import PointCloud2, PointField
         from std_msgs.msg import Header
+
+        from kentreg_ros.ros import messages
     except ImportError as exc:
         raise InputError(
             f'{PROG} needs rclpy and the ROS 2 message packages ({exc.name} is missing): '
@@ -284,6 +286,7 @@ def _ros() -> Any:
         PointCloud2=PointCloud2,
         PointField=PointField,
         Header=Header,
+        messages=messages,
     )
 
 
@@ -341,7 +344,7 @@ class Player:
         if self.clock_publisher is None:
             return
         msg = self.ros.Clock()
-        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        msg.clock = self.ros.messages.stamp_to_msg(stamp_ns)
         self.clock_publisher.publish(msg)
 
     def wait_for_subscribers(self, timeout_s: float) -> int:
