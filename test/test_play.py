@@ -247,6 +247,20 @@ def test_play_bad_input_exits_2_with_one_line(
         assert message in lines[0]
 
 
+def test_play_ctrl_c_before_publishing_exits_130_with_one_line(
+    sample_bag: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from kentreg_ros.ros import play
+
+    def interrupted(options: Any) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(play, '_open_source', interrupted)
+    assert main([str(sample_bag)]) == 130
+    out, err = capsys.readouterr()
+    assert out == '' and err == 'kentreg_play: interrupted before publishing\n'
+
+
 def test_installed_console_script_reports_bad_input(tmp_path: Path) -> None:
     import shutil
 
