@@ -31,7 +31,7 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -76,7 +76,7 @@ from kentreg_ros.ros.messages import (
     transform_from_msg,
     transform_to_msg,
 )
-from kentreg_ros.ros.params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
+from kentreg_ros.ros.params import NODE_PARAMETERS, PREFIX, NodeParameter, NodeSettings
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros
@@ -143,13 +143,17 @@ class _Counters:
             return dict(self.total), window
 
 
-def _descriptor(name: str, description: str, meta: dict[str, Any], read_only: bool) -> Any:
-    desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+def _descriptor(name: str, default: Any, meta: Mapping[str, Any]) -> ParameterDescriptor:
+    """The ROS descriptor of a field with the metadata of core.config / ros.params."""
+    desc = ParameterDescriptor(
+        name=name,
+        description=meta.get('description', ''),
+        read_only=bool(meta.get('read_only', False)),
+    )
     choices = meta.get('choices')
     if choices:
         desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
     rng = meta.get('range')
-    default = meta.get('default')
     if rng is not None and isinstance(default, int) and not isinstance(default, bool):
         desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
     elif rng is not None and isinstance(default, float):
@@ -159,16 +163,15 @@ def _descriptor(name: str, description: str, meta: dict[str, Any], read_only: bo
     return desc
 
 
-def parameter_declarations() -> list[tuple[str, Any, Any]]:
+def parameter_declarations() -> list[tuple[str, Any, ParameterDescriptor]]:
     """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
     out = []
     for name, value, f in iter_fields(KentRegConfig()):
-        meta = dict(f.metadata)
-        meta['default'] = value
-        out.append((name, value, _descriptor(name, meta.get('description', ''), meta, False)))
-    for p in NODE_PARAMETERS:
-        meta = {'range': p.range, 'choices': p.choices, 'default': p.default}
-        out.append((p.name, p.default, _descriptor(p.name, p.description, meta, p.read_only)))
+        out.append((name, value, _descriptor(name, value, f.metadata)))
+    node_defaults = NodeSettings().to_parameters()
+    for name, _, f in iter_fields(NodeSettings(), PREFIX):
+        default = node_defaults[name]
+        out.append((name, default, _descriptor(name, default, f.metadata)))
     return out
 
 
@@ -315,7 +318,7 @@ class KentRegNode(Node):
         }
         node_values = {p.name: self.get_parameter(p.name).value for p in NODE_PARAMETERS}
         try:
-            return KentRegConfig.from_dict(config_values), node_settings(node_values)
+            return KentRegConfig.from_dict(config_values), NodeSettings.from_dict(node_values)
         except ConfigError as exc:
             raise StartupError(str(exc)) from exc
 
@@ -348,9 +351,7 @@ class KentRegNode(Node):
                 node_updates[p.name] = p.value
         try:
             config = self._config.with_updates(config_updates) if config_updates else None
-            current = {p.name: getattr(self._settings, p.name[5:]) for p in NODE_PARAMETERS}
-            current = {k: list(v) if isinstance(v, tuple) else v for k, v in current.items()}
-            settings = node_settings({**current, **node_updates}) if node_updates else None
+            settings = self._settings.with_updates(node_updates) if node_updates else None
         except ConfigError as exc:
             self.get_logger().warning(f'Rejected parameter change: {exc}')
             return SetParametersResult(successful=False, reason=str(exc))
