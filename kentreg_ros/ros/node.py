@@ -66,7 +66,7 @@ from std_srvs.srv import Trigger
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
-from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.core.rotations import hat, invert_transform, log_so3
 from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
 from kentreg_ros.ros.messages import (
@@ -182,17 +182,6 @@ def _transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:
     return T
 
 
-def _invert(T: FloatArray) -> FloatArray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def pose_covariance_in_base(
     cov_world_lidar: FloatArray, T_base_lidar: FloatArray, T_odom_base: FloatArray
 ) -> FloatArray:
@@ -206,7 +195,7 @@ def pose_covariance_in_base(
     J = np.zeros((6, 6))
     J[:3, :3] = R_bl
     J[3:, 3:] = R_bl
-    J[:3, 3:] = _skew(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
+    J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
     return J @ cov_world_lidar @ J.T
 
 
@@ -532,7 +521,7 @@ class KentRegNode(Node):
     def _publish(self, step: OdometryStep, prev_stamp: int | None, settings: NodeSettings) -> None:
         assert self._T_base_lidar is not None  # set before any step
         T_bl = self._T_base_lidar
-        T_odom_base = T_bl @ step.T_world_lidar @ _invert(T_bl)
+        T_odom_base = T_bl @ step.T_world_lidar @ invert_transform(T_bl)
         stamp = stamp_to_msg(step.stamp_ns)
         pose = pose_to_msg(T_odom_base)
 
@@ -546,7 +535,8 @@ class KentRegNode(Node):
         twist_cov = np.eye(6) * UNKNOWN_VARIANCE
         if prev_stamp is not None and step.index > 0 and step.stamp_ns > prev_stamp:
             dt = (step.stamp_ns - prev_stamp) * 1e-9
-            T_motion = T_bl @ step.T_prev_curr @ _invert(T_bl)  # current base in previous base
+            # The current base pose in the previous base frame.
+            T_motion = T_bl @ step.T_prev_curr @ invert_transform(T_bl)
             R = T_motion[:3, :3]
             v = R.T @ T_motion[:3, 3] / dt  # in the current base frame (child_frame_id)
             w = log_so3(R) / dt

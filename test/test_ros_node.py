@@ -1,0 +1,54 @@
+"""kentreg_ros.ros.node in this process: its frame maths, its threads and its start-up checks.
+
+``test_node.py`` runs the node as a subprocess over DDS; the tests here construct
+:class:`KentRegNode` in this process (a private rclpy context, nothing spun), hand it scans the
+way the subscription callback does, and look at what the worker thread did. That makes
+ownership between the executor thread and the worker, and shutdown with a busy worker,
+testable without depending on how fast this machine registers scans.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
+
+from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
+from kentreg_ros.ros import node as node_module  # noqa: E402
+
+
+def _random_transform(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
+    return make_transform(exp_so3(rng.normal(size=3)), rng.normal(scale=scale, size=3))
+
+
+def test_pose_covariance_in_base_is_the_first_order_propagation() -> None:
+    """Against a finite-difference Jacobian of ``T_odom_base = T_bl T_world_lidar T_bl^-1``,
+    with errors as the covariance convention states: position, then rotation about the fixed
+    frame's axes (``R' = exp(dtheta) R``)."""
+    rng = np.random.default_rng(0)
+    T_bl = _random_transform(rng, 0.5)
+    T_wl = _random_transform(rng, 3.0)
+
+    def odom_base(delta: np.ndarray) -> np.ndarray:
+        T = T_wl.copy()
+        T[:3, 3] += delta[:3]
+        T[:3, :3] = exp_so3(delta[3:]) @ T[:3, :3]
+        return T_bl @ T @ np.linalg.inv(T_bl)
+
+    T_ob = odom_base(np.zeros(6))
+    J = np.zeros((6, 6))
+    eps = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        plus, minus = odom_base(d), odom_base(-d)
+        J[:3, k] = (plus[:3, 3] - minus[:3, 3]) / (2 * eps)
+        J[3:, k] = (
+            log_so3(plus[:3, :3] @ T_ob[:3, :3].T) - log_so3(minus[:3, :3] @ T_ob[:3, :3].T)
+        ) / (2 * eps)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T
+    expected = J @ cov @ J.T
+    got = node_module.pose_covariance_in_base(cov, T_bl, T_ob)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
