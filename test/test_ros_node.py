@@ -9,11 +9,17 @@ testable without depending on how fast this machine registers scans.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from typing import Any
+
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
 
+from rclpy.parameter import Parameter  # noqa: E402
+
+from kentreg_ros.core.errors import KentRegError  # noqa: E402
 from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
 
@@ -52,3 +58,26 @@ def test_pose_covariance_in_base_is_the_first_order_propagation() -> None:
     expected = J @ cov @ J.T
     got = node_module.pose_covariance_in_base(cov, T_bl, T_ob)
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+
+
+@pytest.fixture
+def make_node(rclpy_context: Any) -> Iterator[Callable[..., Any]]:
+    """Construct KentRegNode in a private context; destroyed afterwards unless a test did."""
+    nodes: list[Any] = []
+
+    def make(**kwargs: Any) -> Any:
+        node = node_module.KentRegNode(context=rclpy_context, **kwargs)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        if node.handle is not None:
+            node.destroy_node()
+
+
+def test_startup_error_is_a_kentreg_error_naming_the_parameter(make_node: Any) -> None:
+    with pytest.raises(KentRegError, match=r"Expected `mode` to be one of \['robust', 'paper'\]"):
+        make_node(parameter_overrides=[Parameter('mode', value='fast')])
+    with pytest.raises(node_module.StartupError, match='node.queue_size'):
+        make_node(parameter_overrides=[Parameter('node.queue_size', value=0)])

@@ -64,7 +64,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import hat, invert_transform, log_so3
 from kentreg_ros.io.params import NODE_NAME
@@ -96,8 +96,12 @@ UNKNOWN_VARIANCE = 1e6
 STALE_INPUT_S = 5.0
 
 
-class StartupError(Exception):
-    """The node cannot start with the given parameters (message says which and why)."""
+class StartupError(KentRegError):
+    """The node cannot start with the given parameters (message says which and why).
+
+    Part of the library's error hierarchy (like the command lines' ``CliError``), so callers
+    that construct the node catch it with ``except KentRegError``.
+    """
 
 
 @dataclass
