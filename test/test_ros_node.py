@@ -17,6 +17,7 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
 
+from rclpy.exceptions import ParameterNotDeclaredException  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from kentreg_ros.core.errors import KentRegError  # noqa: E402
@@ -81,3 +82,45 @@ def test_startup_error_is_a_kentreg_error_naming_the_parameter(make_node: Any) -
         make_node(parameter_overrides=[Parameter('mode', value='fast')])
     with pytest.raises(node_module.StartupError, match='node.queue_size'):
         make_node(parameter_overrides=[Parameter('node.queue_size', value=0)])
+
+
+@pytest.mark.parametrize(
+    'how',
+    [
+        {'parameter_overrides': [Parameter('em.bogus', value=3)]},
+        {'cli_args': ['--ros-args', '-p', 'em.bogus:=3']},
+    ],
+    ids=['override', 'command-line'],
+)
+def test_unknown_parameters_stop_the_node_naming_them(make_node: Any, how: dict) -> None:
+    with pytest.raises(node_module.StartupError, match=r"unknown parameter\(s\) \['em.bogus'\]"):
+        make_node(**how)
+
+
+def test_given_parameters_apply_with_their_declared_type_and_range(make_node: Any) -> None:
+    """The known parameters rclpy declared as given are declared again with their descriptors:
+    the given value stays, and the range and type now come with it."""
+    node = make_node(
+        parameter_overrides=[
+            Parameter('em.max_iterations', value=33),
+            Parameter('node.path_length', value=7),
+            Parameter('use_sim_time', value=False),
+            Parameter('start_type_description_service', value=False),
+            Parameter('qos_overrides./points.subscription.depth', value=3),
+        ]
+    )
+    assert node.get_parameter('em.max_iterations').value == 33
+    assert node.get_parameter('node.path_length').value == 7
+    (rng,) = node.describe_parameter('em.max_iterations').integer_range
+    assert (rng.from_value, rng.to_value) == (1, 10000)
+    assert node.describe_parameter('node.qos_depth').read_only
+    # Out of range and unknown names are refused at run time too.
+    (result,) = node.set_parameters([Parameter('em.max_iterations', value=0)])
+    assert not result.successful
+    with pytest.raises(ParameterNotDeclaredException):
+        node.set_parameters([Parameter('em.bogus', value=1)])
+
+
+def test_integer_for_a_double_parameter_is_refused_with_a_hint(make_node: Any) -> None:
+    with pytest.raises(node_module.StartupError, match='with a decimal point'):
+        make_node(parameter_overrides=[Parameter('preprocess.voxel_size', value=1)])

@@ -59,6 +59,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.time_source import USE_SIM_TIME_NAME
+from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -94,6 +96,11 @@ THROTTLE_S = 5.0
 UNKNOWN_VARIANCE = 1e6
 #: Diagnostics turn WARN when no scan arrived for this many seconds.
 STALE_INPUT_S = 5.0
+#: Parameters every rclpy node has besides its own (rclpy declares and reads them itself):
+#: the clock source, whether to serve ~/get_type_description, and QoS overrides of publishers
+#: and subscriptions (``qos_overrides.<topic>.<publisher|subscription>.<policy>``).
+RCLPY_PARAMETERS = frozenset({USE_SIM_TIME_NAME, START_TYPE_DESCRIPTION_SERVICE_PARAM})
+QOS_OVERRIDES_PREFIX = 'qos_overrides.'
 
 
 class StartupError(KentRegError):
@@ -214,10 +221,16 @@ class KentRegNode(Node):
     """
 
     def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, **kwargs)
+        # rclpy declares every parameter given for this node (files, -p, parameter_overrides)
+        # before __init__ returns, so the node can see what it was given through the public
+        # parameter API and refuse names it does not know (_declare_and_read).
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=True, **kwargs)
         self._counters = _Counters()
-        self._config, self._settings = self._declare_and_read()
-        self._check_unknown_overrides()
+        try:
+            self._config, self._settings = self._declare_and_read()
+        except StartupError:
+            super().destroy_node()
+            raise
 
         self._lock = threading.Condition()
         self._queue: collections.deque[_Scan] = collections.deque()
@@ -292,9 +305,29 @@ class KentRegNode(Node):
     # Parameters
 
     def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
+        """Refuse unknown parameters, declare the known ones with their descriptors, read them.
+
+        Every name given for this node was declared by rclpy as it came (no descriptor, no
+        range). An unknown one is an error, not ignored. A known one is undeclared and declared
+        again with its descriptor: its given value still applies (rclpy keeps the overrides),
+        now checked against the declared type and range.
+        """
+        declarations = parameter_declarations()
+        known = {name for name, _, _ in declarations}
+        given = set(self.get_parameters_by_prefix(''))
+        unknown = sorted(
+            n for n in given - known - RCLPY_PARAMETERS if not n.startswith(QOS_OVERRIDES_PREFIX)
+        )
+        if unknown:
+            raise StartupError(
+                f'unknown parameter(s) {unknown}; valid ones are the keys of '
+                'config/kentreg.yaml (see README: parameter table).'
+            )
+        for name in given & known:
+            self.undeclare_parameter(name)
         try:
             # rclpy annotates `parameters` as an invariant List of a Union of tuples.
-            self.declare_parameters('', parameter_declarations())  # type: ignore[arg-type]
+            self.declare_parameters('', declarations)  # type: ignore[arg-type]
         except (
             InvalidParameterTypeException,
             InvalidParameterValueException,
@@ -314,19 +347,6 @@ class KentRegNode(Node):
             return KentRegConfig.from_dict(config_values), NodeSettings.from_dict(node_values)
         except ConfigError as exc:
             raise StartupError(str(exc)) from exc
-
-    def _check_unknown_overrides(self) -> None:
-        """Parameters given for this node that it does not know are an error, not ignored."""
-        overrides = getattr(self, '_parameter_overrides', {}) or {}
-        known = {name for name, _, _ in parameter_declarations()} | {'use_sim_time'}
-        unknown = sorted(
-            n for n in overrides if n not in known and not n.startswith('qos_overrides.')
-        )
-        if unknown:
-            raise StartupError(
-                f'unknown parameter(s) {unknown}; valid ones are the keys of '
-                'config/kentreg.yaml (see README: parameter table).'
-            )
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         config_updates: dict[str, Any] = {}
