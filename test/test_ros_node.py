@@ -9,6 +9,7 @@ testable without depending on how fast this machine registers scans.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -17,12 +18,48 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
 
+from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.exceptions import ParameterNotDeclaredException  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from scenes import box_room  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
 
 from kentreg_ros.core.errors import KentRegError  # noqa: E402
 from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
+from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
+
+FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
+ROOM = box_room(np.random.default_rng(0), 4000)
+TIMEOUT_S = 60.0
+
+
+def feed(node: Any, k: int) -> None:
+    """Hand scan ``k`` to the node as its subscription callback does: the room seen from 5 cm
+    further along x per scan, stamped ``k + 1`` seconds."""
+    points = ROOM - [0.05 * k, 0.0, 0.0]
+    node._on_points(
+        array_to_pointcloud2(points, stamp_ns=(k + 1) * 10**9, frame_id='lidar', factory=FACTORY)
+    )
+
+
+def total(node: Any, name: str) -> int:
+    """A cumulative counter of the node (what diagnostics report as ``total.<name>``)."""
+    return int(node._counters.total[name])
+
+
+def wait_until(done: Callable[[], bool], timeout: float = TIMEOUT_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while not done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 10**9 + int(stamp.nanosec)
 
 
 def _random_transform(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
@@ -124,3 +161,26 @@ def test_given_parameters_apply_with_their_declared_type_and_range(make_node: An
 def test_integer_for_a_double_parameter_is_refused_with_a_hint(make_node: Any) -> None:
     with pytest.raises(node_module.StartupError, match='with a decimal point'):
         make_node(parameter_overrides=[Parameter('preprocess.voxel_size', value=1)])
+
+
+def test_path_length_changes_reach_the_path_through_the_worker_only(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker appends to the path and publishes it without the lock, so no other thread may
+    touch it: a node.path_length change is handed over and applied by the worker."""
+    node = make_node(parameter_overrides=[Parameter('node.path_length', value=5)])
+    paths: list[Any] = []
+    monkeypatch.setattr(node._pub_path, 'publish', paths.append)
+    for k in range(3):
+        feed(node, k)
+        assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+    path = node._path
+    # From this thread, as the executor thread runs `ros2 param set`.
+    (result,) = node.set_parameters([Parameter('node.path_length', value=2)])
+    assert result.successful
+    assert node._path is path and path.maxlen == 5, 'the parameter thread touched the path'
+    feed(node, 3)
+    assert wait_until(lambda: total(node, 'processed') == 4)
+    assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
+    assert [stamp_ns(p.header.stamp) for p in paths[-1].poses] == [3 * 10**9, 4 * 10**9]
+    assert total(node, 'errors') == 0

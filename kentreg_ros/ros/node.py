@@ -238,6 +238,9 @@ class KentRegNode(Node):
         self._pending_reset = False
         self._stop = False
 
+        # Worker state: only the worker thread reads or writes these after start-up. Changes
+        # from the executor thread (parameters, reset) reach it under the lock as pending
+        # values or through the settings it copies before each scan.
         self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
         self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
         self._T_base_lidar: FloatArray | None = None
@@ -381,9 +384,7 @@ class KentRegNode(Node):
     def _apply_settings(self, settings: NodeSettings) -> None:
         """Adopt new runtime node settings (called with the lock held)."""
         old = self._settings
-        self._settings = settings
-        if settings.path_length != old.path_length:
-            self._path = collections.deque(self._path, maxlen=settings.path_length)
+        self._settings = settings  # node.path_length reaches the worker's path through it
         if settings.base_to_lidar != old.base_to_lidar or (
             settings.odom_frame,
             settings.base_frame,
@@ -454,6 +455,8 @@ class KentRegNode(Node):
                     self._odometry.reconfigure(config)
                 if reset:
                     self._reset('reset requested')
+                if self._path.maxlen != settings.path_length:
+                    self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
             except Exception as exc:  # noqa: BLE001 - keep the node alive, restart cleanly
                 self._counters.add('errors')
