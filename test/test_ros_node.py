@@ -184,3 +184,26 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
     assert [stamp_ns(p.header.stamp) for p in paths[-1].poses] == [3 * 10**9, 4 * 10**9]
     assert total(node, 'errors') == 0
+
+
+def test_diagnostics_report_the_mode_in_use_and_the_pending_one(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An accepted mode change applies from the next scan: until then diagnostics must say the
+    worker still registers in the old mode, and which one is pending."""
+    node = make_node()
+    sent: list[Any] = []
+    monkeypatch.setattr(node._pub_diag, 'publish', sent.append)
+
+    def modes() -> tuple[str, str]:
+        node._publish_diagnostics()
+        values = {kv.key: kv.value for kv in sent[-1].status[0].values}
+        return values['mode'], values['pending_mode']
+
+    assert modes() == ('robust', '')
+    (result,) = node.set_parameters([Parameter('mode', value='paper')])
+    assert result.successful
+    assert modes() == ('robust', 'paper')
+    feed(node, 0)
+    assert wait_until(lambda: total(node, 'processed') == 1)
+    assert modes() == ('paper', '')

@@ -235,6 +235,9 @@ class KentRegNode(Node):
         self._lock = threading.Condition()
         self._queue: collections.deque[_Scan] = collections.deque()
         self._pending_config: KentRegConfig | None = None
+        #: The mode the worker registers with (changed by the worker, under the lock, when it
+        #: adopts a pending configuration); self._config is the latest accepted one.
+        self._mode_in_use = self._config.mode
         self._pending_reset = False
         self._stop = False
 
@@ -453,6 +456,8 @@ class KentRegNode(Node):
             try:
                 if config is not None:
                     self._odometry.reconfigure(config)
+                    with self._lock:
+                        self._mode_in_use = config.mode
                 if reset:
                     self._reset('reset requested')
                 if self._path.maxlen != settings.path_length:
@@ -607,6 +612,8 @@ class KentRegNode(Node):
         with self._lock:
             queued = len(self._queue)
             settings = self._settings
+            mode = self._mode_in_use
+            pending = self._pending_config
         if not settings.publish_diagnostics:
             return
         latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
@@ -642,7 +649,8 @@ class KentRegNode(Node):
             'queue_length': str(queued),
             'last_health': self._last_health,
             'last_message': self._last_message,
-            'mode': self._config.mode,
+            'mode': mode,  # in use; an accepted change applies from the next scan
+            'pending_mode': pending.mode if pending is not None else '',
         }
         values.update({f'total.{k}': str(v) for k, v in total.items()})
         values.update({f'window.{k}': str(v) for k, v in window.items()})
