@@ -9,6 +9,7 @@ testable without depending on how fast this machine registers scans.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -207,3 +208,34 @@ def test_diagnostics_report_the_mode_in_use_and_the_pending_one(
     feed(node, 0)
     assert wait_until(lambda: total(node, 'processed') == 1)
     assert modes() == ('paper', '')
+
+
+def test_destroy_keeps_the_publishers_while_the_worker_still_holds_a_scan(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A worker that outlives destroy_node's wait publishes its scan on live publishers (before,
+    they were destroyed under it and the scan ended in an error)."""
+    entered, release = threading.Event(), threading.Event()
+    process = node_module.KentRegNode._process
+
+    def held(node: Any, scan: Any, settings: Any) -> None:
+        entered.set()
+        release.wait(TIMEOUT_S)
+        process(node, scan, settings)
+
+    monkeypatch.setattr(node_module.KentRegNode, '_process', held)
+    node = make_node()
+    node.WORKER_STOP_TIMEOUT_S = 0.1
+    feed(node, 0)
+    assert entered.wait(TIMEOUT_S)
+    try:
+        node.destroy_node()
+        assert node._worker.is_alive()
+        assert node._pub_odom in node.publishers and node._pub_pose in node.publishers
+        assert node._sub not in node.subscriptions  # no more input
+    finally:
+        release.set()
+    node._worker.join(TIMEOUT_S)
+    assert not node._worker.is_alive()
+    assert (total(node, 'published'), total(node, 'errors')) == (1, 0)
+    assert 'did not stop within 0.1 s' in capfd.readouterr().err

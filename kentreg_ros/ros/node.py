@@ -220,6 +220,9 @@ class KentRegNode(Node):
         among its choices, unknown, or inconsistent with another.
     """
 
+    #: How long :meth:`destroy_node` waits for the worker to finish the scan in hand (s).
+    WORKER_STOP_TIMEOUT_S = 10.0
+
     def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
         # rclpy declares every parameter given for this node (files, -p, parameter_overrides)
         # before __init__ returns, so the node can see what it was given through the public
@@ -664,12 +667,27 @@ class KentRegNode(Node):
     # Lifecycle
 
     def destroy_node(self) -> None:
-        """Stop and join the worker (it finishes the scan in hand), then destroy the node."""
+        """Stop and join the worker (it finishes the scan in hand), then destroy the node.
+
+        When the worker has not stopped within :attr:`WORKER_STOP_TIMEOUT_S` (a registration
+        still running), only the input side is destroyed (subscription, reset service,
+        diagnostics timer) and the reason is logged: the publishers and tf objects stay, since
+        the worker may still publish with them. It stops after that scan; its thread is a
+        daemon, so it does not keep the process alive.
+        """
         with self._lock:
             self._stop = True
             self._lock.notify_all()
+        self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
         if self._worker.is_alive():
-            self._worker.join(timeout=10.0)
+            self.get_logger().error(
+                f'The worker did not stop within {self.WORKER_STOP_TIMEOUT_S:g} s (a scan still '
+                'in hand); leaving its publishers in place and destroying only the input side.'
+            )
+            self.destroy_subscription(self._sub)
+            self.destroy_service(self._srv_reset)
+            self.destroy_timer(self._diag_timer)
+            return
         super().destroy_node()
 
 
