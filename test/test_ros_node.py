@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,7 @@ from kentreg_ros.core.errors import KentRegError  # noqa: E402
 from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
+from kentreg_ros.ros.params import NodeSettings  # noqa: E402
 
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
 ROOM = box_room(np.random.default_rng(0), 4000)
@@ -239,3 +241,52 @@ def test_destroy_keeps_the_publishers_while_the_worker_still_holds_a_scan(
     assert not node._worker.is_alive()
     assert (total(node, 'published'), total(node, 'errors')) == (1, 0)
     assert 'did not stop within 0.1 s' in capfd.readouterr().err
+
+
+class _FakeTransformError(Exception):
+    """Stands in for tf2_ros.TransformException (tf2_ros is not on PyPI)."""
+
+
+class _Buffer:
+    """A tf2 buffer whose lookup returns ``result`` or raises it."""
+
+    def __init__(self, result: Any) -> None:
+        self.result = result
+
+    def lookup_transform(self, target: str, source: str, when: Any) -> Any:
+        if isinstance(self.result, BaseException):
+            raise self.result
+        return self.result
+
+
+def test_tf_lookup_failures_wait_then_fall_back_and_other_errors_propagate(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from geometry_msgs.msg import TransformStamped
+
+    node = make_node()
+    monkeypatch.setattr(
+        node_module, 'tf2_ros', SimpleNamespace(TransformException=_FakeTransformError)
+    )
+    waiting = NodeSettings.from_dict(
+        {'node.tf_wait': 30.0, 'node.base_to_lidar': [1, 0, 0, 0, 0, 0]}
+    )
+    expired = NodeSettings.from_dict(
+        {'node.tf_wait': 0.0, 'node.base_to_lidar': [1, 0, 0, 0, 0, 0]}
+    )
+    # A transform tf2 knows is used as it is.
+    stamped = TransformStamped()
+    stamped.transform.translation.x, stamped.transform.translation.z = 0.5, 1.5
+    stamped.transform.rotation.z = stamped.transform.rotation.w = np.sqrt(0.5)
+    node._tf_buffer = _Buffer(stamped)
+    T = node._sensor_in_base('lidar', waiting)
+    np.testing.assert_allclose(T[:3, 3], [0.5, 0.0, 1.5])
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    # Not (yet) known to tf2: wait while node.tf_wait lasts, then node.base_to_lidar.
+    node._tf_buffer = _Buffer(_FakeTransformError('frame lidar does not exist'))
+    assert node._sensor_in_base('lidar', waiting) is None
+    np.testing.assert_allclose(node._sensor_in_base('lidar', expired)[:3, 3], [1.0, 0.0, 0.0])
+    # Anything else is a bug, not a missing transform: it is not mistaken for one.
+    node._tf_buffer = _Buffer(TypeError('a bug'))
+    with pytest.raises(TypeError, match='a bug'):
+        node._sensor_in_base('lidar', expired)

@@ -494,7 +494,7 @@ class KentRegNode(Node):
             tf = self._tf_buffer.lookup_transform(
                 settings.base_frame, frame_id, rclpy.time.Time()
             ).transform
-        except Exception:  # noqa: BLE001 - tf2 raises several lookup exception types
+        except tf2_ros.TransformException:  # LookupException, ExtrapolationException, ...
             now = time.monotonic()
             if self._tf_wait_start is None:
                 self._tf_wait_start = now
