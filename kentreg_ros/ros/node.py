@@ -409,7 +409,11 @@ class KentRegNode(Node):
         self._counters.add('received')
         try:
             cloud = pointcloud2_to_array(msg, fields=())
-        except Exception as exc:  # noqa: BLE001 - any malformed message must not stop the node
+        except Exception as exc:
+            # Broad on purpose: whatever a malformed message makes the decoder raise (its
+            # documented InvalidPointCloudError, or numpy's errors on an absurd layout) must
+            # not leave this callback: an exception here propagates out of spin() and stops
+            # the node.
             self._counters.add('malformed')
             self.get_logger().warning(
                 f'Skipped a malformed PointCloud2: {exc}', throttle_duration_sec=THROTTLE_S
@@ -466,7 +470,10 @@ class KentRegNode(Node):
                 if self._path.maxlen != settings.path_length:
                     self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
-            except Exception as exc:  # noqa: BLE001 - keep the node alive, restart cleanly
+            except Exception as exc:
+                # Broad on purpose: an exception would end this thread silently, leaving a node
+                # that still subscribes and reports but never publishes odometry again. Counted,
+                # logged (with the traceback at debug level) and followed by a clean restart.
                 self._counters.add('errors')
                 self.get_logger().error(
                     f'Unexpected error while processing a scan ({type(exc).__name__}: {exc}); '
@@ -699,7 +706,7 @@ def main(args: list[str] | None = None) -> int:
     """
     try:
         rclpy.init(args=args)
-    except Exception as exc:  # noqa: BLE001 - rcl raises RCLError for bad --ros-args / files
+    except RuntimeError as exc:  # rcl's RCLError: bad --ros-args, unreadable --params-file
         print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
         return 1
     node: KentRegNode | None = None
