@@ -122,26 +122,61 @@ def test_paper_mode_runs_end_to_end_on_synthetic_room() -> None:
     )
 
 
-@pytest.mark.parametrize(
-    'ablation',
-    [
-        {'em.kent_beta': False},
-        {'em.rotation': 'averaged'},
-        {'translation.method': 'centroid'},
-        {'translation.cross_correlation': False},
-        {'refine.method': 'plane_to_plane'},
-        {'refine.method': 'none'},
-        {'refine.normal_weight': False},
-        {'refine.max_step_scale': 1.0},
-        {'translation.max_iterations': 20},
-    ],
-)
-def test_every_ablation_switch_runs(ablation: dict) -> None:
+#: Each switch of the robust pipeline, its ablated value, and the first stage it acts on.
+ABLATIONS = [
+    ('em.kent_beta', True, 'rotation'),
+    ('em.rotation', 'averaged', 'rotation'),
+    ('translation.method', 'centroid', 'translation'),
+    ('translation.cross_correlation', False, 'translation'),
+    ('translation.max_iterations', 20, 'translation'),
+    ('refine.method', 'plane_to_plane', 'refine'),
+    ('refine.method', 'none', 'refine'),
+    ('refine.normal_weight', False, 'refine'),
+    ('refine.max_step_scale', 1.0, 'refine'),
+]
+STAGE_ORDER = ('rotation', 'translation', 'refine')
+
+
+@pytest.fixture(scope='module')
+def ablation_room() -> tuple[object, object, np.ndarray, RegistrationResult]:
+    """A synthetic room pair (5 deg, 0.1 m), prepared once (the ablations do not touch the
+    preparation), and the default pipeline's result from identity."""
     source, target, T = _room_pair(7, 5.0, 0.1)
-    result = register(source, target, config=KentRegConfig().with_updates(ablation))
-    assert np.isfinite(result.T_target_source).all()
-    e_r, _ = pose_errors(result.T_target_source, T)
-    assert e_r < 5.0, (ablation, e_r)
+    cfg = KentRegConfig()
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    return s, t, T, register(s, t, init=np.eye(4), config=cfg)
+
+
+@pytest.mark.parametrize(('key', 'value', 'stage'), ABLATIONS, ids=lambda v: str(v))
+def test_every_ablation_switch_reaches_its_stage_and_still_registers(
+    ablation_room: tuple, key: str, value: object, stage: str
+) -> None:
+    """Each ablation must really change the configuration and reach the stage it switches
+    (everything before that stage is bit-identical to the default run from the same start,
+    that stage differs), and, being a variant of the robust pipeline on a clean room in its
+    basin, must stay within the paper's failure thresholds (2 deg, 0.2 m)."""
+    s, t, T, default = ablation_room
+    default_cfg = KentRegConfig()
+    cfg = default_cfg.with_updates({key: value})
+    assert cfg.to_flat_dict()[key] == value != default_cfg.to_flat_dict()[key]
+    result = register(s, t, init=np.eye(4), config=cfg)
+    assert result.status != 'failed', result.message
+    e_r, e_t = pose_errors(result.T_target_source, T)
+    assert e_r < 2.0 and e_t < 0.2, (key, value, e_r, e_t)
+    before = STAGE_ORDER[: STAGE_ORDER.index(stage)]
+    for earlier in before:
+        np.testing.assert_array_equal(result.stages[earlier], default.stages[earlier])
+    if (key, value) == ('refine.method', 'none'):
+        assert 'refine' not in result.stages
+        np.testing.assert_array_equal(result.T_target_source, result.stages['translation'])
+    else:
+        assert not np.array_equal(result.stages[stage], default.stages[stage]), key
+    if key == 'translation.method' or key == 'translation.cross_correlation':
+        assert 'cross_correlation' not in result.stages  # the plane-offset start was skipped
+    if (key, value) == ('translation.method', 'centroid'):
+        R = result.stages['translation'][:3, :3]
+        expected = t.points.mean(axis=0) - R @ s.points.mean(axis=0)
+        np.testing.assert_allclose(result.stages['translation'][:3, 3], expected, atol=1e-9)
 
 
 def test_corridor_flags_degenerate_translation_axis() -> None:
