@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from scenes import (
@@ -97,29 +99,33 @@ def test_precomputed_normals_are_used() -> None:
     assert e_r < 0.2 and e_t < 0.02
 
 
-def test_paper_mode_runs_end_to_end_on_synthetic_room() -> None:
-    """The paper's recipe runs and returns a proper rotation; its accuracy is reported.
-
-    Measured: from identity with a true 5 deg motion it ends 0.84 deg off with the default
-    clustering (3 k-means++ restarts), but 18.7 deg off with a single k-means++ start. Each
-    cluster's EM leaves the rotation about the cluster's own axis nearly undetermined, so the
-    result hinges on the partition: the fragility the feasibility study found.
-    """
-    source, target, T = _room_pair(6, 5.0, 0.0)
-    result = register(source, target, config=KentRegConfig.paper())
+def _paper_recipe_checks(result: RegistrationResult, source: Any, target: Any) -> None:
+    """What Algorithms 1-2 of the paper must return, whatever its accuracy on the scene."""
     assert result.mode == 'paper'
+    assert result.status != 'failed', result.message
+    # Per-cluster EM then rotation averaging: a proper rotation, one Kent fit per cluster pair.
     R = result.T_target_source[:3, :3]
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
-    assert np.linalg.det(R) > 0
-    assert result.status in ('converged', 'max_iterations', 'degenerate')
+    assert np.linalg.det(R) == pytest.approx(1.0)
     assert len(result.kappa) == KentRegConfig().clustering.n_clusters
-    assert np.all(result.beta < result.kappa / 2)
+    assert np.all(result.kappa > 0) and np.all(result.beta < result.kappa / 2)  # Kent: 2b < k
+    # t = mu_y - R mu_x from the centroids of the clouds it registered, and nothing after it.
+    t = result.T_target_source[:3, 3]
+    expected = target.points.mean(axis=0) - R @ source.points.mean(axis=0)
+    np.testing.assert_allclose(t, expected, atol=1e-9)
     assert result.stages.keys() == {'rotation', 'translation'}
-    print(
-        'paper mode on the synthetic room: {:.2f} deg, {:.3f} m'.format(
-            *pose_errors(result.T_target_source, T)
-        )
-    )
+    np.testing.assert_array_equal(result.stages['translation'], result.T_target_source)
+    np.testing.assert_array_equal(result.stages['rotation'][:3, :3], R)
+
+
+def test_paper_mode_follows_the_papers_recipe_on_a_synthetic_room() -> None:
+    """From identity, with a known 5 deg / 0 m motion: the recipe as written (its accuracy
+    depends on the k-means partition, see README, so it is not what is checked here)."""
+    source, target, _ = _room_pair(6, 5.0, 0.0)
+    cfg = KentRegConfig.paper()
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    result = register(s, t, init=np.eye(4), config=cfg)
+    _paper_recipe_checks(result, s, t)
 
 
 #: Each switch of the robust pipeline, its ablated value, and the first stage it acts on.
@@ -288,23 +294,10 @@ def test_real_pair_accuracy_holds_under_micrometre_perturbations(seed: int) -> N
 
 
 @needs_pair
-def test_paper_mode_on_real_small_gicp_pair_is_reported_honestly(real_pair: tuple) -> None:
-    """The paper's recipe as written: measured, not hidden.
-
-    Measured (seeded, deterministic): 0.29 deg and 0.54 m from identity (robust: 0.27 deg,
-    0.016 m). The centroid translation leaves the true 0.5 m motion uncorrected, because the
-    two scans see different parts of the scene from different viewpoints. The paper's rotation
-    is fragile: it was 0.52 deg before edge-on normals (returns at exactly z = 0) got a fixed
-    orientation, i.e. it moved by 0.2 deg with the signs of about ten ambiguous normals per scan.
-    """
-    source, target, T_ref = real_pair
-    paper = register(source, target, config=KentRegConfig.paper())
-    robust = register(source, target)
-    e_r_paper, e_t_paper = pose_errors(paper.T_target_source, T_ref)
-    e_r_robust, e_t_robust = pose_errors(robust.T_target_source, T_ref)
-    print(
-        f'paper mode: {e_r_paper:.3f} deg, {e_t_paper:.3f} m; '
-        f'robust: {e_r_robust:.3f} deg, {e_t_robust:.3f} m'
-    )
-    assert np.isfinite(paper.T_target_source).all()
-    assert e_t_paper > 5 * e_t_robust
+def test_paper_mode_follows_the_papers_recipe_on_the_real_pair(real_pair: tuple) -> None:
+    """The paper's recipe as written on real scans from another viewpoint. Its translation is
+    the centroid difference, which is why it leaves most of the true 0.5 m motion uncorrected
+    there (README: 0.54 m): the two scans see different parts of the scene."""
+    source, target, _ = real_pair
+    result = register(source, target, config=KentRegConfig.paper())
+    _paper_recipe_checks(result, source, target)
