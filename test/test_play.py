@@ -248,6 +248,11 @@ def _publish_times(
         (['--rate', '2'], [], [0.0, 0.25, 1.0, 1.125]),  # twice as fast
         (['--rate', '0'], [], [0.0, 0.0, 0.0, 0.0]),  # no waiting
         (['--hz', '1.6'], [], [0.0, 0.625, 1.25, 1.875]),  # fixed rate, stamps ignored
+        # Publishing takes 0.1 s each time, less than every gap: the schedule holds.
+        ([], [0.1, 0.1, 0.1, 0.1], [0.0, 0.5, 2.0, 2.25]),
+        # Publishing the first scan took 1 s, past the second's due time (0.5 s): the second
+        # goes out at once and the next gap is measured from it, never compressed to catch up.
+        ([], [1.0], [0.0, 1.0, 2.5, 2.75]),
     ],
 )
 def test_player_publishes_each_scan_on_schedule(

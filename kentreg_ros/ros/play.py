@@ -25,10 +25,12 @@ reads them. The topic ``--topic`` is relative by default (``points``), so it fol
 namespace and ``--ros-args -r points:=...`` remapping.
 
 Timing: each scan is published when its stamp, relative to the first one, divided by
-``--rate``, has elapsed (a late scan goes out at once; none is skipped); ``--rate 0`` publishes
-as fast as possible and ``--hz`` at a fixed rate. ``--loop`` repeats; with ``--restamp bag``
-(default) every pass is shifted by the span of the previous one plus one scan period, so the
-stamps keep increasing. ``--restamp now`` stamps each message with the current time instead.
+``--rate``, has elapsed; a late scan goes out at once and the schedule continues from it (none
+is skipped, no gap is compressed to catch up); the time publishing takes does not delay the
+schedule. ``--rate 0`` publishes as fast as possible and ``--hz`` at a fixed rate. ``--loop``
+repeats; with ``--restamp bag`` (default) every pass is shifted by the span of the previous one
+plus one scan period, so the stamps keep increasing. ``--restamp now`` stamps each message with
+the current time instead.
 
 Exit status: 0 when every scan was published, 2 on bad input (one line on stderr, including a
 bag that turns out to be damaged after some scans were published), 130 when interrupted (Ctrl-C,
@@ -435,22 +437,23 @@ class Player:
                 due_s += self.timing.gap_s(previous_stamp_ns, stamp_ns)
                 self._wait_until(due_s, previous, stamp_ns)
             self._check_ok()
+            sent = time.monotonic()
             if opts.restamp == 'now':
                 msg.header.stamp = self.node.get_clock().now().to_msg()
             else:
                 self._publish_clock(stamp_ns)
             self.publisher.publish(msg)
-            now = time.monotonic()
             summary.published += 1
             summary.points += len(scan.points)
             if summary.first_publish_s is None:
-                summary.first_publish_s = now
+                summary.first_publish_s = sent
                 summary.first_stamp_ns = stamp_ns
-            summary.last_publish_s = now
+            summary.last_publish_s = sent
             summary.last_stamp_ns = stamp_ns
-            # A late scan resets the schedule: the next gap is measured from now, never
-            # compressed to catch up.
-            due_s = max(due_s, now)
+            # A late scan resets the schedule: the next gap is measured from when it went out,
+            # never compressed to catch up. A scan on time keeps it (the time publishing takes
+            # does not delay the next one).
+            due_s = max(due_s, sent)
             previous = (due_s, stamp_ns)
             previous_stamp_ns = stamp_ns
         return summary
