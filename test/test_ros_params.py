@@ -93,9 +93,8 @@ def test_with_updates_changes_only_the_given_parameters() -> None:
     }
 
 
-def test_node_parameters_mirror_the_settings_fields() -> None:
-    names = [p.name for p in NODE_PARAMETERS]
-    assert names == list(NodeSettings().to_parameters())
+def test_parameters_fixed_at_start_up_are_declared_read_only() -> None:
+    """The node reads these once (tf listener, timer period, subscription QoS)."""
     read_only = {p.name for p in NODE_PARAMETERS if p.read_only}
     assert read_only == {
         'node.use_tf',
