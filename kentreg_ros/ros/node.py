@@ -85,7 +85,7 @@ try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
 except ImportError:  # pragma: no cover - depends on the installation
     tf2_ros = None
 
-__all__ = ['NODE_PARAMETERS', 'KentRegNode', 'main']
+__all__ = ['KentRegNode', 'StartupError', 'main']
 
 FloatArray = np.ndarray
 #: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
