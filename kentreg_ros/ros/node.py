@@ -7,7 +7,7 @@ Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points
 ``odom``       nav_msgs/Odometry                      odom_frame -> base_frame, twist, covariance
 ``pose``       geometry_msgs/PoseStamped              base_frame pose in odom_frame
 ``path``       nav_msgs/Path                          the last ``node.path_length`` poses
-``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures
+``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures, mode
 ``/tf``        odom_frame -> base_frame               when tf2_ros is installed
 ``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
 ============== ====================================== ==========================================
