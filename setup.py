@@ -50,8 +50,8 @@ setup(
             'kentreg_register = kentreg_ros.cli.register:main',
             'kentreg_convert = kentreg_ros.cli.convert:main',
             'kentreg_replay = kentreg_ros.cli.replay:main',
-            'kentreg_node = kentreg_ros.node:main',
-            'kentreg_play = kentreg_ros.play:main',
+            'kentreg_node = kentreg_ros.ros.node:main',
+            'kentreg_play = kentreg_ros.ros.play:main',
         ],
     },
 )

@@ -176,7 +176,7 @@ def limit_threads(threads: int) -> None:
 def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
     if threads is not None:
         os.environ['OMP_NUM_THREADS'] = str(threads)
-    import open3d as o3d  # noqa: PLC0415
+    import open3d as o3d
 
     if threads is not None:
         o3d.utility.set_max_threads(threads)
@@ -234,7 +234,7 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
 
 
 def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
-    import small_gicp  # noqa: PLC0415
+    import small_gicp
 
     n_threads = threads or 1
     gate = GATE_VOXELS * voxel
@@ -275,8 +275,8 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
 def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
     if 'kiss_icp' not in names:
         return []
-    from kiss_icp.mapping import VoxelHashMap  # noqa: PLC0415
-    from kiss_icp.registration import Registration  # noqa: PLC0415
+    from kiss_icp.mapping import VoxelHashMap
+    from kiss_icp.registration import Registration
 
     gate = GATE_VOXELS * voxel
     map_voxel = 2.0 * voxel
@@ -317,13 +317,13 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
 def _baseline_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
     out = []
     if 'ndt' in names:
-        from benchmarks.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register  # noqa: PLC0415
+        from benchmarks.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
 
         run_ndt = functools.partial(ndt_register, max_iterations=MAX_ITERATIONS)
         params = {**NDT_DEFAULTS, 'max_iterations': MAX_ITERATIONS}
         out.append(Method('ndt', 'baseline', ndt_prepare, run_ndt, params))
     if 'cicp' in names:
-        from benchmarks.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register  # noqa: PLC0415
+        from benchmarks.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
 
         min_sigma = CICP_MIN_SIGMA_VOXELS * voxel
         run_cicp = functools.partial(

@@ -124,7 +124,7 @@ def run_pair(
         try:
             T, reg_ms = timed(method.register, source, target, init)
             e_R, e_t = errors(T, truth)
-        except Exception as exc:  # noqa: BLE001  (a method that raises is a failed pair)
+        except Exception as exc:  # a method that raises (any error) is a failed pair
             logger.warning('%s on %s pair %d (%s): %s', method.name, seq.name, pair, start, exc)
             reg_ms, e_R, e_t = float('nan'), float('nan'), float('nan')
             record['error'] = f'{type(exc).__name__}: {exc}'

@@ -2,7 +2,7 @@
 
 Every :class:`~kentreg_ros.core.config.KentRegConfig` field (dotted names such as
 ``em.max_iterations``, read by the node and by ``kentreg_replay --config``) and every ``node.*``
-parameter of the node (:data:`kentreg_ros.node_params.NODE_PARAMETERS`) becomes one row of a
+parameter of the node (:data:`kentreg_ros.ros.params.NODE_PARAMETERS`) becomes one row of a
 markdown table: name, ROS type, default, allowed values, description. The README holds the table
 between the markers :data:`BEGIN` and :data:`END`; a test keeps it equal to the rendering.
 
@@ -16,8 +16,6 @@ Command line::
 from __future__ import annotations
 
 import argparse
-import importlib
-import logging
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -25,14 +23,11 @@ from pathlib import Path
 from typing import Any
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-
-logger = logging.getLogger(__name__)
+from kentreg_ros.ros.params import NODE_PARAMETERS
 
 PROG = 'python3 -m kentreg_ros.docs'
 BEGIN = '<!-- BEGIN parameters -->'
 END = '<!-- END parameters -->'
-#: Where the ``node.*`` parameters are defined (rclpy-free module of the node).
-NODE_PARAMETER_MODULES = ('kentreg_ros.node_params', 'kentreg_ros.node')
 
 _ROS_TYPES = {bool: 'bool', int: 'integer', float: 'double', str: 'string'}
 
@@ -105,30 +100,16 @@ def config_parameters(config: KentRegConfig | None = None) -> list[ParameterDoc]
     return rows
 
 
-def _load_node_parameters() -> Sequence[Any] | None:
-    for module_name in NODE_PARAMETER_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError as exc:  # node.py needs rclpy; node_params does not
-            logger.debug('Cannot import %s: %s', module_name, exc)
-            continue
-        params = getattr(module, 'NODE_PARAMETERS', None)
-        if params is not None:
-            return list(params)
-    return None
-
-
 def node_parameters(parameters: Sequence[Any] | None = None) -> list[ParameterDoc]:
     """Rows for the node's own ``node.*`` parameters.
 
     Parameters
     ----------
     parameters : sequence, optional
-        :class:`~kentreg_ros.node_params.NodeParameter` objects or ``(name, default,
-        description)`` tuples; default: ``NODE_PARAMETERS`` of the node, or none when the node
-        module is not available.
+        :class:`~kentreg_ros.ros.params.NodeParameter` objects or ``(name, default,
+        description)`` tuples; default: the node's ``NODE_PARAMETERS`` (rclpy-free).
     """
-    params = _load_node_parameters() if parameters is None else parameters
+    params = NODE_PARAMETERS if parameters is None else parameters
     rows = []
     for p in params or ():
         if isinstance(p, tuple):

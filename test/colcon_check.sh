@@ -96,12 +96,13 @@ echo "colcon_check: install tree complete (marker, package.xml, config, launch, 
 
 # What colcon test runs: by default the tests of the ROS-facing packaging (launch file and the
 # install tree seen through the ament index, which only runs here; kentreg_play over real rclpy;
-# the generated parameter table). The whole suite already ran in test/run_tests.sh; --all
-# repeats it under colcon.
+# the node in-process, its parameters and message conversions; the generated parameter table).
+# The whole suite already ran in test/run_tests.sh; --all repeats it under colcon.
 if [[ "$ALL" == 1 ]]; then
   PYTEST_ARGS=()
 else
-  PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py)
+  PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py test/test_ros_node.py
+    test/test_ros_params.py test/test_ros_messages.py)
 fi
 if [[ -n "${COLCON_PYTEST_ARGS:-}" ]]; then
   read -r -a PYTEST_ARGS <<< "$COLCON_PYTEST_ARGS"

@@ -3,7 +3,7 @@
 ``test_node.py`` overloads the node by holding its worker on one scan while the test publishes
 more: how many scans the node drops then follows from the queue policy alone, not from how
 fast the machine registers scans compared with the rate the test publishes at. Everything else
-is the real node (``kentreg_ros.node.main``); only ``KentRegNode._process`` first waits, before
+is the real node (``kentreg_ros.ros.node.main``); only ``KentRegNode._process`` first waits, before
 each scan, until the file named by ``KENTREG_TEST_HOLD_FILE`` is gone (the executor thread,
 subscription, services and diagnostics keep running meanwhile).
 
@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from kentreg_ros import node
+from kentreg_ros.ros import node
 
 #: How often the held worker looks at the hold file (s): the latency of releasing it.
 POLL_S = 0.005

@@ -55,6 +55,8 @@ def test_run_main_exits_130_on_ctrl_c_and_lets_bugs_through(
 
     assert common.run_main('prog', interrupted) == common.EXIT_INTERRUPTED
     assert capsys.readouterr().err == 'prog: interrupted\n'
+    assert common.run_main('prog', interrupted, interrupted='stopped early') == 130
+    assert capsys.readouterr().err == 'prog: stopped early\n'
 
     def bug() -> int:
         raise TypeError('a bug')

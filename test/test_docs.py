@@ -12,6 +12,7 @@ import yaml
 from kentreg_ros import docs
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.io.params import NODE_NAME
+from kentreg_ros.ros.params import NODE_PARAMETERS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 README = REPO_ROOT / 'README.md'
@@ -41,15 +42,14 @@ def test_rendering_has_one_row_per_config_field_with_default_and_range() -> None
     assert '`plane_to_plane`, `point_to_plane`, `none`' in row
 
 
-def test_rendering_lists_the_node_parameters_when_the_node_defines_them() -> None:
-    params = docs._load_node_parameters()
-    if params is None:
-        pytest.skip('no NODE_PARAMETERS in kentreg_ros.node_params / kentreg_ros.node')
+def test_rendering_has_one_row_per_node_parameter() -> None:
     block = docs.render_parameters()
-    for p in params:
-        name = p[0] if isinstance(p, tuple) else p.name
-        assert name.startswith('node.')
-        assert sum(line.startswith(f'| `{name}` |') for line in block.splitlines()) == 1
+    assert NODE_PARAMETERS  # the loop below must not pass on nothing
+    for p in NODE_PARAMETERS:
+        assert p.name.startswith('node.')
+        rows = [line for line in block.splitlines() if line.startswith(f'| `{p.name}` |')]
+        assert len(rows) == 1, p.name
+        assert rows[0].endswith('Read-only: set at start-up. |') == p.read_only, rows[0]
 
 
 def test_every_key_of_the_shipped_parameter_file_is_documented() -> None:

@@ -1,19 +1,20 @@
-"""launch/kentreg.launch.py: arguments, node, remapping and parameters; the installed package.
+"""launch/kentreg.launch.py and the installed package: what a user of ``ros2 launch`` relies on.
 
-``launch``/``launch_ros`` are not on PyPI, so the launch file is checked three ways: its syntax
-tree; running ``generate_launch_description`` against small stand-ins for the launch classes
-that record what they are given; and, where launch_ros and an installed kentreg_ros exist
-(a sourced Jazzy install, or ``colcon test``), loading it for real.
+``launch``/``launch_ros`` are not on PyPI. Without them the launch file is read as a syntax tree:
+it must declare the arguments and defaults the README documents, start an executable the
+package really installs, and name only ROS packages that package.xml declares. Where
+launch_ros and an installed kentreg_ros exist (a sourced Jazzy install), it is loaded for real;
+under ``colcon test`` (test/colcon_check.sh) the install tree is checked through the ament index.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.metadata
 import importlib.util
 import os
-import runpy
+import re
 import sys
-import types
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO_ROOT / 'launch' / 'kentreg.launch.py'
-ARGUMENTS = ['topic', 'config_file', 'use_sim_time']
+README = REPO_ROOT / 'README.md'
 
 
 def _installed_prefix() -> Path | None:
@@ -36,112 +37,107 @@ def _installed_prefix() -> Path | None:
         return None
 
 
-class _Recorded:
-    """Stand-in for a launch class: keeps its constructor arguments."""
+def _tree() -> ast.Module:
+    return ast.parse(LAUNCH_FILE.read_text(encoding='utf-8'), filename=str(LAUNCH_FILE))
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.args = args
-        self.kwargs = kwargs
 
-    def __eq__(self, other: object) -> bool:
-        return (
-            type(self) is type(other)
-            and self.args == other.args  # type: ignore[attr-defined]
-            and self.kwargs == other.kwargs  # type: ignore[attr-defined]
+def _calls(tree: ast.AST, name: str) -> list[ast.Call]:
+    return [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == name
+    ]
+
+
+def _keywords(call: ast.Call) -> dict[str, ast.expr]:
+    return {k.arg: k.value for k in call.keywords if k.arg is not None}
+
+
+def _declared_arguments() -> dict[str, ast.expr]:
+    """``{argument name: its default_value expression}`` in declaration order."""
+    out = {}
+    for call in _calls(_tree(), 'DeclareLaunchArgument'):
+        name = call.args[0]
+        assert isinstance(name, ast.Constant), ast.dump(call)
+        out[name.value] = _keywords(call)['default_value']
+    return out
+
+
+def _value(expr: ast.expr) -> Any:
+    """A literal, or a name bound to a literal at the top of the launch file."""
+    if isinstance(expr, ast.Name):
+        constants = {
+            t.id: n.value
+            for n in _tree().body
+            if isinstance(n, ast.Assign)
+            for t in n.targets
+            if isinstance(t, ast.Name)
+        }
+        expr = constants[expr.id]
+    return ast.literal_eval(expr)
+
+
+def _config_default_parts() -> tuple[str, list[str]]:
+    """The ``config_file`` default ``os.path.join(get_package_share_directory(PKG), *parts)``
+    as ``(PKG, parts)``."""
+    tree = _tree()
+    default = _declared_arguments()['config_file']
+    if isinstance(default, ast.Name):  # a local variable: find its assignment
+        default = next(
+            n.value
+            for n in ast.walk(tree)
+            if isinstance(n, ast.Assign)
+            and any(isinstance(t, ast.Name) and t.id == default.id for t in n.targets)
         )
+    assert isinstance(default, ast.Call) and ast.unparse(default.func) == 'os.path.join'
+    share, *rest = default.args
+    assert isinstance(share, ast.Call) and ast.unparse(share.func) == 'get_package_share_directory'
+    (package,) = share.args
+    return _value(package), [_value(p) for p in rest]
 
-    def __repr__(self) -> str:
-        return f'{type(self).__name__}{self.args}{self.kwargs}'
+
+def _documented_defaults() -> dict[str, str]:
+    """The README's launch arguments: ``{name: default}`` from "`name` (default ...)"."""
+    text = README.read_text(encoding='utf-8')
+    paragraph = text.split('**Launch** (`launch/kentreg.launch.py`):', 1)[1].split('\n\n', 1)[0]
+    found = re.findall(r'`(\w+)` \(default ([^)]*)\)', ' '.join(paragraph.split()))
+    return {name: default for name, default in found}
 
 
-def _stub_modules(share_dir: Path | None) -> dict[str, types.ModuleType]:
-    classes = {
-        'launch.launch_description': ['LaunchDescription'],
-        'launch.actions': ['DeclareLaunchArgument'],
-        'launch.substitutions': ['LaunchConfiguration'],
-        'launch_ros.actions': ['Node'],
-        'launch_ros.parameter_descriptions': ['ParameterValue'],
+def _executable() -> str:
+    (node,) = _calls(_tree(), 'Node')
+    kwargs = _keywords(node)
+    assert _value(kwargs['package']) == 'kentreg_ros'
+    return str(_value(kwargs['executable']))
+
+
+def test_launch_arguments_and_defaults_are_the_documented_ones() -> None:
+    declared = _declared_arguments()
+    documented = _documented_defaults()
+    assert list(declared) == list(documented) == ['topic', 'config_file', 'use_sim_time']
+    assert documented['topic'] == f'`{_value(declared["topic"])}`'
+    assert documented['use_sim_time'] == f'`{_value(declared["use_sim_time"])}`'
+    package, parts = _config_default_parts()
+    assert documented['config_file'] == (f'the installed `share/{package}/{"/".join(parts)}`'), (
+        documented['config_file']
+    )
+    # The default file exists in the source tree (setup.py installs config/*.yaml there).
+    assert (REPO_ROOT.joinpath(*parts)).is_file()
+
+
+def test_launch_starts_an_installed_console_script_running_the_node() -> None:
+    executable = _executable()
+    scripts = {
+        ep.name: ep
+        for ep in importlib.metadata.entry_points(group='console_scripts')
+        if ep.value.startswith('kentreg_ros.')
     }
-    modules: dict[str, types.ModuleType] = {
-        'launch': types.ModuleType('launch'),
-        'launch_ros': types.ModuleType('launch_ros'),
-    }
-    for module_name, names in classes.items():
-        module = types.ModuleType(module_name)
-        for name in names:
-            setattr(module, name, type(name, (_Recorded,), {}))
-        modules[module_name] = module
-    if share_dir is not None:
-        packages = types.ModuleType('ament_index_python.packages')
+    if not scripts:
+        pytest.skip('kentreg_ros is not installed (pip install -e .)')
+    assert executable in scripts, sorted(scripts)
+    from kentreg_ros.ros import node
 
-        def get_package_share_directory(package: str) -> str:
-            assert package == 'kentreg_ros'
-            return str(share_dir)
-
-        packages.get_package_share_directory = get_package_share_directory  # type: ignore[attr-defined]
-        modules['ament_index_python'] = types.ModuleType('ament_index_python')
-        modules['ament_index_python.packages'] = packages
-    return modules
-
-
-def _run_with_stubs(monkeypatch: pytest.MonkeyPatch, share_dir: Path | None) -> Any:
-    modules = _stub_modules(share_dir)
-    for name, module in modules.items():
-        monkeypatch.setitem(sys.modules, name, module)
-    namespace = runpy.run_path(str(LAUNCH_FILE))
-    return namespace['generate_launch_description'](), modules
-
-
-def test_launch_file_parses_and_declares_topic_config_file_and_use_sim_time() -> None:
-    tree = ast.parse(LAUNCH_FILE.read_text(encoding='utf-8'), filename=str(LAUNCH_FILE))
-    compile(tree, str(LAUNCH_FILE), 'exec')
-    declared = [
-        node.args[0].value
-        for node in ast.walk(tree)
-        if isinstance(node, ast.Call)
-        and isinstance(node.func, ast.Name)
-        and node.func.id == 'DeclareLaunchArgument'
-        and isinstance(node.args[0], ast.Constant)
-    ]
-    assert declared == ARGUMENTS
-    functions = [n.name for n in tree.body if isinstance(n, ast.FunctionDef)]
-    assert 'generate_launch_description' in functions
-
-
-def test_launch_description_starts_the_node_with_remap_parameters_and_defaults(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    description, m = _run_with_stubs(monkeypatch, tmp_path / 'share' / 'kentreg_ros')
-    LaunchConfiguration = m['launch.substitutions'].LaunchConfiguration
-    ParameterValue = m['launch_ros.parameter_descriptions'].ParameterValue
-    (entities,) = description.args
-    arguments = [e for e in entities if type(e).__name__ == 'DeclareLaunchArgument']
-    nodes = [e for e in entities if type(e).__name__ == 'Node']
-    assert [a.args[0] for a in arguments] == ARGUMENTS
-    defaults = {a.args[0]: a.kwargs['default_value'] for a in arguments}
-    assert defaults == {
-        'topic': 'points',
-        'config_file': str(tmp_path / 'share' / 'kentreg_ros' / 'config' / 'kentreg.yaml'),
-        'use_sim_time': 'false',
-    }
-    assert all(a.kwargs.get('description') for a in arguments)
-    (node,) = nodes
-    assert node.kwargs['package'] == 'kentreg_ros'
-    assert node.kwargs['executable'] == 'kentreg_node'
-    assert node.kwargs['name'] == 'kentreg_node'
-    assert node.kwargs['remappings'] == [('points', LaunchConfiguration('topic'))]
-    assert node.kwargs['parameters'] == [
-        LaunchConfiguration('config_file'),
-        {'use_sim_time': ParameterValue(LaunchConfiguration('use_sim_time'), value_type=bool)},
-    ]
-
-
-def test_launch_refers_to_files_and_executable_the_package_installs() -> None:
-    setup_py = (REPO_ROOT / 'setup.py').read_text(encoding='utf-8')
-    assert "'kentreg_node = kentreg_ros.node:main'" in setup_py
-    assert "glob('launch/*.py')" in setup_py and "glob('config/*.yaml')" in setup_py
-    assert (REPO_ROOT / 'config' / 'kentreg.yaml').is_file()
-    assert (REPO_ROOT / 'resource' / 'kentreg_ros').is_file()
+    assert scripts[executable].load() is node.main
 
 
 @pytest.mark.skipif(
@@ -154,30 +150,27 @@ def test_launch_file_loads_with_real_launch_ros() -> None:
     from launch.launch_description_sources import get_launch_description_from_python_launch_file
 
     description = get_launch_description_from_python_launch_file(str(LAUNCH_FILE))
-    assert [a.name for a in description.get_launch_arguments()] == ARGUMENTS
+    assert [a.name for a in description.get_launch_arguments()] == list(_declared_arguments())
 
 
-def test_installed_package_has_marker_manifest_config_launch_and_executable(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_installed_package_has_marker_manifest_config_launch_and_executable() -> None:
     prefix = _installed_prefix()
     if prefix is None:
         pytest.skip('kentreg_ros is not installed in an ament prefix (runs under colcon test)')
+    from ament_index_python.packages import get_package_share_directory
+
     share = prefix / 'share' / 'kentreg_ros'
     assert (
         prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'kentreg_ros'
     ).is_file()
-    for relative in ('package.xml', 'config/kentreg.yaml', 'launch/kentreg.launch.py'):
+    for relative in ('package.xml', 'launch/kentreg.launch.py'):
         assert (share / relative).is_file(), relative
-    executable = prefix / 'lib' / 'kentreg_ros' / 'kentreg_node'
+    # What `ros2 launch` starts: the executable the launch file names, where ros2 run looks.
+    executable = prefix / 'lib' / 'kentreg_ros' / _executable()
     assert executable.is_file() and os.access(executable, os.X_OK)
-    # The launch file's default parameter file is the installed one.
-    description, _ = _run_with_stubs(monkeypatch, None)
-    (entities,) = description.args
-    config_default = next(
-        e.kwargs['default_value'] for e in entities if e.args and e.args[0] == 'config_file'
-    )
-    assert Path(config_default) == share / 'config' / 'kentreg.yaml'
+    # The launch file's default parameter file, resolved through the ament index as it does.
+    package, parts = _config_default_parts()
+    assert Path(get_package_share_directory(package)).joinpath(*parts).is_file()
 
 
 #: Top-level imports that are not ROS packages (standard library, kentreg_ros, pip packages).
@@ -195,7 +188,7 @@ def _top_level_imports(path: Path) -> set[str]:
     return names - set(sys.stdlib_module_names) - _NOT_ROS
 
 
-def test_package_xml_declares_every_ros_package_the_node_player_and_launch_import() -> None:
+def test_package_xml_declares_every_ros_package_the_ros_modules_and_launch_import() -> None:
     import xml.etree.ElementTree as ET
 
     manifest = ET.parse(REPO_ROOT / 'package.xml').getroot()
@@ -203,10 +196,11 @@ def test_package_xml_declares_every_ros_package_the_node_player_and_launch_impor
     assert manifest.findtext('name') == 'kentreg_ros'
     assert manifest.findtext('export/build_type') == 'ament_python'
     exec_depends = {e.text for e in manifest.findall('exec_depend')}
-    imported = set()
-    for module in ('kentreg_ros/node.py', 'kentreg_ros/play.py', 'launch/kentreg.launch.py'):
-        if (REPO_ROOT / module).is_file():
-            imported |= _top_level_imports(REPO_ROOT / module)
-    assert {'rclpy', 'sensor_msgs', 'launch_ros', 'rosgraph_msgs'} <= imported
+    modules: list[Any] = sorted((REPO_ROOT / 'kentreg_ros' / 'ros').glob('*.py'))
+    modules.append(LAUNCH_FILE)
+    imported: set[str] = set()
+    for module in modules:
+        imported |= _top_level_imports(module)
+    assert {'rclpy', 'sensor_msgs', 'geometry_msgs', 'launch_ros', 'rosgraph_msgs'} <= imported
     assert sorted(imported - exec_depends) == []
     assert {e.text for e in manifest.findall('test_depend')} == {'python3-pytest'}

@@ -62,8 +62,8 @@ def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
 @pytest.mark.parametrize(
     ('folder', 'forbidden'),
     [
-        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.node')),
-        ('eval', ('kentreg_ros.cli', 'kentreg_ros.node', 'kentreg_ros.play')),
+        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros')),
+        ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros')),
     ],
 )
 def test_io_and_eval_never_import_the_command_lines_or_the_node(
@@ -79,3 +79,39 @@ def test_benchmarks_never_import_a_command_line(path: Path) -> None:
     names = imported_modules(path, 'benchmarks')
     bad = sorted(n for n in names if n.startswith('kentreg_ros.cli') or n == 'scenes')
     assert bad == [], f'{path.name} imports {bad}'
+
+
+#: Top-level names of ROS 2 Python packages: rclpy and the message/service packages.
+_ROS_PACKAGES = ('rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_srvs', 'tf2_ros')
+
+
+def _is_ros_package(module: str) -> bool:
+    top = module.split('.')[0]
+    return top in _ROS_PACKAGES or top.endswith('_msgs')
+
+
+@pytest.mark.parametrize(
+    'path',
+    [p for p in modules(PACKAGE) if 'ros' not in p.relative_to(PACKAGE).parts[:-1]],
+    ids=lambda p: str(p.relative_to(PACKAGE)),
+)
+def test_only_the_ros_package_imports_rclpy_or_ros_messages(path: Path) -> None:
+    package = '.'.join(path.relative_to(PACKAGE.parent).with_suffix('').parts[:-1])
+    bad = sorted(n for n in imported_modules(path, package) if _is_ros_package(n))
+    assert bad == [], (
+        f'{path.relative_to(PACKAGE)} imports {bad}: that belongs in kentreg_ros/ros/'
+    )
+
+
+def test_the_ros_package_is_where_rclpy_is_imported() -> None:
+    # The check above must look at something: the node and the player do import rclpy.
+    for name in ('node.py', 'play.py'):
+        names = imported_modules(PACKAGE / 'ros' / name, 'kentreg_ros.ros')
+        assert any(n.split('.')[0] == 'rclpy' for n in names), name
+
+
+@pytest.mark.parametrize('folder', ['core', 'io', 'eval', 'cli'])
+def test_no_other_package_imports_the_ros_package(folder: str) -> None:
+    for path in modules(PACKAGE / folder):
+        bad = sorted(n for n in kentreg_imports(path) if n.startswith('kentreg_ros.ros'))
+        assert bad == [], f'{folder}/{path.name} imports {bad}'

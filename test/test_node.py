@@ -1,6 +1,6 @@
 """kentreg_node with real rclpy over DDS: a node subprocess, a publisher and subscribers here.
 
-Every test starts ``python -m kentreg_ros.node`` with the shipped parameter file, talks to it
+Every test starts ``python -m kentreg_ros.ros.node`` with the shipped parameter file, talks to it
 over Fast DDS kept on loopback (``test/fastdds_localhost.xml``,
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, see ``test/ros_env.py``) in a test-only ROS
 domain, and stops it with SIGINT, checking that it exits cleanly. The node keeps its default
@@ -118,7 +118,7 @@ class NodeProcess:
         self._log = log_path.open('w')
         env = {**os.environ, **ros_environment(domain_id), 'PYTHONUNBUFFERED': '1'}
         if hold_file is None:
-            cmd = [sys.executable, '-m', 'kentreg_ros.node', '--ros-args']
+            cmd = [sys.executable, '-m', 'kentreg_ros.ros.node', '--ros-args']
         else:
             cmd = [sys.executable, str(GATED_NODE), '--ros-args']
             env['KENTREG_TEST_HOLD_FILE'] = str(hold_file)
@@ -569,7 +569,7 @@ def test_node_exit_status_when_spin_raises_rclerror(tmp_path: Path, shut_down: b
     replacing spin() with one that shuts down first (or not), then raises."""
     script = (
         'import rclpy\n'
-        'from kentreg_ros import node\n'
+        'from kentreg_ros.ros import node\n'
         'def spin(n):\n'
         f'    if {shut_down}:\n'
         '        rclpy.shutdown()\n'

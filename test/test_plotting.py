@@ -28,20 +28,38 @@ def circle_trajectory(n: int, radius: float, noise: float = 0.0) -> np.ndarray:
     return T
 
 
-def assert_png(path: Path) -> None:
-    assert path.is_file()
-    data = path.read_bytes()
-    assert data.startswith(PNG_SIGNATURE)
-    assert len(data) > 5_000
+def read_png(path: Path) -> np.ndarray:
+    """The image, after checking it is a PNG file."""
+    from matplotlib.image import imread
+
+    assert path.read_bytes().startswith(PNG_SIGNATURE)
+    return imread(path)
 
 
-def test_plot_trajectory_writes_png_of_estimate_alone(tmp_path: Path) -> None:
+def ink(image: np.ndarray, colour: str) -> int:
+    """Pixels drawn in ``colour`` (anti-aliased edges aside)."""
+    from matplotlib.colors import to_rgb
+
+    return int((np.abs(image[..., :3] - np.array(to_rgb(colour))).max(axis=-1) < 0.02).sum())
+
+
+#: A line across a panel is thousands of pixels at 120 dpi; a legend entry about a hundred.
+LINE_PIXELS = 500
+
+
+def test_plot_trajectory_draws_the_estimate_alone_in_one_panel(tmp_path: Path) -> None:
     out = plot_trajectory(tmp_path / 'est.png', circle_trajectory(40, 10.0))
     assert out == tmp_path / 'est.png'
-    assert_png(out)
+    image = read_png(out)
+    assert image.shape[:2] == (round(6.5 * 120), 7 * 120)  # one panel, 7 x 6.5 in at 120 dpi
+    assert ink(image, 'tab:blue') > LINE_PIXELS  # the estimate
+    assert ink(image, 'tab:gray') < LINE_PIXELS  # no ground truth
+    assert ink(image, 'tab:red') == ink(image, 'tab:green') == 0  # no error panels
 
 
-def test_plot_trajectory_writes_png_with_ground_truth_and_pair_errors(tmp_path: Path) -> None:
+def test_plot_trajectory_draws_ground_truth_and_one_panel_per_error_series(
+    tmp_path: Path,
+) -> None:
     T_gt = circle_trajectory(60, 10.0)
     T_est = circle_trajectory(60, 10.0, noise=0.2)
     errors = rpe(T_est, T_gt)
@@ -53,11 +71,14 @@ def test_plot_trajectory_writes_png_with_ground_truth_and_pair_errors(tmp_path: 
         e_t=errors['e_t'],
         title='synthetic circle',
     )
-    assert_png(out)
-    # The error panels make the figure larger than the top view alone.
-    alone = plot_trajectory(tmp_path / 'alone.png', T_est, T_gt)
-    assert_png(alone)
-    assert out.stat().st_size > alone.stat().st_size
+    image = read_png(out)
+    assert image.shape[:2] == (6 * 120, 13 * 120)  # top view plus the error column
+    for colour in ('tab:blue', 'tab:gray', 'tab:red', 'tab:green'):  # est, gt, e_R, e_t
+        assert ink(image, colour) > LINE_PIXELS, colour
+    only_rotation = read_png(
+        plot_trajectory(tmp_path / 'r.png', T_est, T_gt, e_R_deg=errors['e_R_deg'])
+    )
+    assert ink(only_rotation, 'tab:red') > LINE_PIXELS and ink(only_rotation, 'tab:green') == 0
 
 
 def test_plot_trajectory_rejects_bad_error_series(tmp_path: Path) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from scenes import (
@@ -97,51 +99,90 @@ def test_precomputed_normals_are_used() -> None:
     assert e_r < 0.2 and e_t < 0.02
 
 
-def test_paper_mode_runs_end_to_end_on_synthetic_room() -> None:
-    """The paper's recipe runs and returns a proper rotation; its accuracy is reported.
-
-    Measured: from identity with a true 5 deg motion it ends 0.84 deg off with the default
-    clustering (3 k-means++ restarts), but 18.7 deg off with a single k-means++ start. Each
-    cluster's EM leaves the rotation about the cluster's own axis nearly undetermined, so the
-    result hinges on the partition: the fragility the feasibility study found.
-    """
-    source, target, T = _room_pair(6, 5.0, 0.0)
-    result = register(source, target, config=KentRegConfig.paper())
+def _paper_recipe_checks(result: RegistrationResult, source: Any, target: Any) -> None:
+    """What Algorithms 1-2 of the paper must return, whatever its accuracy on the scene."""
     assert result.mode == 'paper'
+    assert result.status != 'failed', result.message
+    # Per-cluster EM then rotation averaging: a proper rotation, one Kent fit per cluster pair.
     R = result.T_target_source[:3, :3]
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
-    assert np.linalg.det(R) > 0
-    assert result.status in ('converged', 'max_iterations', 'degenerate')
+    assert np.linalg.det(R) == pytest.approx(1.0)
     assert len(result.kappa) == KentRegConfig().clustering.n_clusters
-    assert np.all(result.beta < result.kappa / 2)
+    assert np.all(result.kappa > 0) and np.all(result.beta < result.kappa / 2)  # Kent: 2b < k
+    # t = mu_y - R mu_x from the centroids of the clouds it registered, and nothing after it.
+    t = result.T_target_source[:3, 3]
+    expected = target.points.mean(axis=0) - R @ source.points.mean(axis=0)
+    np.testing.assert_allclose(t, expected, atol=1e-9)
     assert result.stages.keys() == {'rotation', 'translation'}
-    print(
-        'paper mode on the synthetic room: {:.2f} deg, {:.3f} m'.format(
-            *pose_errors(result.T_target_source, T)
-        )
-    )
+    np.testing.assert_array_equal(result.stages['translation'], result.T_target_source)
+    np.testing.assert_array_equal(result.stages['rotation'][:3, :3], R)
 
 
-@pytest.mark.parametrize(
-    'ablation',
-    [
-        {'em.kent_beta': False},
-        {'em.rotation': 'averaged'},
-        {'translation.method': 'centroid'},
-        {'translation.cross_correlation': False},
-        {'refine.method': 'plane_to_plane'},
-        {'refine.method': 'none'},
-        {'refine.normal_weight': False},
-        {'refine.max_step_scale': 1.0},
-        {'translation.max_iterations': 20},
-    ],
-)
-def test_every_ablation_switch_runs(ablation: dict) -> None:
+def test_paper_mode_follows_the_papers_recipe_on_a_synthetic_room() -> None:
+    """From identity, with a known 5 deg / 0 m motion: the recipe as written (its accuracy
+    depends on the k-means partition, see README, so it is not what is checked here)."""
+    source, target, _ = _room_pair(6, 5.0, 0.0)
+    cfg = KentRegConfig.paper()
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    result = register(s, t, init=np.eye(4), config=cfg)
+    _paper_recipe_checks(result, s, t)
+
+
+#: Each switch of the robust pipeline, its ablated value, and the first stage it acts on.
+ABLATIONS = [
+    ('em.kent_beta', True, 'rotation'),
+    ('em.rotation', 'averaged', 'rotation'),
+    ('translation.method', 'centroid', 'translation'),
+    ('translation.cross_correlation', False, 'translation'),
+    ('translation.max_iterations', 20, 'translation'),
+    ('refine.method', 'plane_to_plane', 'refine'),
+    ('refine.method', 'none', 'refine'),
+    ('refine.normal_weight', False, 'refine'),
+    ('refine.max_step_scale', 1.0, 'refine'),
+]
+STAGE_ORDER = ('rotation', 'translation', 'refine')
+
+
+@pytest.fixture(scope='module')
+def ablation_room() -> tuple[object, object, np.ndarray, RegistrationResult]:
+    """A synthetic room pair (5 deg, 0.1 m), prepared once (the ablations do not touch the
+    preparation), and the default pipeline's result from identity."""
     source, target, T = _room_pair(7, 5.0, 0.1)
-    result = register(source, target, config=KentRegConfig().with_updates(ablation))
-    assert np.isfinite(result.T_target_source).all()
-    e_r, _ = pose_errors(result.T_target_source, T)
-    assert e_r < 5.0, (ablation, e_r)
+    cfg = KentRegConfig()
+    s, t = prepare_scan(source, config=cfg), prepare_scan(target, config=cfg)
+    return s, t, T, register(s, t, init=np.eye(4), config=cfg)
+
+
+@pytest.mark.parametrize(('key', 'value', 'stage'), ABLATIONS, ids=lambda v: str(v))
+def test_every_ablation_switch_reaches_its_stage_and_still_registers(
+    ablation_room: tuple, key: str, value: object, stage: str
+) -> None:
+    """Each ablation must really change the configuration and reach the stage it switches
+    (everything before that stage is bit-identical to the default run from the same start,
+    that stage differs), and, being a variant of the robust pipeline on a clean room in its
+    basin, must stay within the paper's failure thresholds (2 deg, 0.2 m)."""
+    s, t, T, default = ablation_room
+    default_cfg = KentRegConfig()
+    cfg = default_cfg.with_updates({key: value})
+    assert cfg.to_flat_dict()[key] == value != default_cfg.to_flat_dict()[key]
+    result = register(s, t, init=np.eye(4), config=cfg)
+    assert result.status != 'failed', result.message
+    e_r, e_t = pose_errors(result.T_target_source, T)
+    assert e_r < 2.0 and e_t < 0.2, (key, value, e_r, e_t)
+    before = STAGE_ORDER[: STAGE_ORDER.index(stage)]
+    for earlier in before:
+        np.testing.assert_array_equal(result.stages[earlier], default.stages[earlier])
+    if (key, value) == ('refine.method', 'none'):
+        assert 'refine' not in result.stages
+        np.testing.assert_array_equal(result.T_target_source, result.stages['translation'])
+    else:
+        assert not np.array_equal(result.stages[stage], default.stages[stage]), key
+    if key == 'translation.method' or key == 'translation.cross_correlation':
+        assert 'cross_correlation' not in result.stages  # the plane-offset start was skipped
+    if (key, value) == ('translation.method', 'centroid'):
+        R = result.stages['translation'][:3, :3]
+        expected = t.points.mean(axis=0) - R @ s.points.mean(axis=0)
+        np.testing.assert_allclose(result.stages['translation'][:3, 3], expected, atol=1e-9)
 
 
 def test_corridor_flags_degenerate_translation_axis() -> None:
@@ -253,23 +294,10 @@ def test_real_pair_accuracy_holds_under_micrometre_perturbations(seed: int) -> N
 
 
 @needs_pair
-def test_paper_mode_on_real_small_gicp_pair_is_reported_honestly(real_pair: tuple) -> None:
-    """The paper's recipe as written: measured, not hidden.
-
-    Measured (seeded, deterministic): 0.29 deg and 0.54 m from identity (robust: 0.27 deg,
-    0.016 m). The centroid translation leaves the true 0.5 m motion uncorrected, because the
-    two scans see different parts of the scene from different viewpoints. The paper's rotation
-    is fragile: it was 0.52 deg before edge-on normals (returns at exactly z = 0) got a fixed
-    orientation, i.e. it moved by 0.2 deg with the signs of about ten ambiguous normals per scan.
-    """
-    source, target, T_ref = real_pair
-    paper = register(source, target, config=KentRegConfig.paper())
-    robust = register(source, target)
-    e_r_paper, e_t_paper = pose_errors(paper.T_target_source, T_ref)
-    e_r_robust, e_t_robust = pose_errors(robust.T_target_source, T_ref)
-    print(
-        f'paper mode: {e_r_paper:.3f} deg, {e_t_paper:.3f} m; '
-        f'robust: {e_r_robust:.3f} deg, {e_t_robust:.3f} m'
-    )
-    assert np.isfinite(paper.T_target_source).all()
-    assert e_t_paper > 5 * e_t_robust
+def test_paper_mode_follows_the_papers_recipe_on_the_real_pair(real_pair: tuple) -> None:
+    """The paper's recipe as written on real scans from another viewpoint. Its translation is
+    the centroid difference, which is why it leaves most of the true 0.5 m motion uncorrected
+    there (README: 0.54 m): the two scans see different parts of the scene."""
+    source, target, _ = real_pair
+    result = register(source, target, config=KentRegConfig.paper())
+    _paper_recipe_checks(result, source, target)

@@ -46,18 +46,18 @@ def one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def run_main(prog: str, body: Callable[[], int]) -> int:
+def run_main(prog: str, body: Callable[[], int], *, interrupted: str = 'interrupted') -> int:
     """Run a command line's work and turn its failures into an exit status.
 
     Returns what ``body`` returns; on :class:`CliError`, ``KentRegError``, ``ValueError`` or
     ``OSError`` prints ``<prog>: error: <first line of the message>`` to stderr and returns
-    :data:`EXIT_BAD_INPUT` (2); on Ctrl-C prints ``<prog>: interrupted`` and returns
+    :data:`EXIT_BAD_INPUT` (2); on Ctrl-C prints ``<prog>: <interrupted>`` and returns
     :data:`EXIT_INTERRUPTED` (130). Any other exception is a bug and propagates.
     """
     try:
         return body()
     except KeyboardInterrupt:
-        print(f'{prog}: interrupted', file=sys.stderr)
+        print(f'{prog}: {interrupted}', file=sys.stderr)
         return EXIT_INTERRUPTED
     except (KentRegError, ValueError, OSError) as exc:
         print(f'{prog}: error: {one_line(exc)}', file=sys.stderr)

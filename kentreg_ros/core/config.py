@@ -355,7 +355,7 @@ class KentRegConfig:
 
     def __post_init__(self) -> None:
         for name, value, f in iter_fields(self):
-            _validate_value(name, value, f)
+            validate_value(name, value, f.metadata)
         if self.em.kappa_cap_end < self.em.kappa_cap_start:
             raise ConfigError(
                 f'Expected em.kappa_cap_end >= em.kappa_cap_start, got '
@@ -404,8 +404,17 @@ def iter_fields(config: Any, prefix: str = '') -> Iterator[tuple[str, Any, datac
             yield name, value, f
 
 
-def _validate_value(name: str, value: Any, f: dataclasses.Field) -> None:
-    meta = f.metadata
+def validate_value(name: str, value: Any, meta: Mapping[str, Any]) -> None:
+    """Check ``value`` against a field's metadata: among ``choices``, within ``range``.
+
+    ``meta`` is the metadata of a field as :func:`_f` writes it (the node's ``node.*``
+    parameters in :mod:`kentreg_ros.ros.params` carry the same keys, so both are validated here).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``name``, the allowed values and the value given.
+    """
     if 'choices' in meta and value not in meta['choices']:
         raise ConfigError(
             f'Expected `{name}` to be one of {list(meta["choices"])}, got {value!r}.'
@@ -480,11 +489,16 @@ def _from_mapping(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
                 raise ConfigError(f'Expected `{full}` to be a mapping, got {value!r}.')
             kwargs[name] = _from_mapping(hint, value, full + '.')
         else:
-            kwargs[name] = _coerce(full, value, hint)
+            kwargs[name] = coerce_value(full, value, hint)
     return cls(**kwargs)
 
 
-def _coerce(name: str, value: Any, hint: Any) -> Any:
+def coerce_value(name: str, value: Any, hint: Any) -> Any:
+    """``value`` as the type ``hint`` (bool, int, float, str; ``X | None`` as X) or ConfigError.
+
+    Integers are accepted for floats and integral floats for integers; booleans only for bool.
+    Other hints return ``value`` unchanged.
+    """
     if isinstance(hint, types.UnionType):
         hint = hint.__args__[0]
     if hint is bool:

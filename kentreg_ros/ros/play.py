@@ -25,10 +25,12 @@ reads them. The topic ``--topic`` is relative by default (``points``), so it fol
 namespace and ``--ros-args -r points:=...`` remapping.
 
 Timing: each scan is published when its stamp, relative to the first one, divided by
-``--rate``, has elapsed (a late scan goes out at once; none is skipped); ``--rate 0`` publishes
-as fast as possible and ``--hz`` at a fixed rate. ``--loop`` repeats; with ``--restamp bag``
-(default) every pass is shifted by the span of the previous one plus one scan period, so the
-stamps keep increasing. ``--restamp now`` stamps each message with the current time instead.
+``--rate``, has elapsed; a late scan goes out at once and the schedule continues from it (none
+is skipped, no gap is compressed to catch up); the time publishing takes does not delay the
+schedule. ``--rate 0`` publishes as fast as possible and ``--hz`` at a fixed rate. ``--loop``
+repeats; with ``--restamp bag`` (default) every pass is shifted by the span of the previous one
+plus one scan period, so the stamps keep increasing. ``--restamp now`` stamps each message with
+the current time instead.
 
 Exit status: 0 when every scan was published, 2 on bad input (one line on stderr, including a
 bag that turns out to be damaged after some scans were published), 130 when interrupted (Ctrl-C,
@@ -48,21 +50,22 @@ from pathlib import Path
 from typing import Any
 
 from kentreg_ros.cli.common import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    ArgumentParser,
+    CliError,
+    logging_to_stderr,
     non_negative_float,
     non_negative_int,
     positive_float,
     positive_int,
+    run_main,
 )
-from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.io.errors import BagError
 
-logger = logging.getLogger('kentreg_ros.play')  # also when run as __main__
+logger = logging.getLogger('kentreg_ros.ros.play')  # also when run as __main__
 
 PROG = 'kentreg_play'
 NODE_NAME = 'kentreg_play'
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 #: ``--clock`` without a value publishes at this rate (as ``ros2 bag play --clock`` does).
 DEFAULT_CLOCK_HZ = 40.0
 #: Gap between two passes of ``--loop`` when the source has a single scan (s, bag time).
@@ -73,18 +76,9 @@ MAX_SLEEP_S = 0.05
 ACK_TIMEOUT_S = 5.0
 
 
-class InputError(Exception):
-    """Bad command-line input; shown as one line, exit status 2."""
-
-
-class _ArgumentParser(argparse.ArgumentParser):
-    def error(self, message: str) -> Any:
-        raise InputError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``kentreg_play`` (ROS arguments are removed first)."""
-    parser = _ArgumentParser(
+    parser = ArgumentParser(
         prog=PROG,
         description='Publish the PointCloud2 messages of a bag (or the scans of a folder) on a '
         'ROS 2 topic at the recorded rate, scaled, or fixed. ROS arguments go after '
@@ -180,7 +174,7 @@ class Timing:
     def from_options(cls, rate: float | None, hz: float | None) -> Timing:
         """``--rate``/``--hz`` as given (None: not given); they exclude each other."""
         if hz is not None and rate is not None:
-            raise InputError('--rate and --hz exclude each other; give one')
+            raise CliError('--rate and --hz exclude each other; give one')
         if hz is not None:
             return cls(None, hz)
         rate = 1.0 if rate is None else rate
@@ -214,7 +208,7 @@ def _fields_option(text: str) -> Sequence[str] | None:
         return ()
     names = [n.strip() for n in value.split(',') if n.strip()]
     if not names:
-        raise InputError(f"--fields: expected 'all', 'none' or field names, got {text!r}")
+        raise CliError(f"--fields: expected 'all', 'none' or field names, got {text!r}")
     return names
 
 
@@ -257,7 +251,7 @@ class PlaySummary:
 
 
 def _ros() -> Any:
-    """Import rclpy and the message packages, or raise InputError naming what to install."""
+    """Import rclpy and the message packages, or raise CliError naming what to install."""
     try:
         import rclpy
         import rclpy.executors
@@ -267,8 +261,10 @@ def _ros() -> Any:
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import PointCloud2, PointField
         from std_msgs.msg import Header
+
+        from kentreg_ros.ros import messages
     except ImportError as exc:
-        raise InputError(
+        raise CliError(
             f'{PROG} needs rclpy and the ROS 2 message packages ({exc.name} is missing): '
             "source a ROS 2 Jazzy installation or pip install -e '.[ros]'"
         ) from exc
@@ -284,6 +280,7 @@ def _ros() -> Any:
         PointCloud2=PointCloud2,
         PointField=PointField,
         Header=Header,
+        messages=messages,
     )
 
 
@@ -341,7 +338,7 @@ class Player:
         if self.clock_publisher is None:
             return
         msg = self.ros.Clock()
-        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        msg.clock = self.ros.messages.stamp_to_msg(stamp_ns)
         self.clock_publisher.publish(msg)
 
     def wait_for_subscribers(self, timeout_s: float) -> int:
@@ -403,7 +400,7 @@ class Player:
                 n_in_pass += 1
                 yield out_ns, scan
             if n_in_pass == 0:
-                raise InputError(
+                raise CliError(
                     f'{self.options.input}: no scan to publish after --start {self.options.start}'
                 )
             n_pass += 1
@@ -440,22 +437,23 @@ class Player:
                 due_s += self.timing.gap_s(previous_stamp_ns, stamp_ns)
                 self._wait_until(due_s, previous, stamp_ns)
             self._check_ok()
+            sent = time.monotonic()
             if opts.restamp == 'now':
                 msg.header.stamp = self.node.get_clock().now().to_msg()
             else:
                 self._publish_clock(stamp_ns)
             self.publisher.publish(msg)
-            now = time.monotonic()
             summary.published += 1
             summary.points += len(scan.points)
             if summary.first_publish_s is None:
-                summary.first_publish_s = now
+                summary.first_publish_s = sent
                 summary.first_stamp_ns = stamp_ns
-            summary.last_publish_s = now
+            summary.last_publish_s = sent
             summary.last_stamp_ns = stamp_ns
-            # A late scan resets the schedule: the next gap is measured from now, never
-            # compressed to catch up.
-            due_s = max(due_s, now)
+            # A late scan resets the schedule: the next gap is measured from when it went out,
+            # never compressed to catch up. A scan on time keeps it (the time publishing takes
+            # does not delay the next one).
+            due_s = max(due_s, sent)
             previous = (due_s, stamp_ns)
             previous_stamp_ns = stamp_ns
         return summary
@@ -481,27 +479,13 @@ class Player:
         return bool(self.publisher.wait_for_all_acked(Duration(seconds=timeout_s)))
 
 
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return ' '.join(text.split())
-
-
-def _configure_logging(quiet: bool) -> logging.Handler:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(f'{PROG}: %(message)s'))
-    package_logger = logging.getLogger('kentreg_ros')
-    package_logger.addHandler(handler)
-    package_logger.setLevel(logging.WARNING if quiet else logging.INFO)
-    return handler
-
-
 def _open_source(options: argparse.Namespace) -> Any:
     import numpy as np
 
     from kentreg_ros.io import open_scan_source
 
     if not Path(options.input).exists():
-        raise InputError(f'{options.input}: no such file or folder')
+        raise CliError(f'{options.input}: no such file or folder')
     source = open_scan_source(
         options.input,
         topic=options.bag_topic,
@@ -509,7 +493,7 @@ def _open_source(options: argparse.Namespace) -> Any:
         dtype=np.float32,
     )
     if options.start >= len(source):
-        raise InputError(f'--start {options.start} is past the last scan ({source.description})')
+        raise CliError(f'--start {options.start} is past the last scan ({source.description})')
     return source
 
 
@@ -523,34 +507,34 @@ def main(args: Sequence[str] | None = None) -> int:
         arguments follow ``--ros-args``.
     """
     argv = list(sys.argv[1:] if args is None else args)
-    handler: logging.Handler | None = None
-    try:
-        ros = _ros()
-        options = build_parser().parse_args(ros.remove_ros_args([PROG, *argv])[1:])
-        handler = _configure_logging(options.quiet)
+    return run_main(PROG, lambda: _main(argv), interrupted='interrupted before publishing')
+
+
+def _main(argv: list[str]) -> int:
+    ros = _ros()
+    options = build_parser().parse_args(ros.remove_ros_args([PROG, *argv])[1:])
+    with logging_to_stderr(
+        PROG, logging.WARNING if options.quiet else logging.INFO, info_level=False
+    ):
         Timing.from_options(options.rate, options.hz)
         if options.clock is not None and options.restamp != 'bag':
-            raise InputError('--clock publishes the recorded time; use it with --restamp bag')
+            raise CliError('--clock publishes the recorded time; use it with --restamp bag')
         source = _open_source(options)
         return _play(ros, source, options, argv)
-    except (InputError, KentRegError, BagError, ValueError, OSError) as exc:
-        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print(f'{PROG}: interrupted before publishing', file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:
-        if handler is not None:
-            logging.getLogger('kentreg_ros').removeHandler(handler)
 
 
 def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -> int:
+    """Publish ``source``; return :data:`EXIT_OK` or :data:`EXIT_INTERRUPTED`.
+
+    Bad input found while playing (a damaged bag, no scan after ``--start``) propagates to
+    :func:`~kentreg_ros.cli.common.run_main` once the node is destroyed and the summary of
+    what was published is printed.
+    """
     rclpy = ros.rclpy
     rclpy.init(args=[PROG, *argv])
     node = None
     player: Player | None = None
     status = EXIT_OK
-    error: str | None = None
     try:
         node = rclpy.create_node(NODE_NAME)
         player = Player(node, source, options, ros)
@@ -568,8 +552,6 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
             logger.warning('Not every subscriber acknowledged the last messages in time.')
     except (KeyboardInterrupt, ros.ExternalShutdownException):
         status = EXIT_INTERRUPTED
-    except (InputError, KentRegError, BagError, ValueError, OSError) as exc:
-        status, error = EXIT_BAD_INPUT, _one_line(exc)
     except RuntimeError:
         # rclpy's signal handler shuts the context down from another thread (SIGTERM raises no
         # KeyboardInterrupt): an rclpy call already under way then fails with RCLError, a
@@ -581,11 +563,9 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    if player is not None and not options.quiet:
-        print(player.summary.format(player.topic))
-    if error is not None:
-        print(f'{PROG}: error: {error}', file=sys.stderr)
-    elif status == EXIT_INTERRUPTED:
+        if player is not None and not options.quiet:
+            print(player.summary.format(player.topic))
+    if status == EXIT_INTERRUPTED:
         published = player.summary.published if player is not None else 0
         print(f'{PROG}: interrupted after {published} scan(s)', file=sys.stderr)
     return status

@@ -7,7 +7,7 @@ Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points
 ``odom``       nav_msgs/Odometry                      odom_frame -> base_frame, twist, covariance
 ``pose``       geometry_msgs/PoseStamped              base_frame pose in odom_frame
 ``path``       nav_msgs/Path                          the last ``node.path_length`` poses
-``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures
+``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures, mode
 ``/tf``        odom_frame -> base_frame               when tf2_ros is installed
 ``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
 ============== ====================================== ==========================================
@@ -31,7 +31,7 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +41,7 @@ import rclpy.clock
 import rclpy.logging
 import rclpy.time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry as OdometryMsg
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import (
@@ -59,24 +59,33 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.time_source import USE_SIM_TIME_NAME
+from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
-from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.core.rotations import hat, invert_transform, log_so3
 from kentreg_ros.io.params import NODE_NAME
-from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec, pointcloud2_to_array
-from kentreg_ros.node_params import NODE_PARAMETERS, NodeParameter, NodeSettings, node_settings
+from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+from kentreg_ros.ros.messages import (
+    covariance_to_msg,
+    pose_to_msg,
+    stamp_to_msg,
+    transform_from_msg,
+    transform_to_msg,
+)
+from kentreg_ros.ros.params import NODE_PARAMETERS, PREFIX, NodeParameter, NodeSettings
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros
 except ImportError:  # pragma: no cover - depends on the installation
     tf2_ros = None
 
-__all__ = ['NODE_PARAMETERS', 'KentRegNode', 'main']
+__all__ = ['KentRegNode', 'StartupError', 'main']
 
 FloatArray = np.ndarray
 #: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
@@ -87,10 +96,19 @@ THROTTLE_S = 5.0
 UNKNOWN_VARIANCE = 1e6
 #: Diagnostics turn WARN when no scan arrived for this many seconds.
 STALE_INPUT_S = 5.0
+#: Parameters every rclpy node has besides its own (rclpy declares and reads them itself):
+#: the clock source, whether to serve ~/get_type_description, and QoS overrides of publishers
+#: and subscriptions (``qos_overrides.<topic>.<publisher|subscription>.<policy>``).
+RCLPY_PARAMETERS = frozenset({USE_SIM_TIME_NAME, START_TYPE_DESCRIPTION_SERVICE_PARAM})
+QOS_OVERRIDES_PREFIX = 'qos_overrides.'
 
 
-class StartupError(Exception):
-    """The node cannot start with the given parameters (message says which and why)."""
+class StartupError(KentRegError):
+    """The node cannot start with the given parameters (message says which and why).
+
+    Part of the library's error hierarchy (like the command lines' ``CliError``), so callers
+    that construct the node catch it with ``except KentRegError``.
+    """
 
 
 @dataclass
@@ -136,13 +154,17 @@ class _Counters:
             return dict(self.total), window
 
 
-def _descriptor(name: str, description: str, meta: dict[str, Any], read_only: bool) -> Any:
-    desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+def _descriptor(name: str, default: Any, meta: Mapping[str, Any]) -> ParameterDescriptor:
+    """The ROS descriptor of a field with the metadata of core.config / ros.params."""
+    desc = ParameterDescriptor(
+        name=name,
+        description=meta.get('description', ''),
+        read_only=bool(meta.get('read_only', False)),
+    )
     choices = meta.get('choices')
     if choices:
         desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
     rng = meta.get('range')
-    default = meta.get('default')
     if rng is not None and isinstance(default, int) and not isinstance(default, bool):
         desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
     elif rng is not None and isinstance(default, float):
@@ -152,16 +174,15 @@ def _descriptor(name: str, description: str, meta: dict[str, Any], read_only: bo
     return desc
 
 
-def parameter_declarations() -> list[tuple[str, Any, Any]]:
+def parameter_declarations() -> list[tuple[str, Any, ParameterDescriptor]]:
     """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
     out = []
     for name, value, f in iter_fields(KentRegConfig()):
-        meta = dict(f.metadata)
-        meta['default'] = value
-        out.append((name, value, _descriptor(name, meta.get('description', ''), meta, False)))
-    for p in NODE_PARAMETERS:
-        meta = {'range': p.range, 'choices': p.choices, 'default': p.default}
-        out.append((p.name, p.default, _descriptor(p.name, p.description, meta, p.read_only)))
+        out.append((name, value, _descriptor(name, value, f.metadata)))
+    node_defaults = NodeSettings().to_parameters()
+    for name, _, f in iter_fields(NodeSettings(), PREFIX):
+        default = node_defaults[name]
+        out.append((name, default, _descriptor(name, default, f.metadata)))
     return out
 
 
@@ -170,17 +191,6 @@ def _transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:
     T[:3, :3] = Rotation.from_euler('xyz', values[3:6]).as_matrix()
     T[:3, 3] = values[:3]
     return T
-
-
-def _invert(T: FloatArray) -> FloatArray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def pose_covariance_in_base(
@@ -196,23 +206,8 @@ def pose_covariance_in_base(
     J = np.zeros((6, 6))
     J[:3, :3] = R_bl
     J[3:, 3:] = R_bl
-    J[:3, 3:] = _skew(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
+    J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
     return J @ cov_world_lidar @ J.T
-
-
-def _pose_msg(T: FloatArray) -> Any:
-    pose = Pose()
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (
-        float(v) for v in q
-    )
-    return pose
-
-
-def _stamp_msg(stamp_ns: int) -> Any:
-    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
-    return rclpy.time.Time(seconds=sec, nanoseconds=nanosec).to_msg()
 
 
 class KentRegNode(Node):
@@ -225,18 +220,33 @@ class KentRegNode(Node):
         among its choices, unknown, or inconsistent with another.
     """
 
+    #: How long :meth:`destroy_node` waits for the worker to finish the scan in hand (s).
+    WORKER_STOP_TIMEOUT_S = 10.0
+
     def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
-        super().__init__(node_name, **kwargs)
+        # rclpy declares every parameter given for this node (files, -p, parameter_overrides)
+        # before __init__ returns, so the node can see what it was given through the public
+        # parameter API and refuse names it does not know (_declare_and_read).
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=True, **kwargs)
         self._counters = _Counters()
-        self._config, self._settings = self._declare_and_read()
-        self._check_unknown_overrides()
+        try:
+            self._config, self._settings = self._declare_and_read()
+        except StartupError:
+            super().destroy_node()
+            raise
 
         self._lock = threading.Condition()
         self._queue: collections.deque[_Scan] = collections.deque()
         self._pending_config: KentRegConfig | None = None
+        #: The mode the worker registers with (changed by the worker, under the lock, when it
+        #: adopts a pending configuration); self._config is the latest accepted one.
+        self._mode_in_use = self._config.mode
         self._pending_reset = False
         self._stop = False
 
+        # Worker state: only the worker thread reads or writes these after start-up. Changes
+        # from the executor thread (parameters, reset) reach it under the lock as pending
+        # values or through the settings it copies before each scan.
         self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
         self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
         self._T_base_lidar: FloatArray | None = None
@@ -304,9 +314,29 @@ class KentRegNode(Node):
     # Parameters
 
     def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
+        """Refuse unknown parameters, declare the known ones with their descriptors, read them.
+
+        Every name given for this node was declared by rclpy as it came (no descriptor, no
+        range). An unknown one is an error, not ignored. A known one is undeclared and declared
+        again with its descriptor: its given value still applies (rclpy keeps the overrides),
+        now checked against the declared type and range.
+        """
+        declarations = parameter_declarations()
+        known = {name for name, _, _ in declarations}
+        given = set(self.get_parameters_by_prefix(''))
+        unknown = sorted(
+            n for n in given - known - RCLPY_PARAMETERS if not n.startswith(QOS_OVERRIDES_PREFIX)
+        )
+        if unknown:
+            raise StartupError(
+                f'unknown parameter(s) {unknown}; valid ones are the keys of '
+                'config/kentreg.yaml (see README: parameter table).'
+            )
+        for name in given & known:
+            self.undeclare_parameter(name)
         try:
             # rclpy annotates `parameters` as an invariant List of a Union of tuples.
-            self.declare_parameters('', parameter_declarations())  # type: ignore[arg-type]
+            self.declare_parameters('', declarations)  # type: ignore[arg-type]
         except (
             InvalidParameterTypeException,
             InvalidParameterValueException,
@@ -323,22 +353,9 @@ class KentRegNode(Node):
         }
         node_values = {p.name: self.get_parameter(p.name).value for p in NODE_PARAMETERS}
         try:
-            return KentRegConfig.from_dict(config_values), node_settings(node_values)
+            return KentRegConfig.from_dict(config_values), NodeSettings.from_dict(node_values)
         except ConfigError as exc:
             raise StartupError(str(exc)) from exc
-
-    def _check_unknown_overrides(self) -> None:
-        """Parameters given for this node that it does not know are an error, not ignored."""
-        overrides = getattr(self, '_parameter_overrides', {}) or {}
-        known = {name for name, _, _ in parameter_declarations()} | {'use_sim_time'}
-        unknown = sorted(
-            n for n in overrides if n not in known and not n.startswith('qos_overrides.')
-        )
-        if unknown:
-            raise StartupError(
-                f'unknown parameter(s) {unknown}; valid ones are the keys of '
-                'config/kentreg.yaml (see README: parameter table).'
-            )
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         config_updates: dict[str, Any] = {}
@@ -356,9 +373,7 @@ class KentRegNode(Node):
                 node_updates[p.name] = p.value
         try:
             config = self._config.with_updates(config_updates) if config_updates else None
-            current = {p.name: getattr(self._settings, p.name[5:]) for p in NODE_PARAMETERS}
-            current = {k: list(v) if isinstance(v, tuple) else v for k, v in current.items()}
-            settings = node_settings({**current, **node_updates}) if node_updates else None
+            settings = self._settings.with_updates(node_updates) if node_updates else None
         except ConfigError as exc:
             self.get_logger().warning(f'Rejected parameter change: {exc}')
             return SetParametersResult(successful=False, reason=str(exc))
@@ -375,9 +390,7 @@ class KentRegNode(Node):
     def _apply_settings(self, settings: NodeSettings) -> None:
         """Adopt new runtime node settings (called with the lock held)."""
         old = self._settings
-        self._settings = settings
-        if settings.path_length != old.path_length:
-            self._path = collections.deque(self._path, maxlen=settings.path_length)
+        self._settings = settings  # node.path_length reaches the worker's path through it
         if settings.base_to_lidar != old.base_to_lidar or (
             settings.odom_frame,
             settings.base_frame,
@@ -396,7 +409,11 @@ class KentRegNode(Node):
         self._counters.add('received')
         try:
             cloud = pointcloud2_to_array(msg, fields=())
-        except Exception as exc:  # noqa: BLE001 - any malformed message must not stop the node
+        except Exception as exc:
+            # Broad on purpose: whatever a malformed message makes the decoder raise (its
+            # documented InvalidPointCloudError, or numpy's errors on an absurd layout) must
+            # not leave this callback: an exception here propagates out of spin() and stops
+            # the node.
             self._counters.add('malformed')
             self.get_logger().warning(
                 f'Skipped a malformed PointCloud2: {exc}', throttle_duration_sec=THROTTLE_S
@@ -446,10 +463,17 @@ class KentRegNode(Node):
             try:
                 if config is not None:
                     self._odometry.reconfigure(config)
+                    with self._lock:
+                        self._mode_in_use = config.mode
                 if reset:
                     self._reset('reset requested')
+                if self._path.maxlen != settings.path_length:
+                    self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
-            except Exception as exc:  # noqa: BLE001 - keep the node alive, restart cleanly
+            except Exception as exc:
+                # Broad on purpose: an exception would end this thread silently, leaving a node
+                # that still subscribes and reports but never publishes odometry again. Counted,
+                # logged (with the traceback at debug level) and followed by a clean restart.
                 self._counters.add('errors')
                 self.get_logger().error(
                     f'Unexpected error while processing a scan ({type(exc).__name__}: {exc}); '
@@ -477,7 +501,7 @@ class KentRegNode(Node):
             tf = self._tf_buffer.lookup_transform(
                 settings.base_frame, frame_id, rclpy.time.Time()
             ).transform
-        except Exception:  # noqa: BLE001 - tf2 raises several lookup exception types
+        except tf2_ros.TransformException:  # LookupException, ExtrapolationException, ...
             now = time.monotonic()
             if self._tf_wait_start is None:
                 self._tf_wait_start = now
@@ -488,11 +512,7 @@ class KentRegNode(Node):
                 f'using node.base_to_lidar={list(settings.base_to_lidar)}.'
             )
             return fallback
-        T = np.eye(4)
-        q = tf.rotation
-        T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-        T[:3, 3] = [tf.translation.x, tf.translation.y, tf.translation.z]
-        return T
+        return transform_from_msg(tf)
 
     def _process(self, scan: _Scan, settings: NodeSettings) -> None:
         log = self.get_logger()
@@ -543,9 +563,9 @@ class KentRegNode(Node):
     def _publish(self, step: OdometryStep, prev_stamp: int | None, settings: NodeSettings) -> None:
         assert self._T_base_lidar is not None  # set before any step
         T_bl = self._T_base_lidar
-        T_odom_base = T_bl @ step.T_world_lidar @ _invert(T_bl)
-        stamp = _stamp_msg(step.stamp_ns)
-        pose = _pose_msg(T_odom_base)
+        T_odom_base = T_bl @ step.T_world_lidar @ invert_transform(T_bl)
+        stamp = stamp_to_msg(step.stamp_ns)
+        pose = pose_to_msg(T_odom_base)
 
         odom = OdometryMsg()
         odom.header.stamp = stamp
@@ -553,11 +573,12 @@ class KentRegNode(Node):
         odom.child_frame_id = settings.base_frame
         odom.pose.pose = pose
         cov = pose_covariance_in_base(step.covariance, T_bl, T_odom_base)
-        odom.pose.covariance = [float(v) for v in cov.ravel()]
+        odom.pose.covariance = covariance_to_msg(cov)
         twist_cov = np.eye(6) * UNKNOWN_VARIANCE
         if prev_stamp is not None and step.index > 0 and step.stamp_ns > prev_stamp:
             dt = (step.stamp_ns - prev_stamp) * 1e-9
-            T_motion = T_bl @ step.T_prev_curr @ _invert(T_bl)  # current base in previous base
+            # The current base pose in the previous base frame.
+            T_motion = T_bl @ step.T_prev_curr @ invert_transform(T_bl)
             R = T_motion[:3, :3]
             v = R.T @ T_motion[:3, 3] / dt  # in the current base frame (child_frame_id)
             w = log_so3(R) / dt
@@ -571,7 +592,7 @@ class KentRegNode(Node):
                 J = np.zeros((6, 6))
                 J[:3, :3] = J[3:, 3:] = T_bl[:3, :3]
                 twist_cov = J @ np.asarray(step.result.covariance) @ J.T / dt**2
-        odom.twist.covariance = [float(v) for v in twist_cov.ravel()]
+        odom.twist.covariance = covariance_to_msg(twist_cov)
         self._pub_odom.publish(odom)
 
         pose_msg = PoseStamped()
@@ -590,10 +611,7 @@ class KentRegNode(Node):
             tf = TransformStamped()
             tf.header = odom.header
             tf.child_frame_id = settings.base_frame
-            tf.transform.translation.x = pose.position.x
-            tf.transform.translation.y = pose.position.y
-            tf.transform.translation.z = pose.position.z
-            tf.transform.rotation = pose.orientation
+            tf.transform = transform_to_msg(T_odom_base)
             self._tf_broadcaster.sendTransform(tf)
 
     def _publish_diagnostics(self) -> None:
@@ -604,6 +622,8 @@ class KentRegNode(Node):
         with self._lock:
             queued = len(self._queue)
             settings = self._settings
+            mode = self._mode_in_use
+            pending = self._pending_config
         if not settings.publish_diagnostics:
             return
         latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
@@ -639,7 +659,8 @@ class KentRegNode(Node):
             'queue_length': str(queued),
             'last_health': self._last_health,
             'last_message': self._last_message,
-            'mode': self._config.mode,
+            'mode': mode,  # in use; an accepted change applies from the next scan
+            'pending_mode': pending.mode if pending is not None else '',
         }
         values.update({f'total.{k}': str(v) for k, v in total.items()})
         values.update({f'window.{k}': str(v) for k, v in window.items()})
@@ -653,12 +674,27 @@ class KentRegNode(Node):
     # Lifecycle
 
     def destroy_node(self) -> None:
-        """Stop and join the worker (it finishes the scan in hand), then destroy the node."""
+        """Stop and join the worker (it finishes the scan in hand), then destroy the node.
+
+        When the worker has not stopped within :attr:`WORKER_STOP_TIMEOUT_S` (a registration
+        still running), only the input side is destroyed (subscription, reset service,
+        diagnostics timer) and the reason is logged: the publishers and tf objects stay, since
+        the worker may still publish with them. It stops after that scan; its thread is a
+        daemon, so it does not keep the process alive.
+        """
         with self._lock:
             self._stop = True
             self._lock.notify_all()
+        self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
         if self._worker.is_alive():
-            self._worker.join(timeout=10.0)
+            self.get_logger().error(
+                f'The worker did not stop within {self.WORKER_STOP_TIMEOUT_S:g} s (a scan still '
+                'in hand); leaving its publishers in place and destroying only the input side.'
+            )
+            self.destroy_subscription(self._sub)
+            self.destroy_service(self._srv_reset)
+            self.destroy_timer(self._diag_timer)
+            return
         super().destroy_node()
 
 
@@ -670,7 +706,7 @@ def main(args: list[str] | None = None) -> int:
     """
     try:
         rclpy.init(args=args)
-    except Exception as exc:  # noqa: BLE001 - rcl raises RCLError for bad --ros-args / files
+    except RuntimeError as exc:  # rcl's RCLError: bad --ros-args, unreadable --params-file
         print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
         return 1
     node: KentRegNode | None = None

@@ -1,0 +1,292 @@
+"""kentreg_ros.ros.node in this process: its frame maths, its threads and its start-up checks.
+
+``test_node.py`` runs the node as a subprocess over DDS; the tests here construct
+:class:`KentRegNode` in this process (a private rclpy context, nothing spun), hand it scans the
+way the subscription callback does, and look at what the worker thread did. That makes
+ownership between the executor thread and the worker, and shutdown with a busy worker,
+testable without depending on how fast this machine registers scans.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason="rclpy is not installed (pip install -e '.[ros]')")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from rclpy.exceptions import ParameterNotDeclaredException  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from scenes import box_room  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from kentreg_ros.core.errors import KentRegError  # noqa: E402
+from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
+from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
+from kentreg_ros.ros import node as node_module  # noqa: E402
+from kentreg_ros.ros.params import NodeSettings  # noqa: E402
+
+FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
+ROOM = box_room(np.random.default_rng(0), 4000)
+TIMEOUT_S = 60.0
+
+
+def feed(node: Any, k: int) -> None:
+    """Hand scan ``k`` to the node as its subscription callback does: the room seen from 5 cm
+    further along x per scan, stamped ``k + 1`` seconds."""
+    points = ROOM - [0.05 * k, 0.0, 0.0]
+    node._on_points(
+        array_to_pointcloud2(points, stamp_ns=(k + 1) * 10**9, frame_id='lidar', factory=FACTORY)
+    )
+
+
+def total(node: Any, name: str) -> int:
+    """A cumulative counter of the node (what diagnostics report as ``total.<name>``)."""
+    return int(node._counters.total[name])
+
+
+def wait_until(done: Callable[[], bool], timeout: float = TIMEOUT_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while not done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 10**9 + int(stamp.nanosec)
+
+
+def _random_transform(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
+    return make_transform(exp_so3(rng.normal(size=3)), rng.normal(scale=scale, size=3))
+
+
+def test_pose_covariance_in_base_is_the_first_order_propagation() -> None:
+    """Against a finite-difference Jacobian of ``T_odom_base = T_bl T_world_lidar T_bl^-1``,
+    with errors as the covariance convention states: position, then rotation about the fixed
+    frame's axes (``R' = exp(dtheta) R``)."""
+    rng = np.random.default_rng(0)
+    T_bl = _random_transform(rng, 0.5)
+    T_wl = _random_transform(rng, 3.0)
+
+    def odom_base(delta: np.ndarray) -> np.ndarray:
+        T = T_wl.copy()
+        T[:3, 3] += delta[:3]
+        T[:3, :3] = exp_so3(delta[3:]) @ T[:3, :3]
+        return T_bl @ T @ np.linalg.inv(T_bl)
+
+    T_ob = odom_base(np.zeros(6))
+    J = np.zeros((6, 6))
+    eps = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        plus, minus = odom_base(d), odom_base(-d)
+        J[:3, k] = (plus[:3, 3] - minus[:3, 3]) / (2 * eps)
+        J[3:, k] = (
+            log_so3(plus[:3, :3] @ T_ob[:3, :3].T) - log_so3(minus[:3, :3] @ T_ob[:3, :3].T)
+        ) / (2 * eps)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T
+    expected = J @ cov @ J.T
+    got = node_module.pose_covariance_in_base(cov, T_bl, T_ob)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+
+
+@pytest.fixture
+def make_node(rclpy_context: Any) -> Iterator[Callable[..., Any]]:
+    """Construct KentRegNode in a private context; destroyed afterwards unless a test did."""
+    nodes: list[Any] = []
+
+    def make(**kwargs: Any) -> Any:
+        node = node_module.KentRegNode(context=rclpy_context, **kwargs)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        if node.handle is not None:
+            node.destroy_node()
+
+
+def test_startup_error_is_a_kentreg_error_naming_the_parameter(make_node: Any) -> None:
+    with pytest.raises(KentRegError, match=r"Expected `mode` to be one of \['robust', 'paper'\]"):
+        make_node(parameter_overrides=[Parameter('mode', value='fast')])
+    with pytest.raises(node_module.StartupError, match='node.queue_size'):
+        make_node(parameter_overrides=[Parameter('node.queue_size', value=0)])
+
+
+@pytest.mark.parametrize(
+    'how',
+    [
+        {'parameter_overrides': [Parameter('em.bogus', value=3)]},
+        {'cli_args': ['--ros-args', '-p', 'em.bogus:=3']},
+    ],
+    ids=['override', 'command-line'],
+)
+def test_unknown_parameters_stop_the_node_naming_them(make_node: Any, how: dict) -> None:
+    with pytest.raises(node_module.StartupError, match=r"unknown parameter\(s\) \['em.bogus'\]"):
+        make_node(**how)
+
+
+def test_given_parameters_apply_with_their_declared_type_and_range(make_node: Any) -> None:
+    """The known parameters rclpy declared as given are declared again with their descriptors:
+    the given value stays, and the range and type now come with it."""
+    node = make_node(
+        parameter_overrides=[
+            Parameter('em.max_iterations', value=33),
+            Parameter('node.path_length', value=7),
+            Parameter('use_sim_time', value=False),
+            Parameter('start_type_description_service', value=False),
+            Parameter('qos_overrides./points.subscription.depth', value=3),
+        ]
+    )
+    assert node.get_parameter('em.max_iterations').value == 33
+    assert node.get_parameter('node.path_length').value == 7
+    (rng,) = node.describe_parameter('em.max_iterations').integer_range
+    assert (rng.from_value, rng.to_value) == (1, 10000)
+    assert node.describe_parameter('node.qos_depth').read_only
+    # Out of range and unknown names are refused at run time too.
+    (result,) = node.set_parameters([Parameter('em.max_iterations', value=0)])
+    assert not result.successful
+    with pytest.raises(ParameterNotDeclaredException):
+        node.set_parameters([Parameter('em.bogus', value=1)])
+
+
+def test_integer_for_a_double_parameter_is_refused_with_a_hint(make_node: Any) -> None:
+    with pytest.raises(node_module.StartupError, match='with a decimal point'):
+        make_node(parameter_overrides=[Parameter('preprocess.voxel_size', value=1)])
+
+
+def test_path_length_changes_reach_the_path_through_the_worker_only(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker appends to the path and publishes it without the lock, so no other thread may
+    touch it: a node.path_length change is handed over and applied by the worker."""
+    node = make_node(parameter_overrides=[Parameter('node.path_length', value=5)])
+    paths: list[Any] = []
+    monkeypatch.setattr(node._pub_path, 'publish', paths.append)
+    for k in range(3):
+        feed(node, k)
+        assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+    path = node._path
+    # From this thread, as the executor thread runs `ros2 param set`.
+    (result,) = node.set_parameters([Parameter('node.path_length', value=2)])
+    assert result.successful
+    assert node._path is path and path.maxlen == 5, 'the parameter thread touched the path'
+    feed(node, 3)
+    assert wait_until(lambda: total(node, 'processed') == 4)
+    assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
+    assert [stamp_ns(p.header.stamp) for p in paths[-1].poses] == [3 * 10**9, 4 * 10**9]
+    assert total(node, 'errors') == 0
+
+
+def test_diagnostics_report_the_mode_in_use_and_the_pending_one(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An accepted mode change applies from the next scan: until then diagnostics must say the
+    worker still registers in the old mode, and which one is pending."""
+    node = make_node()
+    sent: list[Any] = []
+    monkeypatch.setattr(node._pub_diag, 'publish', sent.append)
+
+    def modes() -> tuple[str, str]:
+        node._publish_diagnostics()
+        values = {kv.key: kv.value for kv in sent[-1].status[0].values}
+        return values['mode'], values['pending_mode']
+
+    assert modes() == ('robust', '')
+    (result,) = node.set_parameters([Parameter('mode', value='paper')])
+    assert result.successful
+    assert modes() == ('robust', 'paper')
+    feed(node, 0)
+    assert wait_until(lambda: total(node, 'processed') == 1)
+    assert modes() == ('paper', '')
+
+
+def test_destroy_keeps_the_publishers_while_the_worker_still_holds_a_scan(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A worker that outlives destroy_node's wait publishes its scan on live publishers (before,
+    they were destroyed under it and the scan ended in an error)."""
+    entered, release = threading.Event(), threading.Event()
+    process = node_module.KentRegNode._process
+
+    def held(node: Any, scan: Any, settings: Any) -> None:
+        entered.set()
+        release.wait(TIMEOUT_S)
+        process(node, scan, settings)
+
+    monkeypatch.setattr(node_module.KentRegNode, '_process', held)
+    node = make_node()
+    node.WORKER_STOP_TIMEOUT_S = 0.1
+    feed(node, 0)
+    assert entered.wait(TIMEOUT_S)
+    try:
+        node.destroy_node()
+        assert node._worker.is_alive()
+        assert node._pub_odom in node.publishers and node._pub_pose in node.publishers
+        assert node._sub not in node.subscriptions  # no more input
+    finally:
+        release.set()
+    node._worker.join(TIMEOUT_S)
+    assert not node._worker.is_alive()
+    assert (total(node, 'published'), total(node, 'errors')) == (1, 0)
+    assert 'did not stop within 0.1 s' in capfd.readouterr().err
+
+
+class _FakeTransformError(Exception):
+    """Stands in for tf2_ros.TransformException (tf2_ros is not on PyPI)."""
+
+
+class _Buffer:
+    """A tf2 buffer whose lookup returns ``result`` or raises it."""
+
+    def __init__(self, result: Any) -> None:
+        self.result = result
+
+    def lookup_transform(self, target: str, source: str, when: Any) -> Any:
+        if isinstance(self.result, BaseException):
+            raise self.result
+        return self.result
+
+
+def test_tf_lookup_failures_wait_then_fall_back_and_other_errors_propagate(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from geometry_msgs.msg import TransformStamped
+
+    node = make_node()
+    monkeypatch.setattr(
+        node_module, 'tf2_ros', SimpleNamespace(TransformException=_FakeTransformError)
+    )
+    waiting = NodeSettings.from_dict(
+        {'node.tf_wait': 30.0, 'node.base_to_lidar': [1, 0, 0, 0, 0, 0]}
+    )
+    expired = NodeSettings.from_dict(
+        {'node.tf_wait': 0.0, 'node.base_to_lidar': [1, 0, 0, 0, 0, 0]}
+    )
+    # A transform tf2 knows is used as it is.
+    stamped = TransformStamped()
+    stamped.transform.translation.x, stamped.transform.translation.z = 0.5, 1.5
+    stamped.transform.rotation.z = stamped.transform.rotation.w = np.sqrt(0.5)
+    node._tf_buffer = _Buffer(stamped)
+    T = node._sensor_in_base('lidar', waiting)
+    np.testing.assert_allclose(T[:3, 3], [0.5, 0.0, 1.5])
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    # Not (yet) known to tf2: wait while node.tf_wait lasts, then node.base_to_lidar.
+    node._tf_buffer = _Buffer(_FakeTransformError('frame lidar does not exist'))
+    assert node._sensor_in_base('lidar', waiting) is None
+    np.testing.assert_allclose(node._sensor_in_base('lidar', expired)[:3, 3], [1.0, 0.0, 0.0])
+    # Anything else is a bug, not a missing transform: it is not mistaken for one.
+    node._tf_buffer = _Buffer(TypeError('a bug'))
+    with pytest.raises(TypeError, match='a bug'):
+        node._sensor_in_base('lidar', expired)
