@@ -447,3 +447,39 @@ def test_associate_by_stamp_and_by_index() -> None:
     assert scan_rows.tolist() == [0, 1, 3] and gt_rows.tolist() == [1, 2, 3]
     scan_rows, gt_rows = associate(stamps, [2, 3, 4, 5], Trajectory(None, T))
     assert scan_rows.tolist() == [0, 1] and gt_rows.tolist() == [2, 3]
+
+
+def test_replay_hands_a_bags_per_point_times_to_the_odometry(tmp_path: Path) -> None:
+    """A bag whose clouds carry a `t` field (Ouster-style nanoseconds) reaches Odometry.step as
+    point_times, aligned with the finite points (the NaN point is dropped from both)."""
+    from kentreg_ros.eval.run import run_odometry
+    from kentreg_ros.io.bags import open_recording
+    from kentreg_ros.io.bagwriter import BagWriter
+
+    points = np.array([[1.0, 0, 0], [np.nan, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
+    t = np.array([0, 25_000_000, 50_000_000, 75_000_000], dtype=np.uint32)
+    bag = tmp_path / 'timed'
+    with BagWriter(bag) as writer:
+        for i in range(2):
+            writer.write_pointcloud('/cloud', (i + 1) * 100_000_000, points, extra={'t': t})
+    given: list[np.ndarray | None] = []
+
+    class Recorder:
+        n_failed = 0
+
+        def step(
+            self,
+            points: np.ndarray,
+            stamp_ns: int,
+            frame_id: str | None = None,
+            point_times: np.ndarray | None = None,
+        ) -> SimpleNamespace:
+            given.append(point_times)
+            return SimpleNamespace(health='ok', message='', timings={'total': 0.0})
+
+    recording = open_recording(bag, fields=None)  # what kentreg_replay opens
+    run_odometry(recording.source, Recorder())  # type: ignore[arg-type]
+    assert len(given) == 2
+    for times in given:
+        assert times is not None
+        np.testing.assert_array_equal(times, [0, 50_000_000, 75_000_000])

@@ -157,7 +157,10 @@ def open_input(args: argparse.Namespace) -> tuple[ScanSource, GroundTruth | None
         raise common.CliError(f'--gt {args.gt}: no such file')
     if args.topic is not None and not is_bag(path):
         raise common.CliError(f'--topic applies to bags; {path} is not a bag')
-    recording = open_recording(path, topic=args.topic, poses=args.gt, poses_topic=args.gt_topic)
+    # Every per-point field is decoded: a per-point time field feeds the deskewing.
+    recording = open_recording(
+        path, topic=args.topic, poses=args.gt, poses_topic=args.gt_topic, fields=None
+    )
     if recording.reference is None:
         return recording.source, None
     return recording.source, GroundTruth(recording.reference, recording.reference_origin)

@@ -31,7 +31,6 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,9 +44,6 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry as OdometryMsg
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
     SetParametersResult,
 )
 from rclpy.exceptions import (
@@ -61,24 +57,30 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.time_source import USE_SIM_TIME_NAME
 from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
-from kentreg_ros.core.rotations import hat, invert_transform, log_so3
+from kentreg_ros.core.rotations import invert_transform, log_so3
 from kentreg_ros.io.params import NODE_NAME
-from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+from kentreg_ros.io.pointcloud2 import (
+    POINT_TIME_FIELDS,
+    point_time_field,
+    pointcloud2_to_array,
+)
 from kentreg_ros.ros.messages import (
     covariance_to_msg,
+    parameter_declarations,
+    pose_covariance_in_base,
     pose_to_msg,
     stamp_to_msg,
     transform_from_msg,
+    transform_from_xyzrpy,
     transform_to_msg,
 )
-from kentreg_ros.ros.params import NODE_PARAMETERS, PREFIX, NodeParameter, NodeSettings
+from kentreg_ros.ros.params import NODE_PARAMETERS, NodeParameter, NodeSettings
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros
@@ -118,6 +120,7 @@ class _Scan:
     frame_id: str
     received: float  # time.monotonic()
     n_nonfinite: int
+    point_times: np.ndarray | None = None  # the driver's per-point times, for deskewing
 
 
 class _Counters:
@@ -152,62 +155,6 @@ class _Counters:
         with self._lock:
             window, self.window = self.window, dict.fromkeys(self.NAMES, 0)
             return dict(self.total), window
-
-
-def _descriptor(name: str, default: Any, meta: Mapping[str, Any]) -> ParameterDescriptor:
-    """The ROS descriptor of a field with the metadata of core.config / ros.params."""
-    desc = ParameterDescriptor(
-        name=name,
-        description=meta.get('description', ''),
-        read_only=bool(meta.get('read_only', False)),
-    )
-    choices = meta.get('choices')
-    if choices:
-        desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
-    rng = meta.get('range')
-    if rng is not None and isinstance(default, int) and not isinstance(default, bool):
-        desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
-    elif rng is not None and isinstance(default, float):
-        desc.floating_point_range = [
-            FloatingPointRange(from_value=float(rng[0]), to_value=float(rng[1]), step=0.0)
-        ]
-    return desc
-
-
-def parameter_declarations() -> list[tuple[str, Any, ParameterDescriptor]]:
-    """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
-    out = []
-    for name, value, f in iter_fields(KentRegConfig()):
-        out.append((name, value, _descriptor(name, value, f.metadata)))
-    node_defaults = NodeSettings().to_parameters()
-    for name, _, f in iter_fields(NodeSettings(), PREFIX):
-        default = node_defaults[name]
-        out.append((name, default, _descriptor(name, default, f.metadata)))
-    return out
-
-
-def _transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler('xyz', values[3:6]).as_matrix()
-    T[:3, 3] = values[:3]
-    return T
-
-
-def pose_covariance_in_base(
-    cov_world_lidar: FloatArray, T_base_lidar: FloatArray, T_odom_base: FloatArray
-) -> FloatArray:
-    """Covariance of ``T_odom_base = T_bl T_world_lidar T_bl^-1`` from that of ``T_world_lidar``.
-
-    Both in the nav_msgs order (x, y, z, rot_x, rot_y, rot_z): position error and rotation
-    error about the fixed frame's axes. With ``p_ob = R_bl p_wl + t_bl - R_ob t_bl`` and
-    ``dtheta_ob = R_bl dtheta_wl``, the Jacobian is ``[[R_bl, [R_ob t_bl]x R_bl], [0, R_bl]]``.
-    """
-    R_bl = T_base_lidar[:3, :3]
-    J = np.zeros((6, 6))
-    J[:3, :3] = R_bl
-    J[3:, 3:] = R_bl
-    J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
-    return J @ cov_world_lidar @ J.T
 
 
 class KentRegNode(Node):
@@ -408,7 +355,11 @@ class KentRegNode(Node):
         self._last_received = received
         self._counters.add('received')
         try:
-            cloud = pointcloud2_to_array(msg, fields=())
+            # Only a per-point time field is decoded besides x, y, z: it feeds the deskewing.
+            names = {f.name for f in msg.fields}
+            cloud = pointcloud2_to_array(
+                msg, fields=[n for n in POINT_TIME_FIELDS if n in names][:1]
+            )
         except Exception as exc:
             # Broad on purpose: whatever a malformed message makes the decoder raise (its
             # documented InvalidPointCloudError, or numpy's errors on an absurd layout) must
@@ -427,6 +378,7 @@ class KentRegNode(Node):
             frame_id=cloud.frame_id or '',
             received=received,
             n_nonfinite=cloud.n_dropped,
+            point_times=point_time_field(cloud.extras),
         )
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
@@ -494,7 +446,7 @@ class KentRegNode(Node):
 
     def _sensor_in_base(self, frame_id: str, settings: NodeSettings) -> FloatArray | None:
         """``T_base_lidar`` for this sensor frame, or None while waiting for tf2."""
-        fallback = _transform_from_xyzrpy(settings.base_to_lidar)
+        fallback = transform_from_xyzrpy(settings.base_to_lidar)
         if self._tf_buffer is None or frame_id == settings.base_frame or not frame_id:
             return fallback
         try:
@@ -546,7 +498,9 @@ class KentRegNode(Node):
         prev_stamp = self._last_stamp_ns
         self._last_stamp_ns = scan.stamp_ns
 
-        step = self._odometry.step(scan.points, scan.stamp_ns, frame_id=scan.frame_id)
+        step = self._odometry.step(
+            scan.points, scan.stamp_ns, frame_id=scan.frame_id, point_times=scan.point_times
+        )
         self._counters.add('processed')
         self._counters.add(step.health)
         if step.searched:
