@@ -252,6 +252,70 @@ def headline_block(
     return body
 
 
+def robustness_goals_block(
+    robustness: dict[str, Any] | None,
+    paper: dict[str, Any] | None,
+    per_scan: dict[str, Any] | None,
+) -> str | None:
+    """The robustness and speed issues' bars, measured (markdown table)."""
+    rows = []
+    if robustness is not None:
+        strides = robustness['strides']['strides']
+        k = {n: strides[n]['methods']['kentreg'] for n in strides}
+        failed = ', '.join(f'N={n}: {k[n]["failed"]}/{k[n]["n_pairs"]}' for n in sorted(k))
+        ok = all(k[n]['failed'] == 0 for n in k)
+        rows.append(f'| strides 1-4: 0 failed pairs | {failed} | {_verdict(ok)} |')
+        one = k.get('1')
+        if one is not None:
+            e_R, e_t = one['e_R_deg']['median'], one['e_t_m']['median']
+            rows.append(
+                f'| stride 1: median ≤ 0.1° / 1 cm | {e_R:.3f}° / {1e3 * e_t:.1f} mm '
+                f'| {_verdict(e_R <= 0.1 and e_t <= 0.01)} |'
+            )
+        levels = robustness['outliers']['levels']
+        top = max(levels, key=float)
+        summ = levels[top]['methods']['kentreg']['summary']
+        ratio = summ['median_e_R_ratio_to_clean']
+        rows.append(
+            f'| {float(top) * 100:.0f} % raw outliers: median e_R ≤ 1.5× clean, 0 failures '
+            f'| {ratio:.2f}×, {summ["failures"]}/{summ["n"]} failed '
+            f'| {_verdict(ratio <= 1.5 and summ["failures"] == 0)} |'
+        )
+        angles = robustness['turned']['angles']
+        got = [angles[a]['methods']['kentreg']['summary'] for a in angles]
+        rec, total = sum(g['recovered'] for g in got), sum(g['n'] for g in got)
+        rows.append(
+            f'| turned pairs 30-180°, from identity: ≥ 90 % recovered | {rec}/{total} '
+            f'({100 * rec / total:.0f} %) | {_verdict(rec >= 0.9 * total)} |'
+        )
+    if paper is not None:
+        stage = paper['datasets']['balm']['starts']['identity'].get('kentreg_robust-no_refine')
+        if stage is not None:
+            e = stage['summary']['e_R_deg']
+            rows.append(
+                f'| rotation stage alone, from identity, {stage["summary"]["n"]} pairs: median '
+                f'≤ 0.5°, none over 2° | median {e["median"]:.2f}°, max {e["max"]:.2f}° '
+                f'| {_verdict(e["median"] <= 0.5 and e["max"] <= 2.0)} |'
+            )
+    if per_scan is not None:
+        ms = per_scan['methods']
+        if 'kentreg' in ms and 'gicp' in ms:
+            r = ms['kentreg']['ms_per_scan']['p50'] / ms['gicp']['ms_per_scan']['p50']
+            rows.append(
+                f'| per raw scan, 1 thread: ≤ 1.5× GICP (goal ≤ 1.0×) | {r:.2f}× '
+                f'({ms["kentreg"]["ms_per_scan"]["p50"]:.0f} vs '
+                f'{ms["gicp"]["ms_per_scan"]["p50"]:.0f} ms p50) | {_verdict(r <= 1.5)} |'
+            )
+            p95 = ms['kentreg']['ms_per_scan']['p95']
+            rows.append(
+                f'| p95 ≤ 100 ms per scan (10 Hz) on these 72-90k-point scans | {p95:.0f} ms '
+                f'| {_verdict(p95 <= 100.0)} |'
+            )
+    if not rows:
+        return None
+    return '| bar | measured | verdict |\n|---|---|---|\n' + '\n'.join(rows) + '\n'
+
+
 def _load(path: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
@@ -284,6 +348,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if goals is not None:
         blocks['goals'] = goals
+    robust_goals = robustness_goals_block(
+        _load(args.results / 'robustness.json'),
+        _load(args.results / 'paper_table.json'),
+        _load(args.results / 'per_scan.json'),
+    )
+    if robust_goals is not None:
+        blocks['robustness_goals'] = robust_goals
     main_blocks: dict[str, str] = {}
     headline = headline_block(
         _load(args.results / 'robustness.json'),
