@@ -66,6 +66,7 @@ from benchmarks.common import (  # noqa: E402
     machine_info,
     write_json,
 )
+from kentreg_ros.core.rotations import invert_transform  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 logger = logging.getLogger('per_scan')
@@ -78,13 +79,6 @@ GICP_NEIGHBORS = 10
 NORMAL_NEIGHBORS = 15
 PEER_GATE = 1.0
 PERIOD_NS = 500_000_000  # BALM is a 2 Hz recording; stamps only feed the velocity models
-
-
-def _invert(T: FloatArray) -> FloatArray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
 
 
 def _kentreg() -> Callable[[FloatArray, int], FloatArray]:
@@ -229,7 +223,9 @@ def _reset_peak_rss() -> None:
 def summarize(ms: list[float], poses: FloatArray, truth: FloatArray) -> dict[str, Any]:
     per_scan = np.array(ms[1:])  # the first scan only prepares
     e = [
-        errors(_invert(poses[i - 1]) @ poses[i], _invert(truth[i - 1]) @ truth[i])
+        errors(
+            invert_transform(poses[i - 1]) @ poses[i], invert_transform(truth[i - 1]) @ truth[i]
+        )
         for i in range(1, len(poses))
     ]
     e_R = np.array([a for a, _ in e])
