@@ -217,7 +217,7 @@ def headline_block(
         stage = ident.get('kentreg_robust-no_refine', {}).get('summary')
         full = ident.get('kentreg_robust', {}).get('summary')
         pap = ident.get('kentreg_paper', {}).get('summary')
-        avg = ident.get('kentreg_robust-averaged', {}).get('summary')
+        avg = ident.get('kentreg_robust-averaged_no_refine', {}).get('summary')
         if stage and full and pap:
             body += (
                 f'\nFrom the identity on the {stage["n"]} sample pairs (paper Table 1 protocol, '
@@ -233,9 +233,9 @@ def headline_block(
             )
             if avg:
                 body += (
-                    f"; the robust pipeline with the paper's per-cluster averaging instead of "
-                    f'the shared M-step {_stat(avg, "e_R_deg", "median")}° median, '
-                    f'{avg["failures"]} failed'
+                    "; the same rotation stage with the paper's per-cluster EM and averaging "
+                    f'instead of the shared M-step {_stat(avg, "e_R_deg", "median")}° median, '
+                    f'{_stat(avg, "e_R_deg", "max")}° at most'
                 )
             body += '.\n'
     commits = sorted(
