@@ -911,8 +911,9 @@ def markdown(results: dict[str, Any]) -> str:
             f'**Turned pairs** ({meta["n_pairs"]} of the {meta["n_available_pairs"]} consecutive '
             'pairs, drawn without replacement, seed '
             f'{meta["seed"]}): the raw source scan turned about a seeded random axis through the '
-            'sensor origin, every method started from the identity; recovered = not failed '
-            f'({fail_rule}).',
+            'sensor origin, every method started from the identity (kentreg: `register()` '
+            'without `init`, which searches rotations); recovered = not failed '
+            f'({fail_rule}); median ms per pair (source preparation + registration).',
             '',
             '| method | ' + ' | '.join(f'{k}°' for k in angles) + ' |',
             '|---|' + '---|' * len(angles),
@@ -922,7 +923,8 @@ def markdown(results: dict[str, Any]) -> str:
             for b in angles.values():
                 s = b['methods'][n]['summary']
                 share = fmt(100 * s['recovered_fraction'], '.0f')
-                cells.append(f'{s["recovered"]}/{s["n"]} ({share} %){_raised_note(s)}')
+                ms = fmt(s['ms']['median'], '.0f')
+                cells.append(f'{s["recovered"]}/{s["n"]} ({share} %), {ms} ms{_raised_note(s)}')
             lines.append(f'| {n} | ' + ' | '.join(cells) + ' |')
         lines += [
             '| *reference rotation (median)* | '

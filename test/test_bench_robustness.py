@@ -6,6 +6,7 @@ bookkeeping is run with stand-in methods on a synthetic room.
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -209,9 +210,9 @@ def test_report_bookkeeping_end_to_end_with_stand_in_methods(
     }
     text = markdown(results)
     assert '| 3 |' in text and '| stay | 2/2 |' in text
-    assert '| stay | 0/1 (0 %) | 0/1 (0 %) |' in text
+    assert re.search(r'\| stay \| 0/1 \(0 %\), \d+ ms \| 0/1 \(0 %\), \d+ ms \|', text)
     assert 'without replacement' in text
     assert '| crash | 2/2 (2 raised), – %, – ms |' in text  # a method that raised: no time
-    assert '| crash | 0/1 (0 %) (1 raised) |' in text
+    assert '| crash | 0/1 (0 %), – ms (1 raised) |' in text  # a method that raised: no time
     plot(results, tmp_path / 'robustness.png')
     assert (tmp_path / 'robustness.png').read_bytes().startswith(b'\x89PNG')
