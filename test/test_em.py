@@ -139,3 +139,30 @@ def test_paper_cluster_em_aligns_one_anisotropic_cluster() -> None:
     assert mean_err < 1.5
     assert result.iterations >= 1 and len(result.log_likelihood) == result.iterations
     assert 0 < result.beta[0] < result.kappa[0] / 2
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_m_step_without_ovalness_is_wahbas_svd_solution(seed: int) -> None:
+    """With A = 0 (von Mises-Fisher kernels) the M-step returns the SVD solution directly; it
+    must be the minimiser the Newton solver reaches, and a rank-1 C (one normal direction)
+    must leave the twist about it where it was."""
+    from kentreg_ros.core.em import _shared_m_step
+    from kentreg_ros.core.rotations import KentRotationProblem, solve_kent_rotation
+
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(40, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    R_true = Rotation.random(random_state=seed).as_matrix()
+    C = 100.0 * (x.T @ (x @ R_true.T))  # sum x y^T with y = R x: maximised by R_true
+    problem = KentRotationProblem(np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), C)
+    R0 = Rotation.random(random_state=seed + 10).as_matrix()
+    R_svd = _shared_m_step(problem, R0)
+    R_newton, _ = solve_kent_rotation(problem, min([R0, R_svd], key=problem.value))
+    # (matrix norms: the angle from arccos resolves only sqrt(eps) near zero)
+    assert np.linalg.norm(R_svd - R_true) < 1e-10
+    assert np.linalg.norm(R_svd - R_newton) < 1e-6
+    # rank 1: only the direction a is seen; the twist about it is not determined by C
+    a = np.array([0.0, 0.0, 1.0])
+    one = KentRotationProblem(np.zeros((1, 3, 3)), np.zeros((1, 3, 3)), np.outer(a, a))
+    R_start = exp_so3(np.array([0.0, 0.0, 0.7]))  # turned about a only: already optimal
+    np.testing.assert_allclose(_shared_m_step(one, R_start), R_start, atol=1e-9)

@@ -229,6 +229,17 @@ class RefineConfig:
         'where it stopped.',
         range=(0.0, 1.0),
     )
+    max_cluster_points: int = _f(
+        1000,
+        'Source points per normal cluster used by the translation, the refinement and the fit '
+        '(0: all): normal-space sampling with the Kent clusters as strata, evenly in space. '
+        'Small clusters, which hold the weakly constrained directions, keep every point; large '
+        'ones (floor, main walls) are thinned. With n points the noise part of the offset '
+        'along a cluster normal is sigma / sqrt(n), 3 % of the point noise at 1000: far below '
+        'the voxel-scale systematic errors, while the nearest-neighbour queries halve. The '
+        'rotation stage uses every normal.',
+        range=(0, 10_000_000),
+    )
     max_step_scale: float = _f(
         16.0,
         'Largest factor by which consecutive refinement steps in the same direction are '

@@ -171,18 +171,22 @@ class NormalBins:
 
 
 def kent_moments_of_bins(
-    bins: NormalBins, weights: FloatArray
+    bins: NormalBins, weights: FloatArray, *, rotation: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Kent's moment estimates (kappa, beta, gamma) of K weighted groups of bins.
 
     ``weights`` (K, B) weighs each bin's normals (1 = all of them); the moments are exact
-    (:func:`~kentreg_ros.core.kent.kent_from_moments`). A group with no weight gets
-    ``kappa = beta = 0`` and ``gamma = I``.
+    (:func:`~kentreg_ros.core.kent.kent_from_moments`). With ``rotation`` R they are those of
+    the rotated normals ``R x`` (the K group moments are rotated, not the B bins). A group with
+    no weight gets ``kappa = beta = 0`` and ``gamma = I``.
     """
     mass = weights @ bins.weights
     safe = np.where(mass > 0.0, mass, 1.0)
     xbar = (weights @ bins.resultants) / safe[:, None]
     scatter = (weights @ bins.scatters.reshape(-1, 9)).reshape(-1, 3, 3) / safe[:, None, None]
+    if rotation is not None:
+        xbar = xbar @ rotation.T
+        scatter = rotation @ scatter @ rotation.T
     kappa, beta, gamma = kent_from_moments(xbar, scatter)
     empty = ~(mass > 0.0)
     kappa[empty], beta[empty], gamma[empty] = 0.0, 0.0, np.eye(3)
@@ -265,6 +269,29 @@ class ModelClusters:
 
     def __len__(self) -> int:
         return len(self.centers)
+
+
+#: A singular value of the M-step's ``C`` below this share of the largest counts as zero: the
+#: rotation about that direction is then not determined by ``tr(R C)`` alone.
+_WAHBA_RANK_TOLERANCE = 1e-6
+
+
+def _shared_m_step(problem: KentRotationProblem, R: FloatArray) -> FloatArray:
+    """The M-step's rotation from the current ``R``.
+
+    Without the ovalness term (all ``A_k = 0``, the default von Mises-Fisher kernels) the
+    objective is ``-tr(R C)``: Wahba's problem, whose minimiser is the SVD solution when ``C``
+    has rank 2 or more (:func:`procrustes`), with no Newton iterations. Otherwise (Kent
+    kernels, or ``C`` of rank 1, where the twist about the one direction is free and the
+    solver keeps the current one), Newton steps from the better of ``R`` and that solution.
+    """
+    start = procrustes(problem.C)
+    if not problem.A.any():
+        sv = np.linalg.svd(problem.C, compute_uv=False)
+        if sv[1] > _WAHBA_RANK_TOLERANCE * sv[0]:
+            return start
+    R_new, _ = solve_kent_rotation(problem, min([R, start], key=problem.value))
+    return R_new
 
 
 def _rotation_tolerance_reached(R_old: FloatArray, R_new: FloatArray, tol: float) -> bool:
@@ -370,11 +397,10 @@ def shared_rotation_em(
         assign = np.argmax(z @ model.centers.T, axis=1)
         order = np.argsort(assign, kind='stable')
         bounds = np.searchsorted(assign[order], np.arange(k + 1))
-        A = np.zeros((k, 3, 3))
-        Bm = np.zeros((k, 3, 3))
         Cs = np.zeros((k, 3, 3))
         loglik = 0.0
         tn = np.zeros(len(x))
+        t_unit = np.zeros(len(x))  # posterior mass per normal of each bin
         for j in range(k):
             idx = order[bounds[j] : bounds[j + 1]]
             ys = slice(off[j], off[j + 1])
@@ -394,16 +420,21 @@ def shared_rotation_em(
             share = ex / total
             t_n = share.sum(axis=0)  # posterior mass per normal of bin n
             tn[idx] = t_n * wj
+            t_unit[idx] = t_n
             Cs[j] = kappa[j] * (resultants[idx].T @ (share.T @ ym[ys]))
-            Bm[j] = np.tensordot(t_n, scatters[idx], axes=1)
-            A[j] = beta[j] * (np.outer(g2, g2) - np.outer(g1, g1))
         history.append(loglik)
         C = Cs.sum(axis=0)
+        member = np.zeros((k, len(x)))
+        member[assign, np.arange(len(x))] = 1.0
+        Bm = ((member * t_unit) @ scatters.reshape(-1, 9)).reshape(k, 3, 3)
+        g1s, g2s = gamma[:, :, 1], gamma[:, :, 2]
+        A = beta[:, None, None] * (
+            g2s[:, :, None] * g2s[:, None, :] - g1s[:, :, None] * g1s[:, None, :]
+        )
         problem = KentRotationProblem(A, Bm, C)
-        mass = np.array([tn[order[bounds[j] : bounds[j + 1]]].sum() for j in range(k)])
+        mass = np.asarray(np.bincount(assign, weights=tn, minlength=k), dtype=np.float64)
         if rotation == 'shared':
-            start = min([R, procrustes(C)], key=problem.value)
-            R_new, _ = solve_kent_rotation(problem, start)
+            R_new = _shared_m_step(problem, R)
         else:
             Rs = []
             for j in range(k):
@@ -411,18 +442,9 @@ def shared_rotation_em(
                 Rs.append(solve_kent_rotation(pj, R)[0] if mass[j] > 0.0 else R)
             R_new = average_rotations(np.array(Rs), mass + 1e-12)
         # Kent parameters from the moments of the rotated normals assigned to each cluster.
-        member = np.zeros((k, len(x)))
-        member[assign, np.arange(len(x))] = 1.0
         has = mass > 1e-9 * max(float(wx.sum()), 1.0)
         if has.any():
-            rotated = NormalBins(
-                observed.directions @ R_new.T,
-                wx,
-                resultants @ R_new.T,
-                R_new @ scatters @ R_new.T,
-                observed.cell,
-            )
-            kh, bh, gh = kent_moments_of_bins(rotated, member[has])
+            kh, bh, gh = kent_moments_of_bins(observed, member[has], rotation=R_new)
             kappa_m[has], beta_m[has], gamma[has] = kh, bh, gh
         small_step = _rotation_tolerance_reached(R, R_new, tolerance)
         R = R_new

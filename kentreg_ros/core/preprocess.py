@@ -225,6 +225,25 @@ class VoxelChoice:
     n_isolated: int
 
 
+def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
+    """Stable ``argsort`` of non-negative integer keys as an LSD radix sort over 16-bit digits.
+
+    numpy sorts 16-bit integers stably by radix sort; one such pass per digit (two for the
+    voxel keys of a typical scan) is several times faster than sorting the int64 keys at once,
+    and gives the same order as ``np.argsort(keys, kind='stable')``.
+    """
+    if len(keys) == 0:
+        return np.zeros(0, dtype=np.intp)
+    if int(keys.min()) < 0:
+        return np.argsort(keys, kind='stable')
+    order = np.argsort((keys & 0xFFFF).astype(np.uint16), kind='stable')
+    rest = keys >> 16
+    while rest.any():
+        order = order[np.argsort((rest[order] & 0xFFFF).astype(np.uint16), kind='stable')]
+        rest = rest >> 16
+    return order
+
+
 @dataclass(frozen=True)
 class _Grid:
     """The points grouped by voxel: ``order`` sorts them by voxel key, voxel ``i`` holds
@@ -236,7 +255,7 @@ class _Grid:
 
     @classmethod
     def of(cls, keys: NDArray[np.int64]) -> _Grid:
-        order = np.argsort(keys)
+        order = argsort_keys(keys)
         ordered = keys[order]
         starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(keys) else order
         counts = np.diff(np.r_[starts, len(keys)])
@@ -246,7 +265,8 @@ class _Grid:
         """Centroids of the voxels holding at least ``min_points`` points, and the number of
         points in the others."""
         keep = self.counts >= min_points
-        sums = np.add.reduceat(points[self.order], self.starts, axis=0)
+        # np.take gathers rows several times faster than fancy indexing here.
+        sums = np.add.reduceat(np.take(points, self.order, axis=0), self.starts, axis=0)
         out = np.ascontiguousarray(sums[keep] / self.counts[keep, None])
         return out, int(self.counts[~keep].sum())
 

@@ -29,6 +29,7 @@ from kentreg_ros.core.rotations import (
     make_transform,
     rotation_angle,
 )
+from kentreg_ros.core.sampling import stratified_sample
 from kentreg_ros.core.scan import PreparedScan, elapsed_ms
 from kentreg_ros.core.search import distinct_best, mixture_overlap, twist_hypotheses
 from kentreg_ros.core.translation import (
@@ -146,7 +147,10 @@ def _local(
     em: EMResult | None = None,
     refine: bool = True,
 ) -> _Candidate:
-    """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit."""
+    """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit.
+
+    The rotation stage uses every normal of ``src``; the position stages use its
+    :func:`position_sample` (the centroid translation, the paper's, uses every point)."""
     stages: dict[str, FloatArray] = {}
     if em is None:
         t0 = time.perf_counter()
@@ -154,6 +158,7 @@ def _local(
         timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
     R = em.R
     stages['rotation'] = make_transform(R, T0[:3, 3])
+    full, src = src, position_sample(src, cfg.refine.max_cluster_points)
     iterations = em.iterations
     t0 = time.perf_counter()
     tr_cfg = cfg.translation
@@ -164,7 +169,7 @@ def _local(
     neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
     inlier = em.inlier_fraction
     if tr_cfg.method == 'centroid':
-        t = centroid_translation(R, src.points, tgt.points)
+        t = centroid_translation(R, full.points, tgt.points)
     else:
         t = T0[:3, 3].copy()
         if tr_cfg.cross_correlation:
@@ -291,6 +296,18 @@ def _search_candidates(
             T0 = make_transform(em.R, T_init[:3, 3])
             out.append(_local(src, tgt, T0, cfg, gates, timings, em=em))
     return out, len(hyp)
+
+
+def position_sample(scan: PreparedScan, cap: int) -> PreparedScan:
+    """``scan`` with its points and normals reduced to :func:`stratified_sample` of its normal
+    clusters (at most ``cap`` per cluster) for the position stages; its clusters, which the
+    rotation stage and the search use, are those of every normal."""
+    idx = stratified_sample(scan.labels, cap)
+    if len(idx) == len(scan):
+        return scan
+    return replace(
+        scan, points=scan.points[idx], normals=scan.normals[idx], labels=scan.labels[idx]
+    )
 
 
 def register_robust(
