@@ -48,6 +48,20 @@ class NeighborIndex:
         else:
             raise ValueError(f"Expected backend 'small_gicp' or 'scipy', got {self.backend!r}.")
 
+    def neighbor_indices(self, x: FloatArray, k: int) -> NDArray[np.intp]:
+        """Indices of the ``k <= n`` nearest points of every row of ``x``, shape (M, k),
+        without the distances (the normals' neighbourhoods need only these)."""
+        if not 1 <= k <= self.n:
+            raise ValueError(f'Expected 1 <= k <= {self.n}, got {k}.')
+        queries = np.ascontiguousarray(x, dtype=np.float64)
+        if self.backend == 'scipy':
+            return np.asarray(self._tree.query(queries, k=k)[1], dtype=np.intp).reshape(-1, k)
+        raw_idx, _ = self._tree.batch_knn_search(queries, k, num_threads=1)
+        idx = np.asarray(raw_idx).view(np.int64)  # small_gicp's "not found" -1 as uint64
+        if not (idx >= 0).all():  # cannot happen with k <= n; say so if it does
+            raise RuntimeError('small_gicp returned fewer than k neighbours.')
+        return idx.astype(np.intp, copy=False)
+
     def query(
         self, x: FloatArray, k: int = 1, *, distance_upper_bound: float = np.inf
     ) -> tuple[FloatArray, NDArray[np.intp]]:

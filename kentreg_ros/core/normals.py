@@ -15,6 +15,7 @@ from scipy.sparse import csr_matrix
 
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.neighbors import NeighborIndex
+from kentreg_ros.core.rotations import cross_rows
 
 FloatArray = NDArray[np.float64]
 
@@ -77,8 +78,7 @@ def estimate_normals(
         )
     if tree is None:
         tree = NeighborIndex(points)
-    _, idx = tree.query(points, k=k)
-    idx = np.asarray(idx, dtype=np.intp)
+    idx = tree.neighbor_indices(points, k)
     cov = neighbourhood_covariances(points, idx)
     evals, normals, mid = smallest_eigenpairs_3x3(cov)
     total = cov[:, 0] + cov[:, 3] + cov[:, 5]
@@ -176,7 +176,7 @@ def smallest_eigenpairs_3x3(
     r0 = np.column_stack([a - l_min, b, c])
     r1 = np.column_stack([b, d - l_min, e])
     r2 = np.column_stack([c, e, f - l_min])
-    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)])  # (3, N, 3)
+    crosses = np.stack([cross_rows(r0, r1), cross_rows(r0, r2), cross_rows(r1, r2)])  # (3, N, 3)
     norms2 = np.einsum('cni,cni->cn', crosses, crosses)
     best = np.argmax(norms2, axis=0)
     rows = np.arange(len(cov))

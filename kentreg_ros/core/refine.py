@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from kentreg_ros.core.correspondence import NearestNeighborCache
 from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.rotations import exp_so3, hat, project_to_so3
+from kentreg_ros.core.rotations import cross_rows, exp_so3, hat, project_to_so3
 from kentreg_ros.core.translation import geman_mcclure_weights, robust_scale
 
 FloatArray = NDArray[np.float64]
@@ -204,7 +204,7 @@ def refine_joint(
             sigma2 = float(np.einsum('na,na->', e, We) / max(float(w.sum()), 1e-12))
         else:
             Jn = np.empty((len(ok), 6))  # n^T [hat(x), -I]
-            Jn[:, :3] = np.cross(nq, xo)
+            Jn[:, :3] = cross_rows(nq, xo)
             np.negative(nq, out=Jn[:, 3:])
             Jw = Jn * w[:, None]
             H = Jw.T @ Jn

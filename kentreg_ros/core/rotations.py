@@ -119,6 +119,15 @@ def invert_transform(T: FloatArray) -> FloatArray:
     return make_transform(R.T, -R.T @ T[:3, 3])
 
 
+def cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross product of (N, 3) arrays; a few times faster than ``np.cross``."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def procrustes(C: FloatArray) -> FloatArray:
     """``argmax_{R in SO(3)} tr(R C)`` (Wahba's problem), with ``C = sum w x y^T``.
 
