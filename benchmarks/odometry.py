@@ -1,6 +1,7 @@
-"""Odometry benchmark: kentreg against KISS-ICP and GICP scan-to-scan, in one process run.
+"""Odometry benchmark: kentreg (previous scan and local map) against KISS-ICP and GICP
+scan-to-scan, in one process run.
 
-Three pipelines get the same scans (read once into memory, so no pipeline pays for reading) and
+Four pipelines get the same scans (read once into memory, so no pipeline pays for reading) and
 are evaluated against the same reference poses with the replay's own metrics
 (:func:`kentreg_ros.eval.associate` and :func:`kentreg_ros.eval.evaluate`):
 
@@ -8,6 +9,9 @@ are evaluated against the same reference poses with the replay's own metrics
     :class:`kentreg_ros.core.Odometry` with the configuration ``kentreg_replay`` uses (defaults,
     or ``--config`` / ``--set`` exactly as for the replay), run by
     :func:`kentreg_ros.eval.run_odometry`: scan-to-previous-scan, constant-velocity start.
+``kentreg_local_map``
+    The same with ``odometry.model = local_map`` (scan-to-local-map; every other setting as for
+    ``kentreg``).
 ``kiss_icp``
     KISS-ICP's Python pipeline, ``kiss_icp.kiss_icp.KissICP``, configured by
     ``kiss_icp.config.load_config(None)`` as its own ``OdometryPipeline`` does: the default
@@ -80,12 +84,17 @@ FloatArray = NDArray[np.float64]
 
 DEFAULT_INPUT = ROOT / 'bags' / 'balm_50'
 RESULTS = ROOT / 'benchmarks' / 'results'
-METHODS = ('kentreg', 'kiss_icp', 'gicp')
+METHODS = ('kentreg', 'kentreg_local_map', 'kiss_icp', 'gicp')
 #: Per-point time fields KISS-ICP's own PointCloud2 reader looks for.
 TIME_FIELDS = ('t', 'timestamp', 'time', 'timestamps')
 THREAD_ENV = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 PINNED_ENV = 'KENTREG_BENCH_THREADS'
-COLOURS = {'kentreg': 'tab:blue', 'kiss_icp': 'tab:orange', 'gicp': 'tab:green'}
+COLOURS = {
+    'kentreg': 'tab:blue',
+    'kentreg_local_map': 'tab:purple',
+    'kiss_icp': 'tab:orange',
+    'gicp': 'tab:green',
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,7 +156,7 @@ class PipelineRun:
     health: dict[str, Any] = field(default_factory=dict)
 
 
-def run_kentreg(scans: list[Scan], cfg: KentRegConfig) -> PipelineRun:
+def run_kentreg(scans: list[Scan], cfg: KentRegConfig, name: str = 'kentreg') -> PipelineRun:
     """kentreg's odometry, run by the replay's own loop."""
     run_odometry(scans[:2], Odometry(cfg))  # warm-up, discarded
     run = run_odometry(scans, Odometry(cfg))
@@ -155,14 +164,14 @@ def run_kentreg(scans: list[Scan], cfg: KentRegConfig) -> PipelineRun:
         raise RuntimeError(f'kentreg stopped after {len(run.steps)} scans: {run.error}')
     health = {k: sum(s.health == k for s in run.steps) for k in HEALTHS}
     return PipelineRun(
-        name='kentreg',
+        name=name,
         poses=run.poses,
         ms_per_scan=np.array([s.timings['total'] for s in run.steps]),
         points_used=np.array([s.n_prepared for s in run.steps], dtype=np.float64),
         settings={
             'mode': cfg.mode,
             'config': cfg.to_flat_dict(),
-            'model': 'previous scan',
+            'model': cfg.odometry.model.replace('_', ' '),
             'initial_guess': 'constant velocity'
             if cfg.odometry.constant_velocity
             else 'previous pose',
@@ -512,6 +521,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
     runners: dict[str, Callable[[], PipelineRun]] = {
         'kentreg': lambda: run_kentreg(scans, cfg),
+        'kentreg_local_map': lambda: run_kentreg(
+            scans, cfg.with_updates({'odometry.model': 'local_map'}), 'kentreg_local_map'
+        ),
         'kiss_icp': lambda: run_kiss_icp(scans, args.threads, args.kiss_max_range),
         'gicp': lambda: run_gicp(scans, voxel, args.threads),
     }

@@ -60,6 +60,7 @@ _DOMAINS = itertools.count()
 #: to ``<prefix><name>`` for a prefix unique to the test.
 REMAPPED = (
     '/points', '/odom', '/pose', '/path', '/diagnostics', '/clock', '/kentreg_node/reset',
+    '/kentreg_node/map',
     *(f'/kentreg_node/{s}' for s in (
         'describe_parameters', 'get_parameter_types', 'get_parameters', 'list_parameters',
         'set_parameters', 'set_parameters_atomically',
@@ -331,6 +332,53 @@ def test_node_tracks_the_sample_bag_like_replay(
     diag = wait_diagnostics(harness, out, proc, lambda d: d['total.processed'] == '50')
     assert diag['total.received'] == '50' and diag['total.dropped_queue'] == '0'
     assert diag['total.fell_back'] == '0' and diag['total.malformed'] == '0'
+    assert proc.stop() == 0, proc.log()
+
+
+def test_node_map_reaches_a_late_transient_local_subscriber(
+    harness: Harness, bag_scans: list[Any]
+) -> None:
+    from rclpy.qos import DurabilityPolicy
+
+    from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+
+    voxel, radius = 0.5, 15.0
+    proc = harness.start_node(
+        *QUEUE_ALL,
+        *('-p', 'node.map_period:=0.01', '-p', f'node.map_voxel_size:={voxel}'),
+        *('-p', f'node.map_radius:={radius}'),
+    )
+    out = harness.connect(proc)
+    n = 3
+    for scan in bag_scans[:n]:
+        out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
+    assert harness.spin_until(lambda: len(out.odom) == n, timeout=30.0, proc=proc), proc.log()
+    # Subscribe only now: transient-local durability hands over the latest map.
+    maps: list[Any] = []
+    qos = QoSProfile(
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    harness.node.create_subscription(
+        PointCloud2, harness.name('/kentreg_node/map'), maps.append, qos
+    )
+    assert harness.spin_until(lambda: bool(maps), timeout=20.0, proc=proc), proc.log()
+    msg = maps[-1]
+    assert msg.header.frame_id == 'odom'
+    assert stamp_ns(msg.header.stamp) == bag_scans[n - 1].stamp_ns
+    points = pointcloud2_to_array(msg).points
+    # One point per voxel, within the radius of the last sensor position, in the odom frame.
+    assert len(points) > 1000
+    assert len(np.unique(np.floor(points / voxel), axis=0)) == len(points)
+    T_last = pose_matrix(out.odom[-1].pose.pose)
+    assert np.linalg.norm(points - T_last[:3, 3], axis=1).max() <= radius + 1e-3
+    # The first scan's points, moved by its pose (the identity), are in the map.
+    first = np.asarray(bag_scans[0].points, dtype=np.float64)
+    near = np.linalg.norm(first, axis=1) < radius - 1.0
+    cells = {tuple(c) for c in np.floor(points / voxel).astype(int)}
+    hits = [tuple(c) in cells for c in np.floor(first[near][::50] / voxel).astype(int)]
+    assert np.mean(hits) > 0.99
     assert proc.stop() == 0, proc.log()
 
 

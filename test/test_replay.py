@@ -143,7 +143,13 @@ def test_replay_sample_mcap_has_one_message_per_scan(
         for cid, n in summary.statistics.channel_message_counts.items()
     }
     n = SAMPLE_SCANS
-    assert counts == {'/kentreg/odometry': n, '/kentreg/pose': n, '/tf': n, '/kentreg/path': 1}
+    assert counts == {
+        '/kentreg/odometry': n,
+        '/kentreg/pose': n,
+        '/tf': n,
+        '/kentreg/path': 1,
+        '/kentreg/map': 1,
+    }
     types = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
     assert types['/kentreg/odometry'] == 'nav_msgs/msg/Odometry'
     assert types['/kentreg/pose'] == 'geometry_msgs/msg/PoseStamped'
@@ -483,3 +489,38 @@ def test_replay_hands_a_bags_per_point_times_to_the_odometry(tmp_path: Path) -> 
     for times in given:
         assert times is not None
         np.testing.assert_array_equal(times, [0, 50_000_000, 75_000_000])
+
+
+def test_replay_writes_the_map_as_ply_and_into_the_mcap(sample_bag: Path, tmp_path: Path) -> None:
+    from scenes import read_ply_xyz
+
+    from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+
+    out, map_path = tmp_path / 'run', tmp_path / 'maps' / 'map.ply'
+    voxel = 0.2
+    argv = [str(sample_bag), '--max-scans', '4', '--out', str(out), '--no-progress']
+    argv += ['--no-plot', '--set', 'odometry.model=local_map', '--map', str(map_path)]
+    code, _, stderr = run_cli([*argv, '--map-voxel', str(voxel)])
+    assert code == 0, stderr
+    ply = read_ply_xyz(map_path)
+    report = json.loads((out / 'metrics.json').read_text())
+    assert report['map'] == {'path': str(map_path), 'points': len(ply), 'voxel_size': voxel}
+    # One point per voxel, and many more points than one downsampled scan.
+    cells = np.floor(ply.astype(np.float64) / voxel)
+    assert len(np.unique(cells, axis=0)) >= 0.99 * len(ply) and len(ply) > 10_000
+    # The map is in the odometry frame: around the first scan's origin (the sample spans ~25 m).
+    assert np.linalg.norm(np.median(ply, axis=0)) < 25.0
+    messages = mcap_messages(out / 'odometry.mcap')
+    (cloud,) = messages['/kentreg/map']
+    assert cloud.header.frame_id == 'odom'  # type: ignore[attr-defined]
+    assert stamp_ns(cloud) == stamp_ns(messages['/kentreg/pose'][-1])
+    np.testing.assert_array_equal(pointcloud2_to_array(cloud).points, ply)  # type: ignore[arg-type]
+    pytest.importorskip('open3d')
+    import open3d as o3d
+
+    assert len(o3d.io.read_point_cloud(str(map_path)).points) == len(ply)
+
+
+def test_replay_refuses_a_map_file_of_unknown_kind(sample_bag: Path, tmp_path: Path) -> None:
+    code, _, stderr = run_cli([str(sample_bag), '--map', str(tmp_path / 'map.las')])
+    assert code == 2 and '--map' in stderr and '.ply or .pcd' in stderr

@@ -16,6 +16,10 @@ A scan folder with its pose file found beside the scans, the paper's recipe, 10 
 
     kentreg_replay ../shared/data/balm --set mode=paper --max-scans 10
 
+Against a local map instead of the previous scan, writing the map for a viewer::
+
+    kentreg_replay bags/balm_50 --set odometry.model=local_map --map map.ply
+
 Every third scan of the sample (scans 0, 3, 6, ...; three times the motion per pair)::
 
     kentreg_replay bags/balm_50 --stride 3
@@ -28,6 +32,11 @@ Outputs in ``--out`` (default ``results/<timestamp>/``, with ``results/latest`` 
     tf2_msgs/TFMessage on ``/tf`` (``odom`` -> sensor frame), header stamps from the input
     scans; at the end one nav_msgs/Path on ``/kentreg/path``
     (:func:`kentreg_ros.io.bagwriter.write_odometry_mcap`).
+    With the map of the run (every registered scan at its pose, one point per ``--map-voxel``
+    voxel) as one sensor_msgs/PointCloud2 in ``odom`` on ``/kentreg/map``, so Foxglove shows
+    the run over its map.
+``--map FILE``
+    The same map as a PLY or PCD file (by suffix) for any point-cloud viewer.
 ``poses_tum.txt``, ``poses_kitti.txt``
     The trajectory ``T_odom_lidar`` (TUM with the scan stamps: ``evo_ape tum``).
 ``ground_truth_tum.txt``
@@ -70,10 +79,13 @@ from kentreg_ros.core.odometry import Odometry
 from kentreg_ros.eval import GroundTruth, OdometryRun, evaluate_run, run_odometry, run_report
 from kentreg_ros.eval.report import Evaluation, format_summary, jsonable, stride_text
 from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC, ScanSource
+from kentreg_ros.io.mapfile import MAP_SUFFIXES
 
 logger = logging.getLogger('kentreg_ros.cli.replay')  # also when run as __main__
 
 PROG = 'kentreg_replay'
+#: Default voxel edge of the run's map (m), see ``--map-voxel``.
+MAP_VOXEL_SIZE = 0.1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,6 +149,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="child frame of the output poses (default: the scans' sensor frame; the lidar "
         'pose is written as is, so give base_link only if the two frames coincide)',
     )
+    add(
+        '--map',
+        type=Path,
+        metavar='FILE',
+        help='also write the map of the run (every registered scan at its pose, one point per '
+        '--map-voxel voxel, odometry frame) to FILE (.ply or .pcd); the MCAP carries it anyway',
+    )
+    add(
+        '--map-voxel',
+        type=common.positive_float,
+        default=MAP_VOXEL_SIZE,
+        metavar='M',
+        help=f'voxel edge of the map in metres (default {MAP_VOXEL_SIZE}: finer than the '
+        "registration's voxels, coarse enough that a street-sized map stays a few million "
+        'points)',
+    )
     add('--no-plot', action='store_true', help='do not write trajectory.png')
     add('--no-progress', action='store_true', help='no progress bar')
     verbosity = parser.add_mutually_exclusive_group()
@@ -181,6 +209,10 @@ def _replay(argv: Sequence[str] | None) -> int:
 def _run(args: argparse.Namespace, command: list[str]) -> int:
     cfg = common.config_from_args(args)
     source, gt = open_input(args)
+    if args.map is not None and args.map.suffix.lower() not in MAP_SUFFIXES:
+        raise common.CliError(
+            f'--map {args.map}: expected a file ending in {" or ".join(MAP_SUFFIXES)}'
+        )
     if args.start >= len(source):
         raise common.CliError(f'--start {args.start}: the input has only {len(source)} scans')
     out = args.out if args.out is not None else default_out_dir()
@@ -201,6 +233,7 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
             max_scans=args.max_scans,
             stride=args.stride,
             on_step=advance if bar is not None else None,
+            map_voxel_size=args.map_voxel,
         )
     if not run.steps:
         raise common.CliError(run.error or f'{args.input}: no scan was read')
@@ -235,6 +268,7 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
         child_frame=args.child_frame or run.steps[0].frame_id or 'base_link',
         plot=not args.no_plot,
         title=title,
+        map_path=args.map,
     )
     if args.out is None:
         _link_latest(out)
@@ -263,15 +297,22 @@ def write_outputs(
     child_frame: str,
     plot: bool,
     title: str,
+    map_path: Path | None = None,
 ) -> list[str]:
-    """Write every output file into ``out``; return the names written."""
+    """Write every output file into ``out`` (and the map to ``map_path``); return the names
+    written into ``out``."""
     from kentreg_ros.io.bagwriter import write_odometry_mcap
     from kentreg_ros.io.params import dump_config
     from kentreg_ros.io.poses import write_kitti, write_tum
 
     out.mkdir(parents=True, exist_ok=True)
+    map_points = run.map.points if run.map is not None and len(run.map) else None
     counts = write_odometry_mcap(
-        out / 'odometry.mcap', run.steps, odom_frame=odom_frame, child_frame=child_frame
+        out / 'odometry.mcap',
+        run.steps,
+        odom_frame=odom_frame,
+        child_frame=child_frame,
+        map_points=map_points,
     )
     report['odometry_mcap'] = {
         'topics': counts,
@@ -284,6 +325,16 @@ def write_outputs(
     if evaluation is not None:
         write_tum(out / 'ground_truth_tum.txt', evaluation.stamps_ns, evaluation.T_gt)
         written.append('ground_truth_tum.txt')
+    if map_path is not None and map_points is not None:
+        from kentreg_ros.io.mapfile import write_map
+
+        map_path.parent.mkdir(parents=True, exist_ok=True)
+        write_map(map_path, map_points)
+        report['map'] = {
+            'path': str(map_path),
+            'points': len(map_points),
+            'voxel_size': run.map.voxel_size if run.map is not None else 0.0,
+        }
     (out / 'config.yaml').write_text(dump_config(cfg))
     written.append('config.yaml')
     if plot and _plot(out / 'trajectory.png', run, evaluation, title):

@@ -120,6 +120,41 @@ def spherical_kmeans(
     return best[1], best[2]
 
 
+def refine_spherical_kmeans(
+    x: ArrayLike,
+    centers: ArrayLike,
+    *,
+    max_iterations: int = 50,
+    weights: ArrayLike | None = None,
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """Spherical k-means from given centres (a warm start: no k-means++ restarts).
+
+    Parameters
+    ----------
+    x : array_like, shape (N, 3)
+        Unit vectors (re-normalised defensively).
+    centers : array_like, shape (K, 3)
+        Starting centres (re-normalised), e.g. those of a previous clustering of most of ``x``.
+    max_iterations : int
+    weights : array_like, shape (N,), optional
+
+    Returns
+    -------
+    labels : ndarray of int, shape (N,)
+    centers : ndarray, shape (K, 3)
+    """
+    xs = np.asarray(x, dtype=np.float64)
+    cs = np.asarray(centers, dtype=np.float64)
+    if xs.ndim != 2 or xs.shape[1] != 3 or len(xs) == 0:
+        raise ValueError(f'Expected `x` to have shape (N, 3) with N >= 1, got {xs.shape}.')
+    if cs.ndim != 2 or cs.shape[1] != 3 or not 1 <= len(cs) <= len(xs):
+        raise ValueError(
+            f'Expected `centers` to have shape (K, 3) with 1 <= K <= {len(xs)}, got {cs.shape}.'
+        )
+    w = np.ones(len(xs)) if weights is None else np.asarray(weights, dtype=np.float64)
+    return _lloyd(_normalize_rows(xs), w, _normalize_rows(cs), max_iterations)
+
+
 def _lloyd(
     xs: FloatArray, w: FloatArray, centers: FloatArray, max_iterations: int
 ) -> tuple[NDArray[np.intp], FloatArray]:

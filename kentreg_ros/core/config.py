@@ -290,8 +290,39 @@ class SearchConfig:
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    """Scan-to-previous-scan pose integration."""
+    """Scan-to-model pose integration: the model is the previous scan or a local map."""
 
+    model: str = _f(
+        'previous_scan',
+        'What each scan is registered against: the previous scan (previous_scan, the design '
+        "card's model) or a voxel map of the recent accepted scans around the sensor "
+        '(local_map). A map holds surfaces the previous scan saw at a grazing angle or not at '
+        'all, and a pose error of one step is not handed on as the model of the next, so drift '
+        'grows more slowly; it costs the map upkeep and a larger target per scan.',
+        choices=('previous_scan', 'local_map'),
+    )
+    map_voxel_size: float = _f(
+        0.0,
+        'Voxel edge of the local map (m); 0 takes the voxel size of the first scan, so the map '
+        "has a scan's sampling resolution and the correspondence gates, which are set from the "
+        'voxel size, mean the same against the map as against a scan.',
+        range=(0.0, 10.0),
+    )
+    map_points_per_voxel: int = _f(
+        1,
+        'Points a local-map voxel keeps (the first to arrive stay). With voxels of the scan '
+        "size, one keeps the map at a scan's sampling density, so the neighbour index and the "
+        'cluster moments the map needs each step cost about what a scan costs; more keep both '
+        'surfaces where a voxel straddles an edge, at a proportional cost.',
+        range=(1, 20),
+    )
+    map_radius: float = _f(
+        0.0,
+        'Local-map points farther than this from the sensor are dropped (m); 0 uses the reach '
+        'of the latest accepted scan (its farthest kept point): what lies beyond the sensor '
+        "range cannot overlap the next scan. The map's memory is bounded by this ball.",
+        range=(0.0, 10000.0),
+    )
     constant_velocity: bool = _f(
         True,
         'Start each registration from the last accepted motion (scaled to the time gap); a '

@@ -13,6 +13,14 @@ The loop of the design card, one scan at a time::
     chain      T_world_curr = T_world_model @ T_model_curr
     keep       the new scan, with its cached preprocessing, as the next model
 
+With ``odometry.model = 'local_map'`` the model is instead a bounded voxel map of the accepted
+scans (:class:`~kentreg_ros.core.localmap.VoxelMap`, in the world frame, with the normals each
+scan brought), expressed in the frame of the last accepted pose: every step above runs
+unchanged (the prediction, the zero-motion start and the start-free search are all relative to
+that pose). Only an accepted step (or the first scan) enters the map; a step that fell back or
+was rejected leaves map and model as they were, so the next scan is registered from the last
+accepted pose across the gap.
+
 A step that fell back keeps the predicted pose and is flagged; it never feeds the velocity,
 so one bad step cannot be repeated by the next prediction (a runaway). A cloud that cannot be
 used at all (:class:`~kentreg_ros.core.errors.InvalidPointCloudError`, e.g. too few points) is
@@ -36,6 +44,7 @@ from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.covariance import prediction_covariance, propagate_covariance
 from kentreg_ros.core.deskew import deskew, relative_point_times, twist_of
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
+from kentreg_ros.core.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.preprocess import as_points
 from kentreg_ros.core.registration import (
     STATUS_DEGENERATE,
@@ -96,7 +105,7 @@ def _as_stamp(stamp_ns: int) -> int:
 
 
 class Odometry:
-    """Scan-to-previous-scan odometry with the Kent registration.
+    """Scan-to-model odometry (previous scan or local map) with the Kent registration.
 
     Parameters
     ----------
@@ -185,6 +194,8 @@ class Odometry:
         self._warned_no_times = False
         # Raw points and times of a model prepared before any motion was known (see _deskewed).
         self._model_sweep: tuple[FloatArray, FloatArray] | None = None
+        # odometry.model == 'local_map': the map of the accepted scans, in the world frame.
+        self._map: LocalMap | None = None
 
     @property
     def config(self) -> KentRegConfig:
@@ -243,6 +254,14 @@ class Odometry:
     def n_degenerate(self) -> int:
         """Scans registered in a degenerate scene (estimate used, flagged)."""
         return self._counts[HEALTH_DEGENERATE]
+
+    @property
+    def local_map(self) -> LocalMap | None:
+        """The local map (world frame) when ``odometry.model`` is 'local_map', else None.
+
+        Owned by this instance: read it from the thread that calls :meth:`step`.
+        """
+        return self._map
 
     @property
     def has_model(self) -> bool:
@@ -311,7 +330,7 @@ class Odometry:
         frame_id: str | None = None,
         point_times: ArrayLike | None = None,
     ) -> OdometryStep:
-        """Register a new scan against the previous one and return its pose.
+        """Register a new scan against the model (previous scan or local map); return its pose.
 
         Parameters
         ----------
@@ -454,11 +473,15 @@ class Odometry:
                 # The model was prepared before any motion was known (the first scan): its sweep
                 # moved like this one (constant velocity), so deskew it now, once.
                 model_points, model_times = self._model_sweep
-                self._model = prepare_scan(
+                first = prepare_scan(
                     deskew(model_points, model_times, twist),
                     config=self._config,
                     voxel_size_hint=self._model.voxel_size,
                 )
+                if self._map is not None:  # the map holds only the first scan yet
+                    self._map.clear()
+                    first = self._map_model(first, self._T_world_model)
+                self._model = first
                 self._model_sweep = None
             again = prepare_scan(
                 deskew(as_points(points), times, twist),
@@ -549,6 +572,26 @@ class Odometry:
             message = f'{result.message} Confirmed by a search ({doubt}).'
         return _Choice(chosen.result, chosen.T, chosen.fit, health, message)
 
+    def _map_model(self, scan: PreparedScan, T_world_scan: FloatArray) -> PreparedScan:
+        """Insert ``scan`` (posed at ``T_world_scan``) into the local map, drop what lies beyond
+        the map radius, and return the map in the scan's frame as the next model."""
+        odo = self._config.odometry
+        if (
+            self._map is None
+            or self._map.voxels.max_points_per_voxel != odo.map_points_per_voxel
+            or (odo.map_voxel_size > 0.0 and self._map.voxel_size != odo.map_voxel_size)
+        ):
+            voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
+            self._map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
+        radius = odo.map_radius or float(np.sqrt(np.max(np.sum(scan.points**2, axis=1))))
+        self._map.insert_scan(scan, T_world_scan, radius=radius)
+        try:
+            return self._map.target(T_world_scan, config=self._config)
+        except InvalidPointCloudError as exc:
+            # Too few map points survive the radius: register against the scan itself.
+            logger.warning('The local map cannot be a target (%s); using the scan itself.', exc)
+            return scan
+
     def _record(
         self,
         pending: _Pending,
@@ -580,6 +623,15 @@ class Odometry:
             self._velocity = (T_model_curr, pending.stamp_ns - self._model_stamp)
             if np.isfinite(pending.fit):
                 self._fits.append(pending.fit)
+        if self._config.odometry.model != 'local_map':
+            self._map = None
+        elif new_model is not None:
+            if self._model is None or self._map is None or health in ACCEPTED:
+                new_model = self._map_model(new_model, T_world_curr)
+            else:
+                # A fall-back stays out of the map: the model stays the map in the frame of the
+                # last accepted pose, and the next scan is registered from there.
+                new_model = None
         if new_model is not None:
             self._model_sweep = None
             # A fall-back still moves the model on: the scan is valid and its predicted pose is

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.clustering import spherical_kmeans
+from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.em import (
     ModelClusters,
@@ -31,6 +31,10 @@ FloatArray = NDArray[np.float64]
 
 
 MIN_POINTS = 20
+#: Lloyd iterations of a warm-started clustering (:func:`cluster_normals` with ``centers``): the
+#: normals changed little since the centres were found (one scan added to a local map), so a few
+#: iterations move them to the new optimum, and what is left is carried on at the next call.
+WARM_START_ITERATIONS = 5
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,18 +191,7 @@ def prepare_scan(
         tree = NeighborIndex(pts)
     timings['outliers'] = elapsed_ms(t0)
     t0 = time.perf_counter()
-    labels, centers = spherical_kmeans(
-        nrm,
-        cfg.clustering.n_clusters,
-        max_iterations=cfg.clustering.max_iterations,
-        rng=cfg.clustering.seed,
-        restarts=cfg.clustering.restarts,
-        sample_size=cfg.clustering.restart_sample,
-    )
-    onehot = (labels[None, :] == np.arange(len(centers))[:, None]).astype(np.float64)
-    kappa_clusters, _, _ = fit_kent_moments_batch(nrm, onehot)
-    bins = NormalBins.from_normals(nrm, bin_cell_for(kappa_clusters)[labels], labels)
-    clusters = ModelClusters.from_bins(bins, centers)
+    labels, centers, clusters = cluster_normals(nrm, cfg)
     timings['clustering'] = elapsed_ms(t0)
     timings['total'] = elapsed_ms(t_start)
     return PreparedScan(
@@ -216,6 +209,47 @@ def prepare_scan(
         n_normal_outliers=n_out,
         timings=timings,
     )
+
+
+def cluster_normals(
+    normals: FloatArray, config: KentRegConfig, *, centers: FloatArray | None = None
+) -> tuple[NDArray[np.intp], FloatArray, ModelClusters]:
+    """Spherical k-means of unit normals and the Kent frames of the clusters.
+
+    Parameters
+    ----------
+    normals : ndarray, shape (N, 3)
+        Unit normals.
+    config : KentRegConfig
+        ``clustering`` settings.
+    centers : ndarray, shape (K, 3), optional
+        Start Lloyd's iterations from these centres instead of seeded k-means++ restarts (a
+        warm start, e.g. from the clustering of a map before a few points were added).
+
+    Returns
+    -------
+    labels : ndarray of int, shape (N,)
+    centers : ndarray, shape (K, 3)
+    clusters : ModelClusters
+    """
+    c = config.clustering
+    if centers is None:
+        labels, centers = spherical_kmeans(
+            normals,
+            c.n_clusters,
+            max_iterations=c.max_iterations,
+            rng=c.seed,
+            restarts=c.restarts,
+            sample_size=c.restart_sample,
+        )
+    else:
+        labels, centers = refine_spherical_kmeans(
+            normals, centers, max_iterations=min(c.max_iterations, WARM_START_ITERATIONS)
+        )
+    onehot = (labels[None, :] == np.arange(len(centers))[:, None]).astype(np.float64)
+    kappa_clusters, _, _ = fit_kent_moments_batch(normals, onehot)
+    bins = NormalBins.from_normals(normals, bin_cell_for(kappa_clusters)[labels], labels)
+    return labels, centers, ModelClusters.from_bins(bins, centers)
 
 
 def as_prepared(

@@ -21,7 +21,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core.localmap import VoxelMap
 from kentreg_ros.core.odometry import Odometry, OdometryStep
+from kentreg_ros.core.step import ACCEPTED, HEALTH_FIRST
 from kentreg_ros.io.pointcloud2 import point_time_field
 
 logger = logging.getLogger(__name__)
@@ -68,6 +70,9 @@ class OdometryRun:
         Ctrl-C ended the run early; ``steps`` holds the scans processed before it.
     error : str or None
         The first line of the read error that ended the run early (a damaged bag), or None.
+    map : VoxelMap or None
+        With ``map_voxel_size``: the points of every accepted scan (and the first) at its pose
+        in the odometry frame, one per voxel.
     """
 
     steps: list[OdometryStep] = field(default_factory=list)
@@ -76,6 +81,7 @@ class OdometryRun:
     elapsed_s: float = 0.0
     interrupted: bool = False
     error: str | None = None
+    map: VoxelMap | None = None
 
     @property
     def poses(self) -> FloatArray:
@@ -98,6 +104,7 @@ def run_odometry(
     max_scans: int | None = None,
     stride: int = 1,
     on_step: Callable[[OdometryStep], object] | None = None,
+    map_voxel_size: float = 0.0,
 ) -> OdometryRun:
     """Feed the scans ``start, start + stride, ...`` of ``source`` (at most ``max_scans``).
 
@@ -125,6 +132,12 @@ def run_odometry(
         Process every ``stride``-th scan, ``>= 1``.
     on_step : callable, optional
         Called with each step after it ran (a progress bar).
+    map_voxel_size : float
+        When positive, accumulate the map of the run in :attr:`OdometryRun.map`: the input
+        points of every scan whose pose was registered (and of the first), moved by that pose
+        into the odometry frame, at most one per voxel of this edge (m). Scans that fell back
+        or were rejected stay out: their pose is only a prediction. The points are the input's,
+        not deskewed. The map grows with the area covered (offline use).
 
     Returns
     -------
@@ -138,6 +151,8 @@ def run_odometry(
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
     run = OdometryRun()
+    if map_voxel_size > 0.0:
+        run.map = VoxelMap(map_voxel_size)
     n_total = len(source)
     if start >= n_total:
         raise ValueError(f'start {start}: the input has only {n_total} scans')
@@ -167,6 +182,10 @@ def run_odometry(
             )
             run.steps.append(step)
             run.input_indices.append(index)
+            if run.map is not None and (step.health in ACCEPTED or step.health == HEALTH_FIRST):
+                R, t = step.T_world_lidar[:3, :3], step.T_world_lidar[:3, 3]
+                points = np.asarray(scan.points, dtype=np.float64)
+                run.map.insert(points[np.isfinite(points).all(axis=1)] @ R.T + t)
             if on_step is not None:
                 on_step(step)
             logger.debug(

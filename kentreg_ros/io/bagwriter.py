@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 ODOMETRY_TOPIC = '/kentreg/odometry'
 POSE_TOPIC = '/kentreg/pose'
 PATH_TOPIC = '/kentreg/path'
+MAP_TOPIC = '/kentreg/map'
 TF_TOPIC = '/tf'
 
 
@@ -294,15 +295,17 @@ def write_odometry_mcap(
     *,
     odom_frame: str,
     child_frame: str,
+    map_points: ArrayLike | None = None,
 ) -> dict[str, int]:
     """Write an odometry run as one MCAP file; return the message count per topic.
 
     Per scan: nav_msgs/Odometry on :data:`ODOMETRY_TOPIC` (with the chained pose covariance),
     geometry_msgs/PoseStamped on :data:`POSE_TOPIC` and the ``odom_frame`` -> ``child_frame``
     transform on :data:`TF_TOPIC`, stamped with the scan's header stamp; then one nav_msgs/Path
-    of every pose on :data:`PATH_TOPIC`. The bag is written in a hidden folder beside ``path``
-    and its MCAP file moved to ``path``: a single self-contained file that rosbag2
-    (``ros2 bag play``/``info``) and Foxglove open as is.
+    of every pose on :data:`PATH_TOPIC` and, with ``map_points``, one sensor_msgs/PointCloud2
+    of the map in ``odom_frame`` on :data:`MAP_TOPIC` (at the last stamp). The bag is written
+    in a hidden folder beside ``path`` and its MCAP file moved to ``path``: a single
+    self-contained file that rosbag2 (``ros2 bag play``/``info``) and Foxglove open as is.
 
     Parameters
     ----------
@@ -312,6 +315,8 @@ def write_odometry_mcap(
         The run, in order.
     odom_frame, child_frame : str
         ``header.frame_id`` and ``child_frame_id`` of the poses.
+    map_points : array_like, shape (M, 3), optional
+        The map of the run in ``odom_frame`` (float32 ``x y z`` in the message).
 
     Raises
     ------
@@ -347,6 +352,10 @@ def write_odometry_mcap(
                 np.stack([s.T_world_lidar for s in steps]),
                 frame_id=odom_frame,
             )
+            if map_points is not None:
+                writer.write_pointcloud(
+                    MAP_TOPIC, steps[-1].stamp_ns, map_points, frame_id=odom_frame
+                )
         counts = dict(writer.counts)
     os.replace(writer.mcap_path, path)
     shutil.rmtree(tmp)

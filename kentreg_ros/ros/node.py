@@ -9,8 +9,15 @@ Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points
 ``path``       nav_msgs/Path                          the last ``node.path_length`` poses
 ``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures, mode
 ``/tf``        odom_frame -> base_frame               when tf2_ros is installed
+``~/map``      sensor_msgs/PointCloud2                every ``node.map_period`` s, transient-local
 ``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
 ============== ====================================== ==========================================
+
+The map on ``~/map`` holds the input points of every scan whose pose was registered, in
+``odom_frame``, one per ``node.map_voxel_size`` voxel, dropped beyond ``node.map_radius`` of the
+sensor (bounded memory). The worker thread owns it, updates it after each step and publishes
+it when ``node.map_period`` has passed since the last publication; it is reliable and
+transient-local (depth 1), so a viewer that subscribes later still receives the latest map.
 
 Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
 points) and puts the scan into a bounded queue; one worker thread runs
@@ -39,6 +46,7 @@ import rclpy
 import rclpy.clock
 import rclpy.logging
 import rclpy.time
+from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry as OdometryMsg
@@ -54,21 +62,32 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from rclpy.time_source import USE_SIM_TIME_NAME
 from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError, KentRegError
+from kentreg_ros.core.localmap import VoxelMap
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
 from kentreg_ros.core.rotations import invert_transform, log_so3
+from kentreg_ros.core.step import ACCEPTED, HEALTH_FIRST
 from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import (
     POINT_TIME_FIELDS,
+    array_to_pointcloud2,
     point_time_field,
     pointcloud2_to_array,
+    rclpy_factory,
 )
 from kentreg_ros.ros.messages import (
     covariance_to_msg,
@@ -206,6 +225,8 @@ class KentRegNode(Node):
         self._step_ms: collections.deque[float] = collections.deque(maxlen=1000)
         self._last_received = time.monotonic()
         self._window_start = time.monotonic()
+        self._map: VoxelMap | None = None
+        self._map_published: float | None = None  # time.monotonic() of the last ~/map
 
         self._tf_broadcaster = None
         self._tf_buffer = None
@@ -237,6 +258,15 @@ class KentRegNode(Node):
         self._pub_pose = self.create_publisher(PoseStamped, 'pose', 10)
         self._pub_path = self.create_publisher(Path, 'path', 1)
         self._pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        # Latched: a viewer that starts later gets the latest map.
+        map_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self._pub_map = self.create_publisher(PointCloud2, '~/map', map_qos)
+        self._cloud_factory = rclpy_factory(PointCloud2, PointField, Header, TimeMsg)
         self._sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
         # A steady timer: diagnostics keep coming when simulated time is paused or absent.
@@ -437,6 +467,7 @@ class KentRegNode(Node):
     def _reset(self, why: str) -> None:
         self._odometry.reset()
         self._path.clear()
+        self._map = None
         self._frame_id = None
         self._T_base_lidar = None
         self._tf_wait_start = None
@@ -507,6 +538,7 @@ class KentRegNode(Node):
             self._counters.add('searched')
         self._last_health, self._last_message = step.health, step.message
         self._publish(step, prev_stamp, settings)
+        self._update_map(step, scan.points, settings)
         self._counters.add('published')
         self._latencies_ms.append((time.monotonic() - scan.received) * 1e3)
         self._step_ms.append(step.timings.get('total', 0.0))
@@ -567,6 +599,32 @@ class KentRegNode(Node):
             tf.child_frame_id = settings.base_frame
             tf.transform = transform_to_msg(T_odom_base)
             self._tf_broadcaster.sendTransform(tf)
+
+    def _update_map(self, step: OdometryStep, points: FloatArray, settings: NodeSettings) -> None:
+        """Add the scan to the map when its pose was registered; publish the map when
+        ``node.map_period`` has passed (worker thread: the map is the worker's alone)."""
+        if settings.map_period <= 0.0:
+            self._map = None
+            return
+        if self._map is None or self._map.voxel_size != settings.map_voxel_size:
+            self._map = VoxelMap(settings.map_voxel_size)
+        if step.health in ACCEPTED or step.health == HEALTH_FIRST:
+            assert self._T_base_lidar is not None  # set before any step
+            # Sensor points -> odom frame: T_odom_lidar = T_base_lidar @ T_world_lidar.
+            T = self._T_base_lidar @ step.T_world_lidar
+            self._map.insert(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+            self._map.crop(T[:3, 3], settings.map_radius)
+        now = time.monotonic()
+        due = self._map_published is None or now - self._map_published >= settings.map_period
+        if due and len(self._map):
+            msg = array_to_pointcloud2(
+                self._map.points,
+                frame_id=settings.odom_frame,
+                stamp_ns=step.stamp_ns,
+                factory=self._cloud_factory,
+            )
+            self._pub_map.publish(msg)
+            self._map_published = now
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()

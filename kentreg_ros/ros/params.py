@@ -139,6 +139,27 @@ class NodeSettings:
         range=(1, 1000),
         read_only=True,
     )
+    map_period: float = _param(
+        2.0,
+        'Seconds between publications of the map on `~/map` (sensor_msgs/PointCloud2 in '
+        'odom_frame, transient-local so a viewer that starts later gets the latest); 0 keeps '
+        'no map. A map changes little between scans and is large: a slow rate saves bandwidth.',
+        range=(0.0, 3600.0),
+    )
+    map_voxel_size: float = _param(
+        0.2,
+        'Voxel edge of the published map (m), one point per voxel: fine enough to show walls, '
+        'poles and doorways, coarse enough that a map of map_radius stays a few hundred '
+        'thousand points.',
+        range=(0.01, 10.0),
+    )
+    map_radius: float = _param(
+        50.0,
+        'Map points farther than this from the sensor are dropped (m): the surroundings a '
+        'viewer wants while the memory of a long-running node stays bounded. Beyond the range '
+        'of most spinning LiDARs indoors and in streets.',
+        range=(1.0, 10000.0),
+    )
 
     def __post_init__(self) -> None:
         for name, value, f in iter_fields(self, PREFIX):

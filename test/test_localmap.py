@@ -1,0 +1,224 @@
+"""Tests of kentreg_ros.core.localmap and of the odometry's ``local_map`` model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_odometry import STEP_NS, healths, observe, run, true_trajectory
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
+from kentreg_ros.core.localmap import LocalMap, VoxelMap, nearest_spacing
+from kentreg_ros.core.odometry import Odometry
+from kentreg_ros.core.registration import prepare_scan, register
+from kentreg_ros.core.rotations import invert_transform, rotation_angle
+from kentreg_ros.eval.metrics import rpe
+
+LOCAL_MAP = KentRegConfig().with_updates({'odometry.model': 'local_map'})
+
+
+def test_voxel_map_keeps_the_first_points_of_each_voxel_up_to_its_cap() -> None:
+    rng = np.random.default_rng(0)
+    voxel, cap = 0.5, 3
+    vmap = VoxelMap(voxel, max_points_per_voxel=cap)
+    first = rng.uniform(-2.0, 2.0, (2000, 3))
+    second = rng.uniform(-2.0, 2.0, (2000, 3))
+    added = vmap.insert(first) + vmap.insert(second)
+    assert added == len(vmap)
+    # Brute force: per voxel, the first `cap` points of the concatenated stream.
+    stream = np.concatenate([first, second])
+    cells = np.floor(stream / voxel).astype(int)
+    _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    rank = np.array([np.count_nonzero(inverse[:i] == inverse[i]) for i in range(len(stream))])
+    expected = stream[rank < cap]
+    assert vmap.n_voxels == len(np.unique(inverse))
+    np.testing.assert_array_equal(
+        np.sort(vmap.points.view('f8,f8,f8'), axis=0), np.sort(expected.view('f8,f8,f8'), axis=0)
+    )
+    # A voxel never holds more than `cap` points, however often it is filled again.
+    vmap.insert(first)
+    counts = np.unique(np.floor(vmap.points / voxel), axis=0, return_counts=True)[1]
+    assert counts.max() == cap
+    full = VoxelMap(voxel, max_points_per_voxel=1)
+    full.insert(first)
+    assert full.insert(first) == 0
+
+
+def test_voxel_map_crop_drops_points_beyond_the_radius_and_frees_their_voxels() -> None:
+    rng = np.random.default_rng(1)
+    vmap = VoxelMap(0.2)
+    points = rng.uniform(-10.0, 10.0, (5000, 3))
+    vmap.insert(points)
+    n_before = len(vmap)
+    center = np.array([1.0, -2.0, 0.5])
+    removed = vmap.crop(center, 4.0)
+    assert removed > 0 and len(vmap) == n_before - removed
+    assert np.all(np.linalg.norm(vmap.points - center, axis=1) <= 4.0)
+    # The freed voxels take points again.
+    far = np.array([[9.9, 9.9, 9.9]])
+    assert vmap.insert(far) == 1
+
+
+def test_voxel_map_rejects_bad_input() -> None:
+    with pytest.raises(InvalidInputError, match='voxel_size'):
+        VoxelMap(0.0)
+    with pytest.raises(InvalidInputError, match='max_points_per_voxel'):
+        VoxelMap(1.0, max_points_per_voxel=0)
+    with pytest.raises(InvalidInputError, match='normals'):
+        VoxelMap(1.0, with_normals=True).insert(np.zeros((3, 3)))
+    with pytest.raises(InvalidInputError, match='no normals'):
+        VoxelMap(1.0).insert(np.zeros((3, 3)), np.ones((3, 3)))
+    with pytest.raises(InvalidPointCloudError, match='within'):
+        VoxelMap(0.01).insert(np.array([[1e5, 0.0, 0.0]]))
+    with pytest.raises(InvalidPointCloudError, match=r'shape \(N, 3\)'):
+        VoxelMap(1.0).insert(np.zeros((3, 2)))
+
+
+def test_local_map_memory_is_bounded_by_its_radius_not_the_run_length() -> None:
+    """A sensor driving 120 m down an endless corridor: the map stops growing once the
+    corridor behind it leaves the radius."""
+    rng = np.random.default_rng(2)
+    radius = 10.0
+    lmap = LocalMap(0.25, max_points_per_voxel=1)
+    sizes = []
+    cfg = KentRegConfig()
+    for i in range(120):
+        T = np.eye(4)
+        T[0, 3] = float(i)  # 1 m per scan along x
+        # Walls y = +-2, floor z = -1, seen from the sensor out to 12 m ahead and behind.
+        x = rng.uniform(-12.0, 12.0, 6000)
+        side = rng.integers(0, 3, 6000)
+        pts = np.stack([x, rng.uniform(-2.0, 2.0, 6000), rng.uniform(-1.0, 2.0, 6000)], axis=1)
+        pts[side == 0, 1] = -2.0
+        pts[side == 1, 1] = 2.0
+        pts[side == 2, 2] = -1.0
+        scan = prepare_scan(pts, config=cfg)
+        lmap.insert_scan(scan, T, radius=radius)
+        sizes.append(len(lmap))
+        assert np.all(np.linalg.norm(lmap.points - T[:3, 3], axis=1) <= radius + 1e-9)
+    # Steady state: the last 60 scans hold as many points as the ball allows, no more.
+    assert max(sizes[60:]) <= 1.1 * min(sizes[60:])
+    assert max(sizes) < 2.0 * sizes[15]
+    # The map spans one radius of corridor on each side of the sensor.
+    assert np.ptp(lmap.points[:, 0]) <= 2 * radius + 1e-9
+
+
+def test_local_map_target_is_the_map_in_the_given_frame() -> None:
+    rng = np.random.default_rng(3)
+    T_true = true_trajectory(2)
+    cfg = KentRegConfig()
+    scan = prepare_scan(observe(rng, T_true[0]), config=cfg)
+    lmap = LocalMap(scan.voxel_size or nearest_spacing(scan.points), max_points_per_voxel=1)
+    lmap.insert_scan(scan, T_true[0], radius=100.0)
+    target = lmap.target(T_true[1], config=cfg)
+    # The map holds scan points posed in the world (one per voxel) ...
+    in_world = scan.points @ T_true[0][:3, :3].T + T_true[0][:3, 3]
+    assert 0 < len(lmap) <= len(scan)
+    assert set(map(tuple, lmap.points.round(9))) <= set(map(tuple, in_world.round(9)))
+    # ... and the target is the map in frame 1: p_1 = T_1^-1 p_w.
+    T_1w = invert_transform(T_true[1])
+    np.testing.assert_allclose(target.points, lmap.points @ T_1w[:3, :3].T + T_1w[:3, 3])
+    np.testing.assert_allclose(np.linalg.norm(target.normals, axis=1), 1.0)
+    assert target.voxel_size == lmap.voxel_size
+    assert len(target.labels) == len(target.points)
+    # A scan taken at pose 1 registers against it from identity to the true motion (identity).
+    source = prepare_scan(observe(rng, T_true[1]), config=cfg)
+    result = register(source, target, init=np.eye(4), config=cfg, global_search=False)
+    assert np.degrees(rotation_angle(result.T_target_source[:3, :3])) < 0.1
+    assert np.linalg.norm(result.T_target_source[:3, 3]) < 0.01
+    with pytest.raises(InvalidPointCloudError, match='map points'):
+        LocalMap(0.1, max_points_per_voxel=1).target(np.eye(4), config=cfg)
+
+
+def test_local_map_odometry_recovers_known_trajectory() -> None:
+    rng = np.random.default_rng(7)
+    T_true = true_trajectory(8)
+    clouds = [observe(rng, T_i) for T_i in T_true]
+    odom = Odometry(LOCAL_MAP, initial_pose=T_true[0])
+    steps = run(odom, clouds)
+    assert healths(steps) == ['first'] + ['ok'] * 7
+    errors = rpe(odom.poses, T_true)
+    assert errors['rotation_deg']['max'] < 0.1
+    assert errors['translation_m']['max'] < 0.01
+    np.testing.assert_allclose(odom.poses[:, :3, 3], T_true[:, :3, 3], atol=0.02)
+    lmap = odom.local_map
+    assert lmap is not None and len(lmap) > 0
+    # Every accepted scan is in the map; the model is the map in the last pose's frame.
+    assert [s.model_index for s in steps] == [-1, *range(7)]
+    # The room is 20 x 14 m: the map radius (the reach of the last scan) keeps it whole, and
+    # the map is denser than one scan but bounded by the voxel count, not by 8 scans.
+    assert len(lmap) < 8 * steps[-1].n_prepared
+
+
+def test_local_map_leaves_fallen_back_and_rejected_scans_out() -> None:
+    rng = np.random.default_rng(8)
+    T_true = true_trajectory(6)
+    clouds = [observe(rng, T_i) for T_i in T_true]
+    clouds[2] = clouds[2][:5]  # rejected: too few points
+    odom = Odometry(LOCAL_MAP, initial_pose=T_true[0])
+    steps = run(odom, clouds[:2])
+    lmap = odom.local_map
+    assert lmap is not None
+    before = lmap.points.copy()
+    steps.append(odom.step(clouds[2], 2 * STEP_NS))
+    assert steps[-1].health == 'rejected'
+    np.testing.assert_array_equal(lmap.points, before)
+    # An implausible limit makes the next steps fall back: the map does not change either.
+    odom.reconfigure(LOCAL_MAP.with_updates({'odometry.max_angular_speed_deg': 1.0}))
+    for i in (3, 4):
+        steps.append(odom.step(clouds[i], i * STEP_NS))
+        assert steps[-1].health == 'fell_back'
+        np.testing.assert_array_equal(odom.local_map.points, before)  # type: ignore[union-attr]
+    # Back to sane limits: scan 5 is registered against the map from the last accepted pose
+    # (scan 1), across the gap, and enters the map.
+    odom.reconfigure(LOCAL_MAP)
+    last = odom.step(clouds[5], 5 * STEP_NS)
+    assert last.ok and last.model_index == 1
+    assert len(odom.local_map) > len(before)  # type: ignore[arg-type]
+    e_R = np.degrees(rotation_angle(T_true[5][:3, :3].T @ last.T_world_lidar[:3, :3]))
+    assert e_R < 0.2
+    np.testing.assert_allclose(last.T_world_lidar[:3, 3], T_true[5][:3, 3], atol=0.03)
+
+
+def test_previous_scan_model_keeps_no_map() -> None:
+    rng = np.random.default_rng(9)
+    T_true = true_trajectory(3)
+    odom = Odometry(KentRegConfig(), initial_pose=T_true[0])
+    run(odom, [observe(rng, T_i) for T_i in T_true])
+    assert odom.local_map is None
+
+
+def test_local_map_on_the_sample_bag_tracks_without_failures(repo_root: Path) -> None:
+    """Real scans (BALM, 2 Hz, rotation-heavy hand-held motion): 20 scans against the map."""
+    bag = repo_root / 'bags' / 'balm_50'
+    if not bag.exists():
+        pytest.skip('bags/balm_50 is absent')
+    from kentreg_ros.eval.groundtruth import associate
+    from kentreg_ros.eval.metrics import ate
+    from kentreg_ros.io.bags import open_recording
+
+    recording = open_recording(bag)
+    assert recording.reference is not None
+    odom = Odometry(LOCAL_MAP)
+    for i, scan in enumerate(recording.source):
+        if i == 20:
+            break
+        step = odom.step(scan.points, scan.stamp_ns)
+        assert step.ok, step.message
+        reach_last = float(np.linalg.norm(scan.points, axis=1).max())
+    rows, gt_rows = associate(odom.stamps_ns, range(20), recording.reference)
+    assert len(rows) == 20
+    T_gt = recording.reference.T_world_sensor[gt_rows]
+    errors = rpe(odom.poses, T_gt)
+    # The reference is good to ~0.04 deg / 4 mm per pair (see ../shared/data/README.md).
+    assert errors['rotation_deg']['max'] < 0.3
+    assert errors['translation_m']['max'] < 0.03
+    assert ate(odom.poses, T_gt)['rmse'] < 0.03
+    lmap = odom.local_map
+    assert lmap is not None
+    reach = np.linalg.norm(lmap.points - odom.poses[-1][:3, 3], axis=1)
+    # The radius (the last scan's reach) bounds the map.
+    assert reach.max() <= reach_last + 1e-6
