@@ -85,6 +85,9 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     # The rotation stage alone with the paper's per-cluster EM + averaging instead of the
     # shared M-step (same likelihood, same partition): where the paper's recipe loses accuracy.
     'averaged_no_refine': {'em.rotation': 'averaged', 'refine.method': 'none'},
+    # Every source point in the translation and refinement instead of the normal-space sample
+    # (refine.max_cluster_points): what the sampling costs in accuracy.
+    'all_points': {'refine.max_cluster_points': 0},
 }
 
 ALL_METHODS: tuple[str, ...] = BASE_METHODS + tuple(f'kentreg_robust-{a}' for a in ABLATIONS)
