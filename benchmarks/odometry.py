@@ -407,6 +407,69 @@ def format_tables(report: dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def run_strides(
+    strides: Sequence[int],
+    methods: Sequence[str],
+    failed: dict[str, str],
+    scans: list[Scan],
+    gt: GroundTruth,
+    runners_for: Callable[[list[Scan]], dict[str, Callable[[], PipelineRun]]],
+) -> dict[str, dict[str, Any]]:
+    """Every pipeline once on every ``stride``-th scan (frame skipping: the motion between
+    the scans it sees grows ``stride`` times; stamps kept), with the main run's metrics."""
+    out: dict[str, dict[str, Any]] = {}
+    for stride in strides:
+        batch = scans[::stride]
+        block: dict[str, Any] = {'n_scans': len(batch)}
+        runners = runners_for(batch)
+        for name in methods:
+            if name in failed:
+                continue
+            try:
+                run = runners[name]()
+            except Exception as exc:  # a peer crashing is a result to report
+                logger.exception('%s failed at stride %d', name, stride)
+                block[name] = {'error': f'{type(exc).__name__}: {exc}'}
+                continue
+            result, _, _ = evaluate_pipeline(run, batch, gt)
+            block[name] = {'health': run.health, 'metrics': result}
+        out[str(stride)] = block
+    return out
+
+
+def format_stride_table(report: dict[str, Any]) -> str:
+    """Markdown table of the frame-skipping runs (empty when there were none)."""
+    strides = report.get('strides') or {}
+    if not strides:
+        return ''
+    lines = [
+        'Frame skipping: every N-th scan of the same input, one round per pipeline.',
+        '',
+        '| stride | method | median e_R [deg] | median e_t [m] | failures '
+        '| RPE/m trans rmse [%] | ATE rmse [m] | ms/scan mean |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
+    for stride, block in strides.items():
+        for name, entry in block.items():
+            if name == 'n_scans':
+                continue
+            if 'metrics' not in entry:
+                lines.append(f'| {stride} | {name} | error: {entry["error"]} | | | | | |')
+                continue
+            m = entry['metrics']
+            p = m['pairs']
+            ate = m['ate']['rmse'] if m['ate'] is not None else None
+            lines.append(
+                f'| {stride} | {name} | {_num(p["rotation_deg"]["median"], ".3f")} '
+                f'| {_num(p["translation_m"]["median"], ".4f")} '
+                f'| {p["n_failed"]} / {p["count"]} '
+                f'| {_num(m["rpe_per_metre"]["translation_pct"]["rmse"], ".2f")} '
+                f'| {_num(ate, ".4f")} '
+                f'| {_num(m["speed"]["ms_per_scan"]["mean"], ".1f")} |'
+            )
+    return '\n'.join(lines) + '\n'
+
+
 def plot(
     path: Path, aligned: dict[str, FloatArray], T_gt: FloatArray, errors: dict[str, Any]
 ) -> None:
@@ -499,6 +562,15 @@ def build_parser() -> argparse.ArgumentParser:
         '--max-scans', type=int, metavar='N', help='use the first N scans only (development)'
     )
     parser.add_argument(
+        '--strides',
+        type=int,
+        nargs='*',
+        default=[2, 3, 4],
+        metavar='N',
+        help='also run every pipeline once on every N-th scan (frame skipping; default 2 3 4; '
+        'none: --strides)',
+    )
+    parser.add_argument(
         '--out',
         type=Path,
         default=RESULTS,
@@ -510,8 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    if args.threads < 1 or args.rounds < 1:
-        raise SystemExit('--threads and --rounds must be >= 1')
+    if args.threads < 1 or args.rounds < 1 or any(n < 1 for n in args.strides):
+        raise SystemExit('--threads, --rounds and --strides must be >= 1')
     pin_threads(args.threads, argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(levelname)s: %(message)s')
     cfg = effective_config(args.config, args.overrides)
@@ -519,14 +591,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.max_scans is not None:
         scans = scans[: args.max_scans]
     voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
-    runners: dict[str, Callable[[], PipelineRun]] = {
-        'kentreg': lambda: run_kentreg(scans, cfg),
-        'kentreg_local_map': lambda: run_kentreg(
-            scans, cfg.with_updates({'odometry.model': 'local_map'}), 'kentreg_local_map'
-        ),
-        'kiss_icp': lambda: run_kiss_icp(scans, args.threads, args.kiss_max_range),
-        'gicp': lambda: run_gicp(scans, voxel, args.threads),
-    }
+
+    def runners_for(batch: list[Scan]) -> dict[str, Callable[[], PipelineRun]]:
+        return {
+            'kentreg': lambda: run_kentreg(batch, cfg),
+            'kentreg_local_map': lambda: run_kentreg(
+                batch, cfg.with_updates({'odometry.model': 'local_map'}), 'kentreg_local_map'
+            ),
+            'kiss_icp': lambda: run_kiss_icp(batch, args.threads, args.kiss_max_range),
+            'gicp': lambda: run_gicp(batch, voxel, args.threads),
+        }
+
+    runners = runners_for(scans)
     report: dict[str, Any] = {
         'benchmark': 'odometry',
         'command': ['python3', 'benchmarks/odometry.py', *argv],
@@ -584,6 +660,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             'metrics': result,
             'poses_T_world_lidar': run.poses,
         }
+    report['strides'] = run_strides(args.strides, args.methods, failed, scans, gt, runners_for)
     report['machine']['load_avg_at_end'] = list(os.getloadavg())
     report['machine']['git_at_end'] = git_describe()
     if report['machine']['git_at_end'] != report['machine']['git']:
@@ -594,6 +671,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     args.out.mkdir(parents=True, exist_ok=True)
     table = format_tables(report)
+    strides_table = format_stride_table(report)
+    if strides_table:
+        table += '\n' + strides_table
     (args.out / 'odometry.md').write_text(table)
     write_json(args.out / 'odometry.json', report)
     if T_gt_plot is not None and aligned:
