@@ -88,3 +88,20 @@ def test_plot_trajectory_rejects_bad_error_series(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r'Expected `T_gt` to have shape \(N, 4, 4\)'):
         plot_trajectory(tmp_path / 'bad.png', T, np.eye(4))
     assert not (tmp_path / 'bad.png').exists()
+
+
+def test_plot_trajectory_draws_the_map_behind_the_paths(tmp_path: Path) -> None:
+    """A wall of map points around the circle darkens pixels the plain plot leaves white, and
+    a map of the wrong shape is refused before anything is written."""
+    T = circle_trajectory(40, 10.0)
+    angle = np.linspace(0.0, 2.0 * np.pi, 20_000)
+    wall = np.column_stack([14.0 * np.cos(angle), 14.0 * np.sin(angle), np.linspace(0, 3, 20_000)])
+    plain = read_png(plot_trajectory(tmp_path / 'plain.png', T))
+    with_map = read_png(plot_trajectory(tmp_path / 'map.png', T, map_points=wall))
+    assert plain.shape == with_map.shape
+    darker = (with_map[..., :3].mean(axis=-1) < plain[..., :3].mean(axis=-1) - 0.1).sum()
+    assert darker > LINE_PIXELS
+    assert ink(with_map, 'tab:blue') > LINE_PIXELS  # the path is still drawn on top
+    with pytest.raises(ValueError, match=r'Expected `map_points` to have shape \(P, 3\)'):
+        plot_trajectory(tmp_path / 'bad.png', T, map_points=np.zeros((5, 2)))
+    assert not (tmp_path / 'bad.png').exists()

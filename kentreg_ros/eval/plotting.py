@@ -30,6 +30,11 @@ logger = logging.getLogger(__name__)
 
 _EST_COLOUR = 'tab:blue'
 _GT_COLOUR = 'tab:gray'
+#: Colour map of the map's points by height, light to dark so the paths stay on top.
+_MAP_CMAP = 'Greys'
+#: Map points drawn at most (an even subsample beyond): enough to show every wall of a
+#: building-sized map at 120 dpi, few enough to keep the PNG small and fast to write.
+MAX_MAP_POINTS = 200_000
 
 
 def _as_series(values: ArrayLike, name: str) -> NDArray[np.float64]:
@@ -58,6 +63,7 @@ def plot_trajectory(
     e_R_deg: ArrayLike | None = None,
     e_t: ArrayLike | None = None,
     title: str = '',
+    map_points: ArrayLike | None = None,
 ) -> Path:
     """Write a PNG with the top view of a trajectory and, optionally, its per-pair errors.
 
@@ -82,6 +88,10 @@ def plot_trajectory(
         Translation error of each pair in metres.
     title : str
         Figure title; none if empty.
+    map_points : array_like, shape (P, 3), optional
+        A map in the same world frame (e.g. the replay's run map), drawn behind the paths as
+        points shaded by height (darker is higher); evenly subsampled to
+        :data:`MAX_MAP_POINTS`.
 
     Returns
     -------
@@ -97,6 +107,14 @@ def plot_trajectory(
     """
     est = as_poses(T_est, 'T_est')
     gt = None if T_gt is None else as_poses(T_gt, 'T_gt')
+    cloud = None
+    if map_points is not None:
+        cloud = np.asarray(map_points, dtype=np.float64)
+        if cloud.ndim != 2 or cloud.shape[1] != 3:
+            raise ValueError(f'Expected `map_points` to have shape (P, 3), got {cloud.shape}.')
+        cloud = cloud[np.isfinite(cloud).all(axis=1)]
+        if len(cloud) > MAX_MAP_POINTS:
+            cloud = cloud[:: -(-len(cloud) // MAX_MAP_POINTS)]
     series: list[tuple[NDArray[np.float64], str, str]] = []
     if e_R_deg is not None:
         series.append((_as_series(e_R_deg, 'e_R_deg'), 'rotation error $e_R$ [deg]', 'tab:red'))
@@ -122,12 +140,37 @@ def plot_trajectory(
         ax_top = fig.add_subplot()
     FigureCanvasAgg(fig)
 
+    if cloud is not None and len(cloud):
+        z_lo, z_hi = np.percentile(cloud[:, 2], [2.0, 98.0])
+        ax_top.scatter(
+            cloud[:, 0],
+            cloud[:, 1],
+            c=cloud[:, 2],
+            cmap=_MAP_CMAP,
+            vmin=z_lo - 0.5 * (z_hi - z_lo),  # the lowest points mid-grey, not white
+            vmax=z_hi,
+            s=0.3,
+            alpha=0.5,
+            linewidths=0,
+            rasterized=True,
+            zorder=0,
+            label=f'map ({len(cloud)} points)',
+        )
     if gt is not None:
         _plot_top_view(ax_top, gt[:, :2, 3], 'ground truth', _GT_COLOUR, linewidth=2.5, alpha=0.8)
     _plot_top_view(ax_top, est[:, :2, 3], 'estimate', _EST_COLOUR, linewidth=1.5, alpha=1.0)
     # Proxy entries so the legend explains the markers once, in black.
     ax_top.plot([], [], marker='o', color='black', linestyle='none', label='start')
     ax_top.plot([], [], marker='s', color='black', linestyle='none', label='end')
+    if cloud is not None and len(cloud):
+        # The view: the paths and the bulk of the map; a few stray far returns must not shrink
+        # the paths to a dot.
+        paths = est[:, :2, 3] if gt is None else np.vstack([est[:, :2, 3], gt[:, :2, 3]])
+        lo = np.minimum(paths.min(axis=0), np.percentile(cloud[:, :2], 1.0, axis=0))
+        hi = np.maximum(paths.max(axis=0), np.percentile(cloud[:, :2], 99.0, axis=0))
+        pad = 0.05 * max(float((hi - lo).max()), 1.0)
+        ax_top.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax_top.set_ylim(lo[1] - pad, hi[1] + pad)
     ax_top.set_aspect('equal', adjustable='datalim')
     ax_top.set_xlabel('x [m]')
     ax_top.set_ylabel('y [m]')
@@ -174,17 +217,21 @@ def plot_run(
 
     Without an evaluation the estimate is drawn alone. With one, the estimated poses that have
     a reference are mapped into the reference frame by the ATE alignment ``T_gt_est`` (the
-    identity below 3 poses) and drawn over it, with the per-pair errors on the right.
+    identity below 3 poses) and drawn over it, with the per-pair errors on the right. The run's
+    map, when it was accumulated, is drawn behind the paths (aligned the same way).
 
     Raises
     ------
     ImportError
         matplotlib is not installed.
     """
+    cloud = run.map.points if run.map is not None and len(run.map) else None
     if evaluation is None:
-        return plot_trajectory(path_png, run.poses, title=title)
+        return plot_trajectory(path_png, run.poses, title=title, map_points=cloud)
     ate = evaluation.metrics['ate']
     T_gt_est = np.asarray(ate['T_gt_est']) if ate is not None else np.eye(4)
+    if cloud is not None:  # the map is in the estimate's frame: align it with the poses
+        cloud = cloud @ T_gt_est[:3, :3].T + T_gt_est[:3, 3]
     pairs = evaluation.metrics['pairs']
     return plot_trajectory(
         path_png,
@@ -193,4 +240,5 @@ def plot_run(
         e_R_deg=pairs['e_R_deg'],
         e_t=pairs['e_t_m'],
         title=title,
+        map_points=cloud,
     )
