@@ -20,7 +20,7 @@ from kentreg_ros.core.em import (
     bin_cell_for,
 )
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
-from kentreg_ros.core.kent import fit_kent_moments_batch
+from kentreg_ros.core.kent import kent_from_moments
 from kentreg_ros.core.neighbors import NeighborIndex
 from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask, planar_mask
 from kentreg_ros.core.preprocess import as_points, crop_range, downsample
@@ -211,6 +211,24 @@ def prepare_scan(
     )
 
 
+def _cluster_kappa(normals: FloatArray, labels: NDArray[np.intp], k: int) -> FloatArray:
+    """Kent's moment estimate of each cluster's concentration (0 for an empty cluster), from
+    per-cluster sums (bincounts: no (K, N) weight matrix)."""
+    mass = np.bincount(labels, minlength=k).astype(np.float64)
+    safe = np.where(mass > 0.0, mass, 1.0)
+    xbar = np.column_stack(
+        [np.bincount(labels, weights=normals[:, a], minlength=k) for a in range(3)]
+    )
+    scatter = np.empty((k, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            col = np.bincount(labels, weights=normals[:, a] * normals[:, b], minlength=k)
+            scatter[:, a, b] = scatter[:, b, a] = col
+    kappa, _, _ = kent_from_moments(xbar / safe[:, None], scatter / safe[:, None, None])
+    kappa[mass == 0.0] = 0.0
+    return kappa
+
+
 def cluster_normals(
     normals: FloatArray, config: KentRegConfig, *, centers: FloatArray | None = None
 ) -> tuple[NDArray[np.intp], FloatArray, ModelClusters]:
@@ -246,8 +264,7 @@ def cluster_normals(
         labels, centers = refine_spherical_kmeans(
             normals, centers, max_iterations=min(c.max_iterations, WARM_START_ITERATIONS)
         )
-    onehot = (labels[None, :] == np.arange(len(centers))[:, None]).astype(np.float64)
-    kappa_clusters, _, _ = fit_kent_moments_batch(normals, onehot)
+    kappa_clusters = _cluster_kappa(normals, labels, len(centers))
     bins = NormalBins.from_normals(normals, bin_cell_for(kappa_clusters)[labels], labels)
     return labels, centers, ModelClusters.from_bins(bins, centers)
 
