@@ -148,6 +148,12 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
         assert target_of[id(source)] is target
     for prev, nxt in zip(sources, sources[1:], strict=False):
         assert id(target_of[nxt]) == prev
+    # Each step hands out the points it registered: its source's (the first step's: the
+    # first model's), without a copy.
+    steps = run(Odometry(KentRegConfig().with_updates({'preprocess.target_points': 5000})),
+                clouds[:3])  # fmt: skip
+    assert all(step.points is not None for step in steps)
+    assert [len(step.points) for step in steps] == [step.n_prepared for step in steps]  # type: ignore[arg-type]
 
 
 def test_odometry_rejects_tiny_cloud_without_corrupting_later_poses(
@@ -160,7 +166,7 @@ def test_odometry_rejects_tiny_cloud_without_corrupting_later_poses(
     steps = run(odom, clouds)
     assert healths(steps) == ['first', 'ok', 'ok', 'rejected', 'ok', 'ok']
     rejected = steps[3]
-    assert not rejected.ok and rejected.result is None
+    assert not rejected.ok and rejected.result is None and rejected.points is None
     assert 'Rejected' in rejected.message and 'points' in rejected.message
     assert odom.n_failed == 1 and odom.counts['rejected'] == 1
     # The rejected scan gets the constant-velocity prediction ...

@@ -602,6 +602,7 @@ class Odometry:
         new_model: PreparedScan | None,
     ) -> OdometryStep:
         """Append the pose, move the model on (unless ``new_model`` is None), build the step."""
+        prepared = new_model.points if new_model is not None else None
         T_prev_curr = (
             invert_transform(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
         )
@@ -663,6 +664,7 @@ class Odometry:
             covariance=covariance,
             fit=pending.fit,
             searched=pending.searched,
+            points=prepared,
         )
 
 

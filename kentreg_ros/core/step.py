@@ -68,6 +68,10 @@ class OdometryStep:
         Balanced fit of the pose used (NaN without a registration or in paper mode).
     searched : bool
         The start-free search ran for this step.
+    points : ndarray, shape (M, 3) or None
+        The scan's prepared points (downsampled, isolated returns and normal outliers
+        removed, deskewed when deskewing ran) in its sensor frame: the points that were
+        registered. None for a rejected scan. Shared with the odometry's model: do not modify.
     message : str
         Human-readable explanation of the health.
     timings : dict of str to float
@@ -102,6 +106,7 @@ class OdometryStep:
     covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     fit: float = float('nan')
     searched: bool = False
+    points: FloatArray | None = None
 
     @property
     def ok(self) -> bool:

@@ -13,11 +13,14 @@ Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points
 ``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
 ============== ====================================== ==========================================
 
-The map on ``~/map`` holds the input points of every scan whose pose was registered, in
-``odom_frame``, one per ``node.map_voxel_size`` voxel, dropped beyond ``node.map_radius`` of the
-sensor (bounded memory). The worker thread owns it, updates it after each step and publishes
-it when ``node.map_period`` has passed since the last publication; it is reliable and
-transient-local (depth 1), so a viewer that subscribes later still receives the latest map.
+The map on ``~/map`` holds the registered points of every scan whose pose was registered (its
+prepared points: voxel centroids with isolated returns and normal outliers removed, deskewed
+when deskewing ran), in ``odom_frame``, one per ``node.map_voxel_size`` voxel, dropped beyond
+``node.map_radius`` of the sensor (bounded memory). Adding a prepared scan of ~10k points costs
+about a millisecond; the raw 80k-point scan would cost several. The worker thread owns it,
+updates it after each step and publishes it when ``node.map_period`` has passed since the last
+publication; it is reliable and transient-local (depth 1), so a viewer that subscribes later
+still receives the latest map.
 
 Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
 points) and puts the scan into a bounded queue; one worker thread runs
@@ -538,7 +541,7 @@ class KentRegNode(Node):
             self._counters.add('searched')
         self._last_health, self._last_message = step.health, step.message
         self._publish(step, prev_stamp, settings)
-        self._update_map(step, scan.points, settings)
+        self._update_map(step, settings)
         self._counters.add('published')
         self._latencies_ms.append((time.monotonic() - scan.received) * 1e3)
         self._step_ms.append(step.timings.get('total', 0.0))
@@ -600,7 +603,7 @@ class KentRegNode(Node):
             tf.transform = transform_to_msg(T_odom_base)
             self._tf_broadcaster.sendTransform(tf)
 
-    def _update_map(self, step: OdometryStep, points: FloatArray, settings: NodeSettings) -> None:
+    def _update_map(self, step: OdometryStep, settings: NodeSettings) -> None:
         """Add the scan to the map when its pose was registered; publish the map when
         ``node.map_period`` has passed (worker thread: the map is the worker's alone)."""
         if settings.map_period <= 0.0:
@@ -608,11 +611,11 @@ class KentRegNode(Node):
             return
         if self._map is None or self._map.voxel_size != settings.map_voxel_size:
             self._map = VoxelMap(settings.map_voxel_size)
-        if step.health in ACCEPTED or step.health == HEALTH_FIRST:
+        if step.points is not None and (step.health in ACCEPTED or step.health == HEALTH_FIRST):
             assert self._T_base_lidar is not None  # set before any step
             # Sensor points -> odom frame: T_odom_lidar = T_base_lidar @ T_world_lidar.
             T = self._T_base_lidar @ step.T_world_lidar
-            self._map.insert(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+            self._map.insert(step.points @ T[:3, :3].T + T[:3, 3])
             self._map.crop(T[:3, 3], settings.map_radius)
         now = time.monotonic()
         due = self._map_published is None or now - self._map_published >= settings.map_period
