@@ -471,7 +471,8 @@ class KentRegNode(Node):
         self._odometry.reset()
         self._path.clear()
         self._map = None
-        self._frame_id = None
+        with self._lock:
+            self._frame_id = None
         self._T_base_lidar = None
         self._tf_wait_start = None
         self._last_stamp_ns = None
@@ -528,7 +529,8 @@ class KentRegNode(Node):
                 self._counters.add('dropped_waiting_for_tf')
                 return
             self._T_base_lidar = T_base_lidar
-        self._frame_id = scan.frame_id
+        with self._lock:
+            self._frame_id = scan.frame_id
         prev_stamp = self._last_stamp_ns
         self._last_stamp_ns = scan.stamp_ns
 
@@ -539,12 +541,14 @@ class KentRegNode(Node):
         self._counters.add(step.health)
         if step.searched:
             self._counters.add('searched')
-        self._last_health, self._last_message = step.health, step.message
         self._publish(step, prev_stamp, settings)
         self._update_map(step, settings)
         self._counters.add('published')
-        self._latencies_ms.append((time.monotonic() - scan.received) * 1e3)
-        self._step_ms.append(step.timings.get('total', 0.0))
+        latency_ms = (time.monotonic() - scan.received) * 1e3
+        with self._lock:  # read by the diagnostics timer on the executor thread
+            self._last_health, self._last_message = step.health, step.message
+            self._latencies_ms.append(latency_ms)
+            self._step_ms.append(step.timings.get('total', 0.0))
 
     # ----------------------------------------------------------------------------------------
     # Output
@@ -634,18 +638,20 @@ class KentRegNode(Node):
         period = max(now - self._window_start, 1e-6)
         self._window_start = now
         total, window = self._counters.take_window()
-        with self._lock:
+        with self._lock:  # everything the worker writes is read under the lock
             queued = len(self._queue)
             settings = self._settings
             mode = self._mode_in_use
             pending = self._pending_config
+            latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
+            steps = list(self._step_ms)[-max(window['processed'], 1) :]
+            frame_id = self._frame_id
+            last_health, last_message = self._last_health, self._last_message
         if not settings.publish_diagnostics:
             return
-        latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
-        steps = list(self._step_ms)[-max(window['processed'], 1) :]
         status = DiagnosticStatus()
         status.name = f'{self.get_name()}: odometry'
-        status.hardware_id = self._frame_id or ''
+        status.hardware_id = frame_id or ''
         level, message = DiagnosticStatus.OK, 'tracking'
         problems = []
         if window['fell_back'] or window['rejected'] or window['errors']:
@@ -668,12 +674,12 @@ class KentRegNode(Node):
         values = {
             'input_rate_hz': f'{window["received"] / period:.2f}',
             'output_rate_hz': f'{window["published"] / period:.2f}',
-            'latency_ms_mean': f'{np.mean(latencies):.1f}' if self._latencies_ms else 'nan',
-            'latency_ms_max': f'{np.max(latencies):.1f}' if self._latencies_ms else 'nan',
-            'step_ms_mean': f'{np.mean(steps):.1f}' if self._step_ms else 'nan',
+            'latency_ms_mean': f'{np.mean(latencies):.1f}' if latencies else 'nan',
+            'latency_ms_max': f'{np.max(latencies):.1f}' if latencies else 'nan',
+            'step_ms_mean': f'{np.mean(steps):.1f}' if steps else 'nan',
             'queue_length': str(queued),
-            'last_health': self._last_health,
-            'last_message': self._last_message,
+            'last_health': last_health,
+            'last_message': last_message,
             'mode': mode,  # in use; an accepted change applies from the next scan
             'pending_mode': pending.mode if pending is not None else '',
         }
