@@ -60,6 +60,17 @@ def test_voxel_map_crop_drops_points_beyond_the_radius_and_frees_their_voxels() 
     # The freed voxels take points again.
     far = np.array([[9.9, 9.9, 9.9]])
     assert vmap.insert(far) == 1
+    # With several points per voxel a crop through a voxel keeps its count exact: refilled
+    # densely, every voxel holds exactly its cap again (a count left too high would hold back
+    # points, one too low would let a voxel overflow).
+    cap, voxel = 3, 0.5
+    dense = VoxelMap(voxel, max_points_per_voxel=cap)
+    dense.insert(rng.uniform(-3.0, 3.0, (4000, 3)))
+    dense.crop(np.zeros(3), 2.0)
+    dense.insert(rng.uniform(-3.0, 3.0, (40000, 3)))
+    counts = np.unique(np.floor(dense.points / voxel), axis=0, return_counts=True)[1]
+    assert counts.min() == counts.max() == cap
+    assert dense.n_voxels == len(counts)
 
 
 def test_voxel_map_rejects_bad_input() -> None:

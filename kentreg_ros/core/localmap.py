@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
 from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.preprocess import as_points
+from kentreg_ros.core.preprocess import argsort_keys, as_points
 from kentreg_ros.core.rotations import check_transform
 from kentreg_ros.core.scan import MIN_POINTS, PreparedScan, cluster_normals, elapsed_ms
 
@@ -106,7 +106,7 @@ class VoxelMap:
     @property
     def normals(self) -> FloatArray:
         """The normal of every point, shape (M, 3) (zeros when built without normals)."""
-        view = self._normals.view()
+        view = self._normals.view() if self.with_normals else np.zeros_like(self._points)
         view.flags.writeable = False
         return view
 
@@ -164,7 +164,7 @@ class VoxelMap:
         if not len(pts):
             return 0
         keys = self.keys_of(pts)
-        order = np.argsort(keys, kind='stable')  # stable: the first points of a voxel win
+        order = argsort_keys(keys)  # stable: the first points of a voxel win
         sorted_keys = keys[order]
         starts_mask = np.empty(len(keys), dtype=bool)
         starts_mask[0] = True
@@ -193,8 +193,6 @@ class VoxelMap:
         self._keys = np.concatenate([self._keys, keys[chosen]])
         if self.with_normals:
             self._normals = np.concatenate([self._normals, nrm[chosen]])
-        else:
-            self._normals = np.zeros_like(self._points)
         return len(chosen)
 
     def crop(self, center: ArrayLike, radius: float) -> int:
@@ -209,11 +207,17 @@ class VoxelMap:
         inside = np.sum((self._points - c) ** 2, axis=1) <= radius * radius
         n_out = int(len(inside) - np.count_nonzero(inside))
         if n_out:
+            # Count the dropped points out of their voxels (a sort of the dropped keys only,
+            # not of the whole map) and forget the voxels left empty.
+            gone, n_gone = np.unique(self._keys[~inside], return_counts=True)
+            self._voxel_counts[np.searchsorted(self._voxel_keys, gone)] -= n_gone
+            occupied = self._voxel_counts > 0
+            self._voxel_keys = self._voxel_keys[occupied]
+            self._voxel_counts = self._voxel_counts[occupied]
             self._points = self._points[inside]
-            self._normals = self._normals[inside]
+            if self.with_normals:
+                self._normals = self._normals[inside]
             self._keys = self._keys[inside]
-            self._voxel_keys, counts = np.unique(self._keys, return_counts=True)
-            self._voxel_counts = counts.astype(np.int64)
         return n_out
 
 
