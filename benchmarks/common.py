@@ -219,18 +219,23 @@ def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
 
 
 def git_describe() -> str | None:
-    """``git describe --always --dirty`` of the repository (None outside a checkout)."""
-    try:
-        out = subprocess.run(
-            ['git', 'describe', '--always', '--dirty'],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
+    """``git describe --always`` of the repository, ``-dirty`` when a file other than the
+    benchmark results differs from it (an earlier benchmark of the same run writing its results
+    does not make the code dirty); None outside a checkout."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ['git', *args], cwd=ROOT, capture_output=True, text=True, check=False
         ).stdout.strip()
+
+    try:
+        out = git('describe', '--always')
+        changed = git('status', '--porcelain', '--', '.', ':(exclude)benchmarks/results')
     except OSError:
         return None
-    return out or None
+    if not out:
+        return None
+    return f'{out}-dirty' if changed else out
 
 
 def machine_info() -> dict[str, Any]:
