@@ -13,6 +13,7 @@ default names their nodes would take our scans and we their diagnostics.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import signal
@@ -141,11 +142,18 @@ class NodeProcess:
                 return int(line.split()[1]) / 1024.0
         return float('nan')
 
-    def stop(self) -> int:
+    def stop(self, *, repeat: bool = False) -> int:
+        """SIGINT (Ctrl-C) and wait for the exit; ``repeat``: SIGINT again every 5 ms until
+        the process is gone (a user pressing Ctrl-C again while the node shuts down)."""
         if self.alive():
             self.proc.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + 15.0
+            while repeat and self.alive() and time.monotonic() < deadline:
+                time.sleep(0.005)
+                with contextlib.suppress(ProcessLookupError):
+                    self.proc.send_signal(signal.SIGINT)
             try:
-                self.proc.wait(timeout=15)
+                self.proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
@@ -383,6 +391,20 @@ def test_node_map_reaches_a_late_transient_local_subscriber(
     hits = [tuple(c) in cells for c in np.floor(first[near] / voxel).astype(int)]
     assert len(hits) > 1000 and all(hits)
     assert proc.stop() == 0, proc.log()
+
+
+def test_node_exits_0_when_ctrl_c_is_pressed_again_while_it_shuts_down(
+    harness: Harness, bag_scans: list[Any]
+) -> None:
+    """Repeated Ctrl-C while the node shuts down (its worker finishing, DDS going away, the
+    interpreter finalising) must neither kill it by the signal nor raise in its cleanup."""
+    proc = harness.start_node(*QUEUE_ALL)
+    out = harness.connect(proc)
+    for scan in bag_scans[:2]:
+        out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
+    assert harness.spin_until(lambda: len(out.odom) == 2, timeout=30.0, proc=proc), proc.log()
+    assert proc.stop(repeat=True) == 0, proc.log()
+    assert 'Traceback' not in proc.log()
 
 
 def test_node_overload_drops_oldest_counts_and_stays_responsive(

@@ -6,6 +6,7 @@ its own topic name, so parallel test runs on one machine cannot see each other's
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -300,6 +301,32 @@ def test_play_loop_with_clock_keeps_stamps_increasing_across_passes(
     clock_ns = [_ns(c.clock) for c in clocks.messages]
     assert len(clock_ns) >= 3
     assert clock_ns == sorted(clock_ns) and clock_ns[0] >= first
+
+
+def test_play_keeps_its_exit_status_when_ctrl_c_is_pressed_again_while_it_exits(
+    repo_root: Path, sample_bag: Path, make_receiver: Any
+) -> None:
+    """A Ctrl-C repeated while the player cleans up or the interpreter finalises must not kill
+    it by the signal (exit -2) or raise in its cleanup: the status of the first one stands."""
+    topic = unique_topic('points')
+    receiver = make_receiver(topic)
+    proc = _start_play(
+        repo_root, str(sample_bag), '--max-scans', '2', '--loop', '--rate', '20',
+        '--topic', topic, '--wait-subscribers', '30',
+    )  # fmt: skip
+    try:
+        receiver.spin_until(lambda: len(receiver.messages) >= 3)
+    finally:
+        proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + TIMEOUT_S
+    while proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+    code, _, stderr = _play_and_receive(receiver, proc, 0)
+    assert code == 130, stderr
+    assert 'Traceback' not in stderr
+    assert re.search(r'interrupted after \d+ scan\(s\)', stderr), stderr
 
 
 def test_play_bad_input_exits_2_with_one_line(

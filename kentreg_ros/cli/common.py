@@ -13,7 +13,9 @@ import argparse
 import contextlib
 import logging
 import math
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
@@ -44,6 +46,19 @@ def one_line(exc: BaseException) -> str:
     """The first line of an exception's message, or its type name when it has none."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
+
+
+def ignore_further_interrupts() -> None:
+    """Ignore SIGINT from now until the process exits (main thread only; else a no-op).
+
+    For a ROS program that was interrupted and has decided its exit status: rclpy's handler has
+    already shut the context down, and another SIGINT during the cleanup or during the
+    interpreter's finalization (when Python has put back the default action) would kill the
+    process by the signal, losing the status (``kentreg_play`` once exited -2 instead of 130
+    under load). An ignored disposition survives finalization.
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def run_main(prog: str, body: Callable[[], int], *, interrupted: str = 'interrupted') -> int:

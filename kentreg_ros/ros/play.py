@@ -54,6 +54,7 @@ from kentreg_ros.cli.common import (
     EXIT_OK,
     ArgumentParser,
     CliError,
+    ignore_further_interrupts,
     logging_to_stderr,
     non_negative_float,
     non_negative_int,
@@ -560,6 +561,8 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
             raise
         status = EXIT_INTERRUPTED
     finally:
+        if status == EXIT_INTERRUPTED:
+            ignore_further_interrupts()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
