@@ -79,6 +79,8 @@ GICP_NEIGHBORS = 10
 NORMAL_NEIGHBORS = 15
 PEER_GATE = 1.0
 PERIOD_NS = 500_000_000  # BALM is a 2 Hz recording; stamps only feed the velocity models
+#: Steps of the memory run: the 50 scans forth and back five times.
+LONG_STEPS = 250
 
 
 def _kentreg() -> Callable[[FloatArray, int], FloatArray]:
@@ -174,8 +176,16 @@ FACTORIES: dict[str, Callable[[], Callable[[FloatArray, int], FloatArray]]] = {
 }
 
 
-def run_worker(method: str, scans_file: Path, out_file: Path) -> None:
-    """Run one method over the scans (this process is pinned to one CPU by the caller)."""
+def _forth_and_back(n: int, steps: int) -> list[int]:
+    """Scan indices 0..n-1, then back n-1..0, and so on, ``steps`` of them: a long run with
+    no jump between consecutive scans."""
+    cycle = list(range(n)) + list(range(n - 1, -1, -1))
+    return [cycle[k % len(cycle)] for k in range(steps)]
+
+
+def run_worker(method: str, scans_file: Path, out_file: Path, steps: int = 0) -> None:
+    """Run one method over the scans (this process is pinned to one CPU by the caller);
+    ``steps`` > 0: that many steps over the scans forth and back (a long run, for memory)."""
     from benchmarks.methods import limit_threads
 
     limit_threads(1)
@@ -185,10 +195,10 @@ def run_worker(method: str, scans_file: Path, out_file: Path) -> None:
     base_mb = _rss_mb('VmRSS')
     _reset_peak_rss()
     poses, ms, rss = [], [], []
-    for i in range(n):
+    for k, i in enumerate(_forth_and_back(n, steps) if steps > 0 else range(n)):
         points = np.ascontiguousarray(data[f's{i}'], dtype=np.float64)
         t0 = time.perf_counter()
-        poses.append(step(points, i * PERIOD_NS))
+        poses.append(step(points, k * PERIOD_NS))
         ms.append((time.perf_counter() - t0) * 1e3)
         rss.append(_rss_mb('VmRSS'))
     peak_mb = _rss_mb('VmHWM')
@@ -254,17 +264,17 @@ def markdown(report: dict[str, Any]) -> str:
         f'per method, {meta["rounds"]} rounds; the first scan (prepare only) excluded.',
         '',
         '| method | p50 ms/scan | p95 | max | ratio to GICP (p50) | peak memory growth MB '
-        '| RSS growth, 2nd half of the run MB | median e_R (deg) | median e_t (mm) '
-        '| failed pairs |',
+        f'| RSS growth, steps {meta["n_scans"]}-{meta.get("long_steps") or "–"} MB '
+        '| median e_R (deg) | median e_t (mm) | failed pairs |',
         '|---|---|---|---|---|---|---|---|---|---|',
     ]
     for name, r in report['methods'].items():
         t = r['ms_per_scan']
         ratio = f'{t["p50"] / base:.2f}×' if base else '–'
+        growth = f'{r["long_run"]["growth_mb"]:.1f}' if 'long_run' in r else '–'
         lines.append(
             f'| {name} | {t["p50"]:.1f} | {t["p95"]:.1f} | {t["max"]:.1f} | {ratio} '
-            f'| {r["peak_growth_mb"]:.0f} | {r["rss_growth_second_half_mb"]:.1f} '
-            f'| {r["e_R_deg_median"]:.3f} '
+            f'| {r["peak_growth_mb"]:.0f} | {growth} | {r["e_R_deg_median"]:.3f} '
             f'| {1e3 * r["e_t_m_median"]:.1f} | {r["failures"]}/{r["n_pairs"]} |'
         )
     lines += ['', f'Run at {meta["git"]}; load average {meta["load"]} at the start.', '']
@@ -278,11 +288,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--rounds', type=int, default=2)
     parser.add_argument('--out', type=Path, default=RESULTS)
     parser.add_argument(
-        '--worker', nargs=3, metavar=('METHOD', 'SCANS', 'OUT'), help=argparse.SUPPRESS
+        '--long-steps',
+        type=int,
+        default=LONG_STEPS,
+        help='steps of the memory run per method (the scans forth and back; 0: none)',
+    )
+    parser.add_argument(
+        '--worker', nargs=4, metavar=('METHOD', 'SCANS', 'OUT', 'STEPS'), help=argparse.SUPPRESS
     )
     args = parser.parse_args(argv)
     if args.worker:
-        run_worker(args.worker[0], Path(args.worker[1]), Path(args.worker[2]))
+        method, scans_arg, out_arg, steps_arg = args.worker
+        run_worker(method, Path(scans_arg), Path(out_arg), int(steps_arg))
         return 0
     logging.basicConfig(level=logging.INFO, format='%(name)s: %(message)s')
     seq = load_balm(SHARED_DATA / 'balm')
@@ -304,6 +321,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     method,
                     str(scans_file),
                     str(out_file),
+                    '0',
                 ]
                 t0 = time.perf_counter()
                 subprocess.run(cmd, check=True, cwd=ROOT)
@@ -324,18 +342,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         summary['peak_rss_mb'] = max(r['peak_rss_mb'] for r in s['rounds'])
         summary['peak_growth_mb'] = max(r['peak_growth_mb'] for r in s['rounds'])
         summary['rounds_p50'] = [float(np.median(r['ms'][1:])) for r in s['rounds']]
-        # Flat memory over a run: resident memory after the last scan minus after the middle
-        # one (the largest over rounds); a leak of a copy of a scan per step would show here.
-        summary['rss_growth_second_half_mb'] = max(
-            r['rss_mb'][-1] - r['rss_mb'][len(r['rss_mb']) // 2] for r in s['rounds']
-        )
         methods[method] = summary
+    if args.long_steps > n:
+        # Flat memory over a long run: resident memory after the last step minus after the
+        # first pass (allocator warm-up done); a per-step leak of even 10 kB would show.
+        with tempfile.TemporaryDirectory() as tmp:
+            scans_file = Path(tmp) / 'scans.npz'
+            np.savez(scans_file, n=n, **{f's{i}': s for i, s in enumerate(scans)})
+            for method in args.methods:
+                out_file = Path(tmp) / f'{method}_long.json'
+                cmd = [sys.executable, __file__, '--worker', method, str(scans_file),
+                       str(out_file), str(args.long_steps)]  # fmt: skip
+                subprocess.run(cmd, check=True, cwd=ROOT)
+                rss = json.loads(out_file.read_text())['rss_mb']
+                methods[method]['long_run'] = {
+                    'steps': args.long_steps,
+                    'after_first_pass_mb': rss[n - 1],
+                    'at_end_mb': rss[-1],
+                    'growth_mb': rss[-1] - rss[n - 1],
+                }
     info = machine_info()
     report = {
         'meta': {
             'n_scans': n,
             'points': f'{min(len(s) for s in scans)}-{max(len(s) for s in scans)} points each',
             'rounds': args.rounds,
+            'long_steps': args.long_steps if args.long_steps > n else 0,
             'git': git_describe() or 'unknown',
             'load': info.get('load_avg_at_start', info.get('load_avg')),
             'machine': info,

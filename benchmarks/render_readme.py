@@ -311,13 +311,16 @@ def robustness_goals_block(
                 f'| p95 ≤ 100 ms per scan (10 Hz) on these 72-90k-point scans | {p95:.0f} ms '
                 f'| {_verdict(p95 <= 100.0)} |'
             )
-            growth = ms['kentreg'].get('rss_growth_second_half_mb')
-            if growth is not None:
+            long_run = ms['kentreg'].get('long_run')
+            if long_run is not None:
                 # One raw scan is 80k x 3 doubles, about 2 MB: a run that keeps less than that
-                # over its second half keeps no scan-sized (or even 80 kB) memory per step.
+                # after its first pass keeps no scan-sized (or even 10 kB) memory per step.
+                growth, steps = long_run['growth_mb'], long_run['steps']
+                n = per_scan['meta']['n_scans']
                 rows.append(
-                    '| memory flat: resident memory grows by less than one raw scan (2 MB) over '
-                    f'the second half of the run | {growth:.1f} MB | {_verdict(growth < 2.0)} |'
+                    f'| memory flat: resident memory grows by less than one raw scan (2 MB) '
+                    f'from step {n} to step {steps} | {growth:.1f} MB '
+                    f'| {_verdict(growth < 2.0)} |'
                 )
     if not rows:
         return None
