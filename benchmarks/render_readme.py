@@ -317,8 +317,10 @@ def robustness_goals_block(
                 # over its second half keeps no scan-sized (or even 10 kB) memory per step.
                 growth, steps = long_run['growth_mb'], long_run['steps']
                 rows.append(
-                    f'| memory flat: resident memory grows by less than one raw scan (2 MB) '
-                    f'over the second half of a {steps}-step run | {growth:.1f} MB '
+                    f'| memory flat: the live numpy/Python memory grows by less than one raw '
+                    f'scan (2 MB) over the second half of a {steps}-step run (resident memory, '
+                    f'which the allocator moves by several MB either way, beside it) '
+                    f'| {growth:.2f} MB (resident {long_run["rss_growth_mb"]:+.1f} MB) '
                     f'| {_verdict(growth < 2.0)} |'
                 )
     if not rows:
