@@ -146,11 +146,13 @@ def _local(
     *,
     em: EMResult | None = None,
     refine: bool = True,
+    sample: PreparedScan | None = None,
 ) -> _Candidate:
     """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit.
 
     The rotation stage uses every normal of ``src``; the position stages use its
-    :func:`position_sample` (the centroid translation, the paper's, uses every point)."""
+    :func:`position_sample` (the centroid translation, the paper's, uses every point), given as
+    ``sample`` when the caller registers the same source several times."""
     stages: dict[str, FloatArray] = {}
     if em is None:
         t0 = time.perf_counter()
@@ -158,7 +160,8 @@ def _local(
         timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
     R = em.R
     stages['rotation'] = make_transform(R, T0[:3, 3])
-    full, src = src, position_sample(src, cfg.refine.max_cluster_points)
+    full = src
+    src = sample if sample is not None else position_sample(src, cfg.refine.max_cluster_points)
     iterations = em.iterations
     t0 = time.perf_counter()
     tr_cfg = cfg.translation
@@ -267,6 +270,7 @@ def _search_candidates(
     """Start-free search: twist hypotheses ranked by the mixture overlap, the distinct best
     refined by the EM and placed by the translation stage, then verified by their fit; every
     candidate that fits nearly as well as the best is refined in full."""
+    sample = position_sample(src, cfg.refine.max_cluster_points)  # once for every candidate
     scfg = cfg.search
     t0 = time.perf_counter()
     hyp = twist_hypotheses(src.clusters, tgt.clusters, scfg.twist_step_deg)
@@ -285,7 +289,7 @@ def _search_candidates(
             continue  # converged onto a rotation already under consideration
         seen.append(em.R)
         T0 = make_transform(em.R, T_init[:3, 3])
-        cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False))
+        cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False, sample=sample))
     best_cheap = max(c.fit.score for c in cheap)
     out: list[_Candidate] = []
     for cand in sorted(cheap, key=lambda c: -c.fit.score):
@@ -294,7 +298,7 @@ def _search_candidates(
             em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
             timings['rotation'] += elapsed_ms(t0)
             T0 = make_transform(em.R, T_init[:3, 3])
-            out.append(_local(src, tgt, T0, cfg, gates, timings, em=em))
+            out.append(_local(src, tgt, T0, cfg, gates, timings, em=em, sample=sample))
     return out, len(hyp)
 
 
