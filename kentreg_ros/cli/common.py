@@ -48,14 +48,19 @@ def one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def ignore_further_interrupts() -> None:
-    """Ignore SIGINT from now until the process exits (main thread only; else a no-op).
+def interrupt_through_rclpy() -> None:
+    """Let Ctrl-C reach a ROS program only through rclpy (call before ``rclpy.init``).
 
-    For a ROS program that was interrupted and has decided its exit status: rclpy's handler has
-    already shut the context down, and another SIGINT during the cleanup or during the
-    interpreter's finalization (when Python has put back the default action) would kill the
-    process by the signal, losing the status (``kentreg_play`` once exited -2 instead of 130
-    under load). An ignored disposition survives finalization.
+    SIGINT is ignored at Python's level; ``rclpy.init`` then installs its own handler on top,
+    which on Ctrl-C shuts the context down, so the program ends through
+    ``ExternalShutdownException`` at a point of its choosing and Python never raises
+    ``KeyboardInterrupt`` at an arbitrary one (inside an rclpy call, during the cleanup). When
+    rclpy uninstalls its handler at shutdown, the ignored disposition comes back and survives
+    the interpreter's finalization, so a Ctrl-C pressed again while the program exits cannot
+    kill it by the signal either. ``kentreg_play`` exited -2 instead of 130 a few times in
+    about 15 colcon runs, after its clean shutdown had printed its summary; a KeyboardInterrupt
+    that CPython 3.11 still counts as unhandled at exit is the likely cause (not proven: it
+    did not reproduce on demand). Main thread only; elsewhere a no-op.
     """
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -78,7 +78,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from kentreg_ros.cli.common import ignore_further_interrupts
+from kentreg_ros.cli.common import interrupt_through_rclpy
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.localmap import VoxelMap
@@ -726,13 +726,13 @@ def main(args: list[str] | None = None) -> int:
     Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid
     (the reason is logged, in one line).
     """
+    interrupt_through_rclpy()
     try:
         rclpy.init(args=args)
     except RuntimeError as exc:  # rcl's RCLError: bad --ros-args, unreadable --params-file
         print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
         return 1
     node: KentRegNode | None = None
-    interrupted = False
     try:
         node = KentRegNode()
         rclpy.spin(node)
@@ -740,17 +740,14 @@ def main(args: list[str] | None = None) -> int:
         rclpy.logging.get_logger(NODE_NAME).fatal(f'Invalid parameters: {exc}')
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        interrupted = True
+        pass
     except RuntimeError:
         # rclpy's signal handler shuts the context down from another thread; when that lands
         # while spin() sets up its next wait, spin raises RCLError (a RuntimeError) instead of
         # ExternalShutdownException (ros2/rclpy#398). A shutdown all the same.
         if rclpy.ok():
             raise
-        interrupted = True
     finally:
-        if interrupted:
-            ignore_further_interrupts()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

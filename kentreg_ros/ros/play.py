@@ -54,7 +54,7 @@ from kentreg_ros.cli.common import (
     EXIT_OK,
     ArgumentParser,
     CliError,
-    ignore_further_interrupts,
+    interrupt_through_rclpy,
     logging_to_stderr,
     non_negative_float,
     non_negative_int,
@@ -532,6 +532,7 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
     what was published is printed.
     """
     rclpy = ros.rclpy
+    interrupt_through_rclpy()
     rclpy.init(args=[PROG, *argv])
     node = None
     player: Player | None = None
@@ -561,8 +562,6 @@ def _play(ros: Any, source: Any, options: argparse.Namespace, argv: list[str]) -
             raise
         status = EXIT_INTERRUPTED
     finally:
-        if status == EXIT_INTERRUPTED:
-            ignore_further_interrupts()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
