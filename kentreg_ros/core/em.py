@@ -39,6 +39,7 @@ from kentreg_ros.core.kent import (
     kent_from_moments,
     kent_log_normalizer,
 )
+from kentreg_ros.core.preprocess import argsort_keys
 from kentreg_ros.core.rotations import (
     KentRotationProblem,
     average_rotations,
@@ -138,7 +139,7 @@ class NormalBins:
         flat = ((keys[:, 0] + span) * width + keys[:, 1] + span) * width + (keys[:, 2] + span)
         if groups is not None:
             flat = flat + np.asarray(groups, dtype=np.int64) * width**3
-        order = np.argsort(flat, kind='stable')
+        order = argsort_keys(flat)
         ordered = flat[order]
         starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
         counts = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)

@@ -167,6 +167,7 @@ def _local(
     tr_cfg = cfg.translation
     H_t: FloatArray | None = None
     sigma2_t = 0.0
+    refine_gate = gates.max_gate
     # One correspondence cache for the translation and refinement loops (same source points,
     # same target tree): points that moved less than their certified radius skip the query.
     neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
@@ -204,6 +205,7 @@ def _local(
             neighbors=neighbors,
         )
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
+        refine_gate = min(refine_gate, max(tres.gate, gates.min_gate))
         inlier = tres.inlier_fraction
         iterations += tres.iterations
     timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
@@ -223,7 +225,7 @@ def _local(
             method=cfg.refine.method,
             normal_weight=cfg.refine.normal_weight,
             max_iterations=cfg.refine.max_iterations,
-            max_distance=gates.max_gate,
+            max_distance=refine_gate,
             min_distance=gates.min_gate,
             tolerance=cfg.refine.tolerance,
             noise_floor=gates.noise_floor,

@@ -146,6 +146,8 @@ class TranslationResult:
     inlier_fraction : float
     degenerate_directions : ndarray, shape (D, 3)
         Unit directions whose eigenvalue ratio is below the threshold.
+    gate : float
+        The correspondence gate the next iteration would have used (m).
     """
 
     t: FloatArray
@@ -154,6 +156,7 @@ class TranslationResult:
     iterations: int
     inlier_fraction: float
     degenerate_directions: FloatArray
+    gate: float = 0.0
 
 
 def robust_scale(residuals: FloatArray, floor: float) -> float:
@@ -237,4 +240,5 @@ def point_to_plane_translation(
         iterations=it,
         inlier_fraction=inlier,
         degenerate_directions=degenerate_directions(H, degeneracy_ratio),
+        gate=gate,
     )
