@@ -21,11 +21,14 @@ setup(
     extras_require={
         'io': ['rosbags>=0.11', 'mcap>=1.1', 'tqdm>=4.60', 'python-lzf>=0.2.4', 'matplotlib>=3.7'],
         # small_gicp's C++ KD-tree: exact neighbour queries about twice as fast as scipy's
-        # (kentreg_ros.core.neighbors; benchmarks/per_scan.py); scipy is used without it.
-        'fast': ['small-gicp>=1.0'],
+        # (kentreg_ros.core.neighbors); numba compiles the per-point loops of preparing a scan
+        # (kentreg_ros.core.kernels). benchmarks/per_scan.py measures both; without them the
+        # same results come from scipy and numpy, slower.
+        'fast': ['small-gicp>=1.0', 'numba>=0.60'],
         'test': [
             'pytest>=7',
             'small-gicp>=1.0',
+            'numba>=0.60',
             'ruff>=0.5',
             'mypy>=1.8',
             'rosbags>=0.11',

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core import kernels
+
 FloatArray = NDArray[np.float64]
 
 
@@ -162,16 +164,20 @@ def _lloyd(
     n = len(xs)
     labels = np.full(n, -1, dtype=np.intp)
     weighted = [xs[:, axis] * w for axis in range(3)]  # fixed across iterations
+    compiled = kernels.enabled()
+    weighted_rows = np.array(weighted) if compiled else None  # (3, N) for the kernel
     for _ in range(max_iterations):
-        sims = xs @ centers.T
-        new_labels = np.argmax(sims, axis=1)
-        sums = np.zeros((k, 3))
-        for axis in range(3):
-            sums[:, axis] = np.bincount(new_labels, weights=weighted[axis], minlength=k)
+        if weighted_rows is not None:
+            new_labels, sums = kernels.assign_and_sum(xs, weighted_rows, centers)
+        else:
+            new_labels = np.argmax(xs @ centers.T, axis=1)
+            sums = np.zeros((k, 3))
+            for axis in range(3):
+                sums[:, axis] = np.bincount(new_labels, weights=weighted[axis], minlength=k)
         norms = np.linalg.norm(sums, axis=1)
         empty = norms < 1e-12
         if empty.any():
-            fit = sims[np.arange(n), new_labels]
+            fit = (xs @ centers.T)[np.arange(n), new_labels]
             worst = np.argsort(fit)[: int(empty.sum())]
             sums[empty] = xs[worst]
             new_labels[worst] = np.flatnonzero(empty)

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.neighbors import NeighborIndex
 from kentreg_ros.core.rotations import cross_rows
@@ -125,6 +126,8 @@ def neighbourhood_covariances(points: FloatArray, neighbors: NDArray[np.intp]) -
     mean first, as before, so the cancellation in ``E[p p^T] - E[p] E[p]^T`` is unchanged.
     """
     c = points - points.mean(axis=0)
+    if kernels.enabled():
+        return kernels.neighbourhood_covariances(c, neighbors)
     x, y, z = c[:, 0], c[:, 1], c[:, 2]
     monomials = np.column_stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z])
     moments = np.asarray(_neighbour_average_operator(neighbors, len(points)) @ monomials)
@@ -231,6 +234,8 @@ def orient_normals(
 
 def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """Cosine between each normal and the mean normal of its neighbourhood, shape (N,)."""
+    if kernels.enabled():
+        return kernels.normal_consistency(normals, neighbors)
     mean = np.asarray(_neighbour_average_operator(neighbors, len(normals)) @ normals)
     norm = np.linalg.norm(mean, axis=1)
     return np.einsum('ij,ij->i', normals, mean) / np.maximum(norm, 1e-12)

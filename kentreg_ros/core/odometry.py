@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.covariance import prediction_covariance, propagate_covariance
 from kentreg_ros.core.deskew import deskew, relative_point_times, twist_of
@@ -161,6 +162,8 @@ class Odometry:
         self._initial_pose = (
             np.eye(4) if initial_pose is None else check_transform(initial_pose, 'initial_pose')
         )
+        # Compile (or load) the per-point kernels now, not in the first scan's time budget.
+        kernels.warm_up()
         self.reset()
 
     # ----------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.errors import InvalidPointCloudError
 
 logger = logging.getLogger(__name__)
@@ -101,6 +102,8 @@ def _voxel_keys(
         s = span.astype(np.int64)
         wide: NDArray[np.int64] = (idx[:, 0] * s[1] + idx[:, 1]) * s[2] + idx[:, 2]
         return wide
+    if kernels.enabled():
+        return kernels.voxel_keys(points, voxel_size, corner, span)
     f = np.floor(points / voxel_size)
     f -= corner
     keys: NDArray[np.int64] = ((f[:, 0] * span[1] + f[:, 1]) * span[2] + f[:, 2]).astype(np.int64)
@@ -265,6 +268,9 @@ class _Grid:
         """Centroids of the voxels holding at least ``min_points`` points, and the number of
         points in the others."""
         keep = self.counts >= min_points
+        if kernels.enabled():
+            out = kernels.voxel_centroids(points, self.order, self.starts, self.counts, min_points)
+            return out, int(self.counts[~keep].sum())
         # np.take gathers rows several times faster than fancy indexing here.
         sums = np.add.reduceat(np.take(points, self.order, axis=0), self.starts, axis=0)
         out = np.ascontiguousarray(sums[keep] / self.counts[keep, None])

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.em import (
@@ -214,16 +215,19 @@ def prepare_scan(
 def _cluster_kappa(normals: FloatArray, labels: NDArray[np.intp], k: int) -> FloatArray:
     """Kent's moment estimate of each cluster's concentration (0 for an empty cluster), from
     per-cluster sums (bincounts: no (K, N) weight matrix)."""
-    mass = np.bincount(labels, minlength=k).astype(np.float64)
+    if kernels.enabled():
+        mass, xbar, scatter = kernels.cluster_moments(normals, labels, k)
+    else:
+        mass = np.bincount(labels, minlength=k).astype(np.float64)
+        xbar = np.column_stack(
+            [np.bincount(labels, weights=normals[:, a], minlength=k) for a in range(3)]
+        )
+        scatter = np.empty((k, 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                col = np.bincount(labels, weights=normals[:, a] * normals[:, b], minlength=k)
+                scatter[:, a, b] = scatter[:, b, a] = col
     safe = np.where(mass > 0.0, mass, 1.0)
-    xbar = np.column_stack(
-        [np.bincount(labels, weights=normals[:, a], minlength=k) for a in range(3)]
-    )
-    scatter = np.empty((k, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            col = np.bincount(labels, weights=normals[:, a] * normals[:, b], minlength=k)
-            scatter[:, a, b] = scatter[:, b, a] = col
     kappa, _, _ = kent_from_moments(xbar / safe[:, None], scatter / safe[:, None, None])
     kappa[mass == 0.0] = 0.0
     return kappa

@@ -1,0 +1,195 @@
+"""numba-compiled loops behind :mod:`kentreg_ros.core.kernels` (imported only through it).
+
+Each kernel performs the same floating-point operations in the same order as the numpy
+expression it replaces (no fast-math, no fused multiply-add), so both give the same bits on the
+same machine; the tests compare them. They are written for one thread (``nogil``: the node's
+worker releases the GIL while one runs).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')
+
+
+@_jit
+def neighbourhood_covariances(c, neighbors):  # type: ignore[no-untyped-def]
+    """Covariance entries ``(xx, xy, xz, yy, yz, zz)`` of each row of ``neighbors`` over the
+    centred points ``c``: the neighbourhood average of the monomials, accumulated term by
+    term with weight ``1 / k`` as the sparse product does, minus the outer product of the
+    mean."""
+    n, k = neighbors.shape
+    inv = 1.0 / k
+    out = np.empty((n, 6))
+    for i in range(n):
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        sxz = 0.0
+        syy = 0.0
+        syz = 0.0
+        szz = 0.0
+        for j in range(k):
+            q = neighbors[i, j]
+            x = c[q, 0]
+            y = c[q, 1]
+            z = c[q, 2]
+            sx += inv * x
+            sy += inv * y
+            sz += inv * z
+            sxx += inv * (x * x)
+            sxy += inv * (x * y)
+            sxz += inv * (x * z)
+            syy += inv * (y * y)
+            syz += inv * (y * z)
+            szz += inv * (z * z)
+        out[i, 0] = sxx - sx * sx
+        out[i, 1] = sxy - sx * sy
+        out[i, 2] = sxz - sx * sz
+        out[i, 3] = syy - sy * sy
+        out[i, 4] = syz - sy * sz
+        out[i, 5] = szz - sz * sz
+    return out
+
+
+@_jit
+def normal_consistency(normals, neighbors):  # type: ignore[no-untyped-def]
+    """Cosine between each normal and the mean normal of its neighbourhood."""
+    n, k = neighbors.shape
+    inv = 1.0 / k
+    out = np.empty(n)
+    for i in range(n):
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
+        for j in range(k):
+            q = neighbors[i, j]
+            mx += inv * normals[q, 0]
+            my += inv * normals[q, 1]
+            mz += inv * normals[q, 2]
+        norm = np.sqrt(mx * mx + my * my + mz * mz)
+        dot = normals[i, 0] * mx + normals[i, 1] * my + normals[i, 2] * mz
+        out[i] = dot / max(norm, 1e-12)
+    return out
+
+
+@_jit
+def assign_and_sum(xs, weighted, centers):  # type: ignore[no-untyped-def]
+    """One Lloyd step of spherical k-means: the centre of largest cosine for each row of
+    ``xs`` (the first on ties, as ``argmax``) and the per-centre sums of the rows of
+    ``weighted`` (the weighted vectors, (3, N)) in row order, as ``bincount`` sums them."""
+    n = xs.shape[0]
+    k = centers.shape[0]
+    labels = np.empty(n, dtype=np.intp)
+    sums = np.zeros((k, 3))
+    for i in range(n):
+        best = 0
+        best_sim = -np.inf
+        for j in range(k):
+            s = xs[i, 0] * centers[j, 0] + xs[i, 1] * centers[j, 1] + xs[i, 2] * centers[j, 2]
+            if s > best_sim:
+                best_sim = s
+                best = j
+        labels[i] = best
+        sums[best, 0] += weighted[0, i]
+        sums[best, 1] += weighted[1, i]
+        sums[best, 2] += weighted[2, i]
+    return labels, sums
+
+
+@_jit
+def certified_distances(x, x0, radius, idx, target, gate):  # type: ignore[no-untyped-def]
+    """For :class:`~kentreg_ros.core.correspondence.NearestNeighborCache`: the distance from
+    each query point to its cached neighbour (inf without one) and whether the cache
+    certifies it (see the module's Notes): ``|x - q| <= radius - |x - x0|`` with a neighbour,
+    ``gate < radius - |x - x0|`` without."""
+    n = x.shape[0]
+    dist = np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        dx = x[i, 0] - x0[i, 0]
+        dy = x[i, 1] - x0[i, 1]
+        dz = x[i, 2] - x0[i, 2]
+        lower = radius[i] - np.sqrt(dx * dx + dy * dy + dz * dz)
+        q = idx[i]
+        if q >= 0:
+            ex = x[i, 0] - target[q, 0]
+            ey = x[i, 1] - target[q, 1]
+            ez = x[i, 2] - target[q, 2]
+            d = np.sqrt(ex * ex + ey * ey + ez * ez)
+            dist[i] = d
+            valid[i] = d <= lower
+        else:
+            dist[i] = np.inf
+            valid[i] = gate < lower
+    return dist, valid
+
+
+@_jit
+def cluster_moments(normals, labels, k):  # type: ignore[no-untyped-def]
+    """Per-cluster count, resultant (K, 3) and scatter (K, 3, 3) of unit normals, each summed
+    in row order as ``bincount`` sums it."""
+    mass = np.zeros(k)
+    xsum = np.zeros((k, 3))
+    scatter = np.zeros((k, 3, 3))
+    for i in range(normals.shape[0]):
+        j = labels[i]
+        mass[j] += 1.0
+        for a in range(3):
+            xsum[j, a] += normals[i, a]
+            for b in range(a, 3):
+                scatter[j, a, b] += normals[i, a] * normals[i, b]
+    for j in range(k):
+        for a in range(3):
+            for b in range(a + 1, 3):
+                scatter[j, b, a] = scatter[j, a, b]
+    return mass, xsum, scatter
+
+
+@_jit
+def voxel_keys(points, voxel_size, corner, span):  # type: ignore[no-untyped-def]
+    """Linear voxel index of every point, in float64 arithmetic as the numpy expression
+    ``((f0 * span1 + f1) * span2 + f2)`` with ``f = floor(p / size) - corner``."""
+    n = points.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        f0 = np.floor(points[i, 0] / voxel_size) - corner[0]
+        f1 = np.floor(points[i, 1] / voxel_size) - corner[1]
+        f2 = np.floor(points[i, 2] / voxel_size) - corner[2]
+        keys[i] = np.int64((f0 * span[1] + f1) * span[2] + f2)
+    return keys
+
+
+@_jit
+def voxel_centroids(points, order, starts, counts, min_points):  # type: ignore[no-untyped-def]
+    """Centroids of the voxels (runs ``starts``/``counts`` of ``order``) holding at least
+    ``min_points`` points, each summed in run order, as ``add.reduceat`` sums it."""
+    kept = 0
+    for v in range(starts.shape[0]):
+        if counts[v] >= min_points:
+            kept += 1
+    out = np.empty((kept, 3))
+    row = 0
+    for v in range(starts.shape[0]):
+        c = counts[v]
+        if c < min_points:
+            continue
+        s0 = starts[v]
+        p = order[s0]
+        sx = points[p, 0]
+        sy = points[p, 1]
+        sz = points[p, 2]
+        for j in range(s0 + 1, s0 + c):
+            p = order[j]
+            sx += points[p, 0]
+            sy += points[p, 1]
+            sz += points[p, 2]
+        out[row, 0] = sx / c
+        out[row, 1] = sy / c
+        out[row, 2] = sz / c
+        row += 1
+    return out

@@ -1,0 +1,151 @@
+"""Compiled per-point loops, used when numba is installed (the ``fast`` extra).
+
+Preparing a scan runs a few passes over every point and its 15 neighbours (the neighbourhood
+covariances of the normals, the normals' agreement with their neighbourhood) and the spherical
+k-means of the normals. In numpy each pass is a chain of whole-array operations whose
+temporaries cost more than the arithmetic; a compiled loop does the same operations in one
+pass. ``benchmarks/per_scan.py`` measures what it pays. Without numba (or with
+``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both give the same bits on one
+machine (the kernels repeat numpy's operations in numpy's order; ``test/test_kernels.py``).
+
+numba is imported, and the kernels compiled (cached on disk after the first run, ~1 s), on
+first use, not when :mod:`kentreg_ros.core` is imported; :func:`warm_up` does it ahead of time.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from types import ModuleType
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: Environment variable that disables the compiled kernels (any value but '' or '0').
+DISABLE_ENV = 'KENTREG_NO_JIT'
+
+_module: ModuleType | None = None
+
+
+def enabled() -> bool:
+    """Whether the compiled kernels are used: numba is installed and not disabled."""
+    if os.environ.get(DISABLE_ENV, '') not in ('', '0'):
+        return False
+    return importlib.util.find_spec('numba') is not None
+
+
+def _jit() -> ModuleType:
+    global _module
+    if _module is None:
+        from kentreg_ros.core import _jit as module  # compiles on first call of each kernel
+
+        _module = module
+    return _module
+
+
+def neighbourhood_covariances(centred: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
+    """``(xx, xy, xz, yy, yz, zz)`` of each neighbourhood of the centred points (M, 6)."""
+    out: FloatArray = _jit().neighbourhood_covariances(
+        np.ascontiguousarray(centred, dtype=np.float64), np.ascontiguousarray(neighbors)
+    )
+    return out
+
+
+def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
+    """Cosine between each normal and the mean normal of its neighbourhood (M,)."""
+    out: FloatArray = _jit().normal_consistency(
+        np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(neighbors)
+    )
+    return out
+
+
+def assign_and_sum(
+    xs: FloatArray, weighted: FloatArray, centers: FloatArray
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """Labels (nearest centre by cosine) and per-centre sums of ``weighted`` (3, N)."""
+    labels, sums = _jit().assign_and_sum(
+        np.ascontiguousarray(xs, dtype=np.float64),
+        np.ascontiguousarray(weighted, dtype=np.float64),
+        np.ascontiguousarray(centers, dtype=np.float64),
+    )
+    return labels, sums
+
+
+def certified_distances(
+    x: FloatArray,
+    x0: FloatArray,
+    radius: FloatArray,
+    idx: NDArray[np.intp],
+    target: FloatArray,
+    gate: float,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Distance to the cached neighbour and whether the cache certifies it (N,), (N,)."""
+    dist, valid = _jit().certified_distances(
+        np.ascontiguousarray(x, dtype=np.float64), x0, radius, idx, target, float(gate)
+    )
+    return dist, valid
+
+
+def cluster_moments(
+    normals: FloatArray, labels: NDArray[np.intp], k: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-cluster count (K,), resultant (K, 3) and scatter (K, 3, 3) of unit normals."""
+    mass, xsum, scatter = _jit().cluster_moments(
+        np.ascontiguousarray(normals, dtype=np.float64),
+        np.ascontiguousarray(labels, dtype=np.intp),
+        int(k),
+    )
+    return mass, xsum, scatter
+
+
+def voxel_keys(
+    points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
+) -> NDArray[np.int64]:
+    """Linear voxel index of every point in the grid of ``span`` cells from ``corner``."""
+    keys: NDArray[np.int64] = _jit().voxel_keys(
+        np.ascontiguousarray(points, dtype=np.float64),
+        float(voxel_size),
+        np.ascontiguousarray(corner, dtype=np.float64),
+        np.ascontiguousarray(span, dtype=np.float64),
+    )
+    return keys
+
+
+def voxel_centroids(
+    points: FloatArray,
+    order: NDArray[np.intp],
+    starts: NDArray[np.intp],
+    counts: NDArray[np.intp],
+    min_points: int,
+) -> FloatArray:
+    """Centroids of the voxels of at least ``min_points`` points (runs of ``order``)."""
+    out: FloatArray = _jit().voxel_centroids(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(order, dtype=np.intp),
+        np.ascontiguousarray(starts, dtype=np.intp),
+        np.ascontiguousarray(counts, dtype=np.intp),
+        int(min_points),
+    )
+    return out
+
+
+def warm_up() -> bool:
+    """Compile (or load from the cache) every kernel now, e.g. when a node starts, so the first
+    scan does not wait for it. Returns whether the kernels are enabled."""
+    if not enabled():
+        return False
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(8, 3))
+    nbrs = np.tile(np.arange(4, dtype=np.intp), (8, 1))
+    neighbourhood_covariances(pts, nbrs)
+    unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    normal_consistency(unit, nbrs)
+    labels, _ = assign_and_sum(unit, np.ascontiguousarray(unit.T), unit[:2])
+    certified_distances(pts, pts, np.ones(8), labels, pts, 1.0)
+    cluster_moments(unit, labels, 2)
+    keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
+    order = np.argsort(keys, kind='stable')
+    voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)
+    return True

@@ -1,0 +1,175 @@
+"""The compiled kernels (numba) against the numpy code they replace.
+
+Each kernel repeats numpy's operations in numpy's order, so on one machine both give the same
+numbers; the tests allow a few units in the last place relative to the data's scale (another
+CPU or compiler may fuse a multiply-add on one side only).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+import pytest
+
+from kentreg_ros.core import kernels
+from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.correspondence import NearestNeighborCache
+from kentreg_ros.core.neighbors import NeighborIndex
+from kentreg_ros.core.normals import (
+    estimate_normals,
+    neighbourhood_covariances,
+    normal_consistency,
+)
+from kentreg_ros.core.preprocess import downsample, voxel_downsample
+from kentreg_ros.core.scan import _cluster_kappa, prepare_scan
+
+pytest.importorskip('numba', reason='numba is not installed (pip install -e .[fast])')
+
+T = TypeVar('T')
+
+#: Units in the last place allowed, relative to the scale of the compared values.
+ULPS = 64
+
+
+def close(a: np.ndarray, b: np.ndarray, scale: float) -> bool:
+    return a.shape == b.shape and bool(np.all(np.abs(a - b) <= ULPS * np.finfo(float).eps * scale))
+
+
+def both(fn: Callable[[], T], monkeypatch: pytest.MonkeyPatch) -> tuple[T, T]:
+    """``fn()`` with the kernels, then with numpy."""
+    monkeypatch.delenv(kernels.DISABLE_ENV, raising=False)
+    assert kernels.enabled()
+    compiled = fn()
+    monkeypatch.setenv(kernels.DISABLE_ENV, '1')
+    assert not kernels.enabled()
+    reference = fn()
+    monkeypatch.delenv(kernels.DISABLE_ENV)
+    return compiled, reference
+
+
+@pytest.fixture(scope='module')
+def cloud() -> np.ndarray:
+    """A seeded scene of noisy planes and scattered returns, 20 m across."""
+    rng = np.random.default_rng(7)
+    planes = []
+    for axis in range(3):
+        p = rng.uniform(-10.0, 10.0, size=(4000, 3))
+        p[:, axis] = rng.normal(scale=0.01, size=4000) + rng.choice([-5.0, 5.0], size=4000)
+        planes.append(p)
+    return np.vstack(planes + [rng.uniform(-10.0, 10.0, size=(600, 3))])
+
+
+def test_kernels_can_be_disabled_by_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(kernels.DISABLE_ENV, '1')
+    assert not kernels.enabled() and kernels.warm_up() is False
+    monkeypatch.setenv(kernels.DISABLE_ENV, '0')
+    assert kernels.enabled() and kernels.warm_up() is True
+
+
+def test_neighbourhood_covariances_match_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    idx = NeighborIndex(cloud).neighbor_indices(cloud[::3], 15)
+    compiled, reference = both(lambda: neighbourhood_covariances(cloud, idx), monkeypatch)
+    assert close(compiled, reference, float(np.abs(cloud).max()) ** 2)
+
+
+def test_normal_consistency_matches_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    est = estimate_normals(cloud, 15)
+    compiled, reference = both(lambda: normal_consistency(est.normals, est.neighbors), monkeypatch)
+    assert close(compiled, reference, 1.0)
+
+
+def test_spherical_kmeans_matches_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    normals = estimate_normals(cloud, 15).normals
+    (lab_c, cen_c), (lab_r, cen_r) = both(
+        lambda: spherical_kmeans(normals, 6, rng=3, restarts=2, sample_size=2000), monkeypatch
+    )
+    assert np.array_equal(lab_c, lab_r)
+    assert close(cen_c, cen_r, 1.0)
+
+
+def test_an_empty_cluster_is_reseeded_the_same_way_with_the_kernels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Normals near two directions and a third starting centre nothing is nearest to: Lloyd's
+    # step leaves it empty and re-seeds it at the worst-fitting normal.
+    rng = np.random.default_rng(2)
+    x = np.repeat(np.eye(3)[:2], 50, axis=0) + rng.normal(scale=0.05, size=(100, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    start = np.eye(3)
+    start[2] = [0.0, 0.0, -1.0]
+    assert np.all(x @ start[2] < np.max(x @ start[:2].T, axis=1))  # the third starts empty
+    (lab_c, cen_c), (lab_r, cen_r) = both(
+        lambda: refine_spherical_kmeans(x, start, max_iterations=1), monkeypatch
+    )
+    assert set(lab_c.tolist()) == {0, 1, 2}
+    assert np.array_equal(lab_c, lab_r)
+    assert close(cen_c, cen_r, 1.0)
+
+
+def test_cluster_moments_match_numpy(cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> None:
+    normals = estimate_normals(cloud, 15).normals
+    labels = np.argmax(np.abs(normals), axis=1) * 2 + (normals.max(axis=1) > 0.5)
+    compiled, reference = both(lambda: _cluster_kappa(normals, labels, 7), monkeypatch)
+    assert reference[6] == 0.0 or np.isfinite(reference[6])  # an empty label is allowed
+    assert close(compiled, reference, float(np.abs(reference).max()))
+
+
+def test_voxel_grid_matches_numpy(cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> None:
+    compiled, reference = both(lambda: voxel_downsample(cloud, 0.37), monkeypatch)
+    assert close(compiled, reference, float(np.abs(cloud).max()))
+    (pc, gc), (pr, gr) = both(
+        lambda: downsample(cloud, voxel_size=0.0, target_points=3000, min_voxel_points=2),
+        monkeypatch,
+    )
+    assert gc == gr
+    assert close(pc, pr, float(np.abs(cloud).max()))
+
+
+def test_nearest_neighbour_cache_matches_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    target = cloud[::2]
+    tree = NeighborIndex(target)
+    rng = np.random.default_rng(1)
+    queries = cloud[1::4] + rng.normal(scale=0.05, size=(len(cloud[1::4]), 3))
+    steps = [rng.normal(scale=s, size=queries.shape) for s in (0.0, 0.01, 0.002, 0.2)]
+
+    def walk() -> list[tuple[np.ndarray, np.ndarray]]:
+        cache = NearestNeighborCache(tree, target, len(queries))
+        out, x = [], queries.copy()
+        for step, gate in zip(steps, (1.0, 0.5, 0.3, 0.3), strict=True):
+            x = x + step
+            out.append(cache.query(x, gate))
+        return out
+
+    compiled, reference = both(walk, monkeypatch)
+    for (dc, ic), (dr, ir) in zip(compiled, reference, strict=True):
+        assert np.array_equal(ic, ir)
+        assert np.array_equal(np.isinf(dc), np.isinf(dr))
+        finite = np.isfinite(dr)
+        assert close(dc[finite], dr[finite], 1.0)
+
+
+def test_prepared_sample_scan_is_the_same_with_and_without_kernels(
+    repo_root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytest.importorskip('rosbags', reason='rosbags is not installed (pip install -e .[io])')
+    from kentreg_ros.io import open_scan_source
+
+    points = next(iter(open_scan_source(repo_root / 'bags' / 'balm_50'))).points
+    compiled, reference = both(lambda: prepare_scan(points, config=KentRegConfig()), monkeypatch)
+    assert compiled.voxel_size == reference.voxel_size
+    assert len(compiled) == len(reference)
+    assert close(compiled.points, reference.points, float(np.abs(points).max()))
+    assert close(compiled.normals, reference.normals, 1.0)
+    assert np.array_equal(compiled.labels, reference.labels)
