@@ -361,6 +361,21 @@ def map_goals_block(odometry: dict[str, Any] | None) -> str | None:
             f'| local map: lower RPE per metre (consecutive scans, stride {s}) '
             f'| {lm_rpe:.2f} % vs {ps_rpe:.2f} % | {_verdict(lm_rpe < ps_rpe)} |'
         )
+    drift = [
+        (s, ps['drift'], lm['drift']) for s, ps, lm in pairs if 'drift' in ps and 'drift' in lm
+    ]
+    if drift:
+        lengths = drift[0][1]['lengths_m']
+        text = ', '.join(
+            f'N={s}: {lm["translation_pct"]:.2f} % vs {ps["translation_pct"]:.2f} %'
+            for s, ps, lm in drift
+        )
+        lower = all(lm['translation_pct'] < ps['translation_pct'] for _, ps, lm in drift)
+        rows.append(
+            '| local map: lower RPE per metre as the KITTI devkit measures it (drift over '
+            f'segments of {lengths[0]:.1f}–{lengths[-1]:.1f} m, every N-th scan) | {text} '
+            f'| {_verdict(lower)} |'
+        )
     seg = [
         (s, ps['rpe_segment'], lm['rpe_segment'])
         for s, ps, lm in pairs
