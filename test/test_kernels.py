@@ -23,6 +23,7 @@ from kentreg_ros.core.normals import (
     estimate_normals,
     neighbourhood_covariances,
     normal_consistency,
+    smallest_eigenpairs_3x3,
 )
 from kentreg_ros.core.preprocess import downsample, voxel_downsample
 from kentreg_ros.core.scan import _cluster_kappa, prepare_scan
@@ -76,6 +77,22 @@ def test_neighbourhood_covariances_match_numpy(
     idx = NeighborIndex(cloud).neighbor_indices(cloud[::3], 15)
     compiled, reference = both(lambda: neighbourhood_covariances(cloud, idx), monkeypatch)
     assert close(compiled, reference, float(np.abs(cloud).max()) ** 2)
+
+
+def test_smallest_eigenpairs_match_numpy_also_where_eigh_takes_over(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    idx = NeighborIndex(cloud).neighbor_indices(cloud, 15)
+    cov = neighbourhood_covariances(cloud, idx)
+    # Matrices the closed form cannot resolve: isotropic, a line, zero.
+    special = np.array([[2.0, 0, 0, 2.0, 0, 2.0], [1.0, 1.0, 0, 1.0, 0, 0], [0.0] * 6])
+    cov = np.vstack([cov, special])
+    compiled, reference = both(lambda: smallest_eigenpairs_3x3(cov), monkeypatch)
+    scale = float(np.abs(cov).max())
+    assert close(compiled[0], reference[0], scale) and close(compiled[2], reference[2], scale)
+    # Unit eigenvectors, sign included (both take the same cross product).
+    assert close(compiled[1], reference[1], 1.0)
+    assert np.allclose(np.linalg.norm(compiled[1], axis=1), 1.0)
 
 
 def test_normal_consistency_matches_numpy(

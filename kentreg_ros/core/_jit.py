@@ -1,9 +1,11 @@
 """numba-compiled loops behind :mod:`kentreg_ros.core.kernels` (imported only through it).
 
 Each kernel performs the same floating-point operations in the same order as the numpy
-expression it replaces (no fast-math, no fused multiply-add), so both give the same bits on the
-same machine; the tests compare them. They are written for one thread (``nogil``: the node's
-worker releases the GIL while one runs).
+expression it replaces (no fast-math; a three-term ``einsum`` is summed as numpy's x86-64 build
+sums it, ``(x + z) + y``); what numpy computes with its own SIMD routines (``**``, ``arccos``)
+stays in numpy. On this project's machines the odometry's poses are bit-identical with and
+without the kernels; the tests compare them within a few units in the last place. They are
+written for one thread (``nogil``: the node's worker releases the GIL while one runs).
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ def normal_consistency(normals, neighbors):  # type: ignore[no-untyped-def]
             my += inv * normals[q, 1]
             mz += inv * normals[q, 2]
         norm = np.sqrt(mx * mx + my * my + mz * mz)
-        dot = normals[i, 0] * mx + normals[i, 1] * my + normals[i, 2] * mz
+        dot = (normals[i, 0] * mx + normals[i, 2] * mz) + normals[i, 1] * my  # einsum's order
         out[i] = dot / max(norm, 1e-12)
     return out
 
@@ -114,13 +116,13 @@ def certified_distances(x, x0, radius, idx, target, gate):  # type: ignore[no-un
         dx = x[i, 0] - x0[i, 0]
         dy = x[i, 1] - x0[i, 1]
         dz = x[i, 2] - x0[i, 2]
-        lower = radius[i] - np.sqrt(dx * dx + dy * dy + dz * dz)
+        lower = radius[i] - np.sqrt((dx * dx + dz * dz) + dy * dy)  # einsum's order
         q = idx[i]
         if q >= 0:
             ex = x[i, 0] - target[q, 0]
             ey = x[i, 1] - target[q, 1]
             ez = x[i, 2] - target[q, 2]
-            d = np.sqrt(ex * ex + ey * ey + ez * ez)
+            d = np.sqrt((ex * ex + ez * ez) + ey * ey)
             dist[i] = d
             valid[i] = d <= lower
         else:
@@ -193,3 +195,86 @@ def voxel_centroids(points, order, starts, counts, min_points):  # type: ignore[
         out[row, 2] = sz / c
         row += 1
     return out
+
+
+@_jit
+def eigen_cubic(cov):  # type: ignore[no-untyped-def]
+    """First part of :func:`~kentreg_ros.core.normals.smallest_eigenpairs_3x3` per matrix:
+    the mean eigenvalue ``m``, ``p`` and the determinant of ``A - m I`` (numpy takes the
+    power and the arccos, whose numpy implementations round differently from libm's)."""
+    n = cov.shape[0]
+    m_out = np.empty(n)
+    p_out = np.empty(n)
+    det_out = np.empty(n)
+    for i in range(n):
+        a = cov[i, 0]
+        b = cov[i, 1]
+        c = cov[i, 2]
+        d = cov[i, 3]
+        e = cov[i, 4]
+        f = cov[i, 5]
+        m = (a + d + f) / 3.0
+        a1 = a - m
+        d1 = d - m
+        f1 = f - m
+        p2 = (a1 * a1 + d1 * d1 + f1 * f1 + 2.0 * (b * b + c * c + e * e)) / 6.0
+        m_out[i] = m
+        p_out[i] = np.sqrt(p2)
+        det_out[i] = a1 * (d1 * f1 - e * e) - b * (b * f1 - e * c) + c * (b * e - d1 * c)
+    return m_out, p_out, det_out
+
+
+@_jit
+def eigen_vectors(cov, m, p, phi, gap_ratio):  # type: ignore[no-untyped-def]
+    """Second half: the smallest and middle eigenvalues, the eigenvector as the largest cross
+    product of two rows of ``A - lambda_min I``, and which matrices need ``eigh``."""
+    n = cov.shape[0]
+    evals = np.empty(n)
+    mid = np.empty(n)
+    vecs = np.empty((n, 3))
+    hard = np.empty(n, dtype=np.bool_)
+    third = 2.0 * np.pi / 3.0
+    for i in range(n):
+        a = cov[i, 0]
+        b = cov[i, 1]
+        c = cov[i, 2]
+        d = cov[i, 3]
+        e = cov[i, 4]
+        f = cov[i, 5]
+        l_max = m[i] + 2.0 * p[i] * np.cos(phi[i])
+        l_min = m[i] + 2.0 * p[i] * np.cos(phi[i] + third)
+        l_mid = 3.0 * m[i] - l_max - l_min
+        r00 = a - l_min
+        r11 = d - l_min
+        r22 = f - l_min
+        # cross(r0, r1), cross(r0, r2), cross(r1, r2) with r0 = (r00, b, c), r1 = (b, r11, e),
+        # r2 = (c, e, r22), as cross_rows computes them.
+        x0 = b * e - c * r11
+        y0 = c * b - r00 * e
+        z0 = r00 * r11 - b * b
+        x1 = b * r22 - c * e
+        y1 = c * c - r00 * r22
+        z1 = r00 * e - b * c
+        x2 = r11 * r22 - e * e
+        y2 = e * c - b * r22
+        z2 = b * e - r11 * c
+        n0 = (x0 * x0 + z0 * z0) + y0 * y0  # einsum's order of the three terms
+        n1 = (x1 * x1 + z1 * z1) + y1 * y1
+        n2 = (x2 * x2 + z2 * z2) + y2 * y2
+        if n0 >= n1 and n0 >= n2:
+            vx, vy, vz, nn = x0, y0, z0, n0
+        elif n1 >= n2:
+            vx, vy, vz, nn = x1, y1, z1, n1
+        else:
+            vx, vy, vz, nn = x2, y2, z2, n2
+        norm = np.sqrt(nn)
+        scale = max(abs(l_max), abs(l_min))
+        h = p[i] <= 0.0 or l_mid - l_min <= gap_ratio * scale or not norm > 0.0
+        div = 1.0 if h else norm
+        vecs[i, 0] = vx / div
+        vecs[i, 1] = vy / div
+        vecs[i, 2] = vz / div
+        evals[i] = l_min
+        mid[i] = l_mid
+        hard[i] = h
+    return evals, vecs, mid, hard

@@ -131,6 +131,22 @@ def voxel_centroids(
     return out
 
 
+def smallest_eigenpairs_3x3(
+    cov: FloatArray, gap_ratio: float
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Smallest eigenvalue, its unit eigenvector and the middle eigenvalue of each symmetric
+    3x3 matrix ``(xx, xy, xz, yy, yz, zz)``, and the matrices whose eigenvector is not
+    resolved by the closed form (see :func:`~kentreg_ros.core.normals.smallest_eigenpairs_3x3`;
+    the power and arccos between the two loops are numpy's, so the numbers are numpy's)."""
+    jit = _jit()
+    c = np.ascontiguousarray(cov, dtype=np.float64)
+    m, p, det = jit.eigen_cubic(c)
+    safe_p = np.where(p > 0.0, p, 1.0)
+    phi = np.arccos(np.clip(0.5 * det / safe_p**3, -1.0, 1.0)) / 3.0
+    evals, vecs, mid, hard = jit.eigen_vectors(c, m, p, phi, float(gap_ratio))
+    return evals, vecs, mid, hard
+
+
 def warm_up() -> bool:
     """Compile (or load from the cache) every kernel now, e.g. when a node starts, so the first
     scan does not wait for it. Returns whether the kernels are enabled."""
@@ -139,7 +155,7 @@ def warm_up() -> bool:
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(8, 3))
     nbrs = np.tile(np.arange(4, dtype=np.intp), (8, 1))
-    neighbourhood_covariances(pts, nbrs)
+    smallest_eigenpairs_3x3(neighbourhood_covariances(pts, nbrs), 1e-6)
     unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     normal_consistency(unit, nbrs)
     labels, _ = assign_and_sum(unit, np.ascontiguousarray(unit.T), unit[:2])

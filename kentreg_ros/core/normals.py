@@ -165,6 +165,9 @@ def smallest_eigenpairs_3x3(
     mid : ndarray, shape (N,)
         Middle eigenvalues.
     """
+    if kernels.enabled():
+        evals, evecs, mid, hard = kernels.smallest_eigenpairs_3x3(cov, gap_ratio)
+        return _eigh_where_hard(cov, hard, evals, evecs, mid)
     a, b, c, d, e, f = (cov[:, i] for i in range(6))
     m = (a + d + f) / 3.0
     a1, d1, f1 = a - m, d - m, f - m
@@ -188,8 +191,17 @@ def smallest_eigenpairs_3x3(
     scale = np.maximum(np.abs(l_max), np.abs(l_min))
     hard = (p <= 0.0) | (l_mid - l_min <= gap_ratio * scale) | ~(vec_norm > 0.0)
     evecs = vec / np.where(hard, 1.0, vec_norm)[:, None]
-    evals = l_min
-    mid = l_mid
+    return _eigh_where_hard(cov, hard, l_min, evecs, l_mid)
+
+
+def _eigh_where_hard(
+    cov: FloatArray,
+    hard: NDArray[np.bool_],
+    evals: FloatArray,
+    evecs: FloatArray,
+    mid: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The closed form's results with ``numpy.linalg.eigh``'s where ``hard``."""
     if hard.any():
         full = np.empty((int(hard.sum()), 3, 3))
         sub = cov[hard]
