@@ -31,7 +31,8 @@ are evaluated against the same reference poses with the replay's own metrics
 Metrics per pipeline: per-pair ``e_R``, ``e_t`` (median, max; a pair fails when ``e_R > 2 deg``
 or ``e_t > 0.2 m``), RPE per frame (rotation and translation rmse), RPE per metre (translation
 in %, rotation in deg/m, rmse over pairs that moved at least 5 cm), drift per metre over
-segments of the path as the KITTI devkit measures it (:func:`drift_per_metre`), ATE rmse after
+segments of the path as the KITTI devkit measures it
+(:func:`kentreg_ros.eval.kitti.drift_per_metre`), ATE rmse after
 SE(3) (Umeyama)
 alignment, and milliseconds per scan (mean, p95: everything a pipeline does with one scan,
 preprocessing included, reading excluded). Each pipeline first processes the first two scans
@@ -77,7 +78,6 @@ from kentreg_ros.core.config import KentRegConfig  # noqa: E402
 from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: E402
 from kentreg_ros.core.registration import prepare_scan  # noqa: E402
 from kentreg_ros.eval import GroundTruth, associate, evaluate, metrics, run_odometry  # noqa: E402
-from kentreg_ros.eval.kitti import KITTI_LENGTHS, kitti_segment_errors  # noqa: E402
 from kentreg_ros.io.bags import Scan, open_recording  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
 
@@ -358,41 +358,12 @@ def evaluate_pipeline(
             'rotation_deg': metrics.summarize(seg['e_R_deg']),
             'translation_m': metrics.summarize(seg['e_t']),
         }
-    drift = drift_per_metre(T_est, T_gt)
-    if drift is not None:
-        result['drift'] = drift
     result['n_matched'] = len(scan_rows)
     result['speed'] = {
         'ms_per_scan': metrics.summarize(run.ms_per_scan),
         'points_used_per_scan': metrics.summarize(run.points_used),
     }
     return result, scan_rows, T_gt
-
-
-def drift_lengths(path_m: float) -> tuple[float, ...]:
-    """Segment lengths of the drift metric: KITTI's 100-800 m, scaled down to a recording
-    shorter than 1.6 km so that they keep the devkit's proportions (the longest segment half
-    the path, eight lengths); 0.61-4.9 m on the 9.75 m sample."""
-    scale = min(1.0, path_m / (2.0 * KITTI_LENGTHS[-1]))
-    return tuple(scale * length for length in KITTI_LENGTHS)
-
-
-def drift_per_metre(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any] | None:
-    """RPE per metre as the KITTI devkit measures it (translation %, rotation deg/m averaged
-    over every segment of :func:`drift_lengths`, every frame a first frame): the drift over a
-    stretch of the path. Between consecutive scans of the sample (5 cm median) the per-metre
-    ratio is dominated by the reference's millimetre noise."""
-    path = float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1)))
-    lengths = drift_lengths(path)
-    res = kitti_segment_errors(T_est, T_gt, lengths, step=1)
-    if res is None:
-        return None
-    return {
-        'lengths_m': list(lengths),
-        'n_segments': int(res['n_segments']),
-        'translation_pct': float(res['t_err_pct']),
-        'rotation_deg_per_m': float(res['r_err_deg_per_m']),
-    }
 
 
 def _num(value: Any, spec: str) -> str:

@@ -9,7 +9,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.core.errors import DegenerateSceneError
-from kentreg_ros.eval.kitti import KITTI_LENGTHS, kitti_segment_errors
+from kentreg_ros.eval.kitti import (
+    KITTI_LENGTHS,
+    drift_per_metre,
+    kitti_segment_errors,
+    scaled_lengths,
+)
 from kentreg_ros.eval.metrics import (
     FAIL_ROTATION_DEG,
     FAIL_TRANSLATION_M,
@@ -413,3 +418,27 @@ def test_as_poses_rejects_nonfinite_and_transposed_matrices() -> None:
         as_poses(T.transpose(0, 2, 1), 'T_gt')
     with pytest.raises(ValueError, match='Expected `T_est` to have shape \\(N, 4, 4\\), got'):
         as_poses([[1, 2], [3, 4]], 'T_est')
+
+
+def test_scaled_lengths_keep_kittis_proportions_below_1600_m() -> None:
+    assert scaled_lengths(5000.0) == KITTI_LENGTHS
+    assert scaled_lengths(1600.0) == pytest.approx(KITTI_LENGTHS)
+    short = scaled_lengths(9.75)
+    assert short[-1] == pytest.approx(9.75 / 2.0)
+    assert np.allclose(np.array(short) / short[0], np.array(KITTI_LENGTHS) / KITTI_LENGTHS[0])
+
+
+def test_drift_per_metre_of_a_scale_drift_on_a_short_run() -> None:
+    # 3 % scale drift on a 59 m line: every segment is 3 % off in translation, whatever its
+    # length (the devkit's "first frame beyond L" adds 1 m / L), no rotation error.
+    drift = drift_per_metre(straight_line(60, 1.03), straight_line(60, 1.0))
+    assert drift is not None
+    assert drift['lengths_m'] == pytest.approx(scaled_lengths(59.0))
+    assert drift['n_segments'] > 8 * 30
+    assert 3.0 < drift['translation_pct'] < 3.0 * (1.0 + 1.0 / drift['lengths_m'][0])
+    assert drift['rotation_deg_per_m'] == pytest.approx(0.0, abs=1e-9)
+    assert drift_per_metre(straight_line(60, 1.0), straight_line(60, 1.0))['translation_pct'] == (
+        pytest.approx(0.0, abs=1e-9)
+    )
+    stand_still = np.repeat(np.eye(4)[None], 5, axis=0)
+    assert drift_per_metre(stand_still, stand_still) is None

@@ -172,3 +172,48 @@ def kitti_segment_errors(
         segment_t_err_pct=t_all,
         segment_r_err_deg_per_m=r_all,
     )
+
+
+class DriftResult(TypedDict):
+    """RPE per metre over segments of the path (see :func:`drift_per_metre`)."""
+
+    lengths_m: list[float]
+    n_segments: int
+    translation_pct: float
+    rotation_deg_per_m: float
+
+
+def scaled_lengths(path_m: float) -> tuple[float, ...]:
+    """KITTI's segment lengths for a trajectory of ``path_m`` metres: 100-800 m from 1.6 km of
+    travel on, scaled down in proportion below it (the longest segment half the path, eight
+    lengths), e.g. 0.61-4.9 m for a 9.75 m run."""
+    scale = min(1.0, float(path_m) / (2.0 * KITTI_LENGTHS[-1]))
+    return tuple(scale * length for length in KITTI_LENGTHS)
+
+
+def drift_per_metre(T_est: ArrayLike, T_gt: ArrayLike) -> DriftResult | None:
+    """RPE per metre as the KITTI devkit measures it, on runs of any length.
+
+    :func:`kitti_segment_errors` over :func:`scaled_lengths` of the ground-truth path, every
+    frame a first frame: the drift over stretches of the path. On a run shorter than 1.6 km the
+    numbers are not comparable with the KITTI leaderboard, but they compare pipelines on the
+    same run; unlike the per-metre error of consecutive pairs (:func:`~kentreg_ros.eval.
+    metrics.rpe_per_metre`) they are not dominated by the reference's noise when the sensor
+    moves centimetres between scans. None when the run has fewer than 2 poses or no path.
+    """
+    est, gt = _as_pose_pair(T_est, T_gt, ('T_est', 'T_gt'))
+    if est.shape[0] < 2:
+        return None
+    path = float(_path_length(gt)[-1])
+    if not path > 0.0:
+        return None
+    lengths = scaled_lengths(path)
+    res = kitti_segment_errors(est, gt, lengths, step=1)
+    if res is None:
+        return None
+    return DriftResult(
+        lengths_m=list(lengths),
+        n_segments=int(res['n_segments']),
+        translation_pct=float(res['t_err_pct']),
+        rotation_deg_per_m=float(res['r_err_deg_per_m']),
+    )

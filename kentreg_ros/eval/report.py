@@ -77,7 +77,9 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
     -------
     dict
         JSON-ready (arrays as lists); ``ate`` is None below 3 poses and ``kitti`` None when the
-        run does not fill a 100 m segment (``kitti_note`` says why). A pair fails as
+        run does not fill a 100 m segment (``kitti_note`` says why); ``drift`` is
+        :func:`~kentreg_ros.eval.kitti.drift_per_metre` (the same metric at lengths scaled to
+        the run; None without a path). A pair fails as
         :func:`~kentreg_ros.eval.metrics.failed_pairs` says.
     """
     e_R, e_t = metrics.pair_errors(metrics.relative_poses(T_est), metrics.relative_poses(T_gt))
@@ -125,6 +127,7 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
             'max': ate['max'],
             'T_gt_est': ate['T_gt_est'].tolist(),
         }
+    out['drift'] = kitti.drift_per_metre(T_est, T_gt)
     segments = kitti.kitti_segment_errors(T_est, T_gt)
     out['kitti'] = None
     if segments is None:
@@ -303,6 +306,14 @@ def _ground_truth_lines(gt: dict[str, Any]) -> list[str]:
             else 'not computed (fewer than 3 poses)'
         )
     )
+    drift = gt.get('drift')
+    if drift is not None:
+        lines.append(
+            f'  drift/metre    {drift["translation_pct"]:.2f} %, '
+            f'{drift["rotation_deg_per_m"]:.4f} deg/m over segments of '
+            f'{drift["lengths_m"][0]:.3g}-{drift["lengths_m"][-1]:.3g} m '
+            "(KITTI's metric at lengths scaled to the run)"
+        )
     segments = gt['kitti']
     lines.append(
         '  KITTI          '
