@@ -21,9 +21,10 @@ previous-scan odometry over the same raw scans (``../shared/data/balm``: 72k-90k
     sensor's range): its voxel grid, adaptive threshold, constant-velocity model and local map.
 
 Reported per method: p50 / p95 / max of the wall time per scan (the first scan, which only
-prepares, excluded), the growth of the process's peak resident memory over the run (above what
-it held once the library was imported and the scan file opened: what the method itself keeps
-and allocates), and the pair errors against the
+prepares, excluded), the process's resident memory once the method is set up (its libraries
+imported, kentreg's compiled kernels loaded, the scan file opened) and at its peak, the growth
+of the peak over the run (what the method itself keeps and allocates), and the pair errors
+against the
 reference poses (median e_R / e_t and failures, e_R > 2 deg or e_t > 0.2 m). Ratios to GICP come
 from the same run; the methods run in ``--rounds`` rounds in rotated order and the JSON keeps
 every round, so a load change on the shared machine does not land on one method only.
@@ -214,6 +215,7 @@ def run_worker(method: str, scans_file: Path, out_file: Path, steps: int = 0) ->
             {
                 'ms': ms,
                 'poses': np.array(poses).tolist(),
+                'start_rss_mb': base_mb,
                 'peak_rss_mb': peak_mb,
                 'peak_growth_mb': peak_mb - base_mb,
                 'rss_mb': rss,
@@ -271,20 +273,23 @@ def markdown(report: dict[str, Any]) -> str:
         f'Per-scan odometry on {meta["n_scans"]} raw BALM scans ({meta["points"]}), one thread '
         f'per method, {meta["rounds"]} rounds; the first scan (prepare only) excluded.',
         '',
-        '| method | p50 ms/scan | p95 | max | ratio to GICP (p50) | peak memory growth MB '
+        '| method | p50 ms/scan | p95 | max | ratio to GICP (p50) '
+        '| resident MB once started / peak | peak memory growth MB '
         f'| memory growth over the second half of {meta.get("long_steps") or "–"} steps MB: '
         'live numpy/Python (tracemalloc) / resident '
         '| median e_R (deg) | median e_t (mm) | failed pairs |',
-        '|---|---|---|---|---|---|---|---|---|---|',
+        '|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for name, r in report['methods'].items():
         t = r['ms_per_scan']
+        start = r.get('start_rss_mb')
+        resident = f'{start:.0f} / {r["peak_rss_mb"]:.0f}' if start is not None else '–'
         ratio = f'{t["p50"] / base:.2f}×' if base else '–'
         lr = r.get('long_run')
         growth = f'{lr["growth_mb"]:.2f} / {lr["rss_growth_mb"]:.1f}' if lr else '–'
         lines.append(
             f'| {name} | {t["p50"]:.1f} | {t["p95"]:.1f} | {t["max"]:.1f} | {ratio} '
-            f'| {r["peak_growth_mb"]:.0f} | {growth} | {r["e_R_deg_median"]:.3f} '
+            f'| {resident} | {r["peak_growth_mb"]:.0f} | {growth} | {r["e_R_deg_median"]:.3f} '
             f'| {1e3 * r["e_t_m_median"]:.1f} | {r["failures"]}/{r["n_pairs"]} |'
         )
     lines += ['', f'Run at {meta["git"]}; load average {meta["load"]} at the start.', '']
@@ -349,6 +354,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for method, s in samples.items():
         first = s['rounds'][0]
         summary = summarize([first['ms'][0], *s['ms']], np.array(first['poses']), truth)
+        summary['start_rss_mb'] = max(r['start_rss_mb'] for r in s['rounds'])
         summary['peak_rss_mb'] = max(r['peak_rss_mb'] for r in s['rounds'])
         summary['peak_growth_mb'] = max(r['peak_growth_mb'] for r in s['rounds'])
         summary['rounds_p50'] = [float(np.median(r['ms'][1:])) for r in s['rounds']]
