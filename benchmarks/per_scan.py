@@ -9,6 +9,9 @@ previous-scan odometry over the same raw scans (``../shared/data/balm``: 72k-90k
     ``kentreg_ros.core.odometry.Odometry(KentRegConfig())`` as is: automatic voxel size,
     normals, clusters, the registration from the constant-velocity prediction, and the start-free
     search whenever a step is doubtful (its cost is in the scans that needed it).
+``kentreg_numpy``
+    The same without the compiled kernels (``KENTREG_NO_JIT=1``, numpy only; the same
+    results): what the ``fast`` extra's numba pays, in time and memory.
 ``gicp``
     small_gicp: ``preprocess_points`` on the raw scan (its own voxel grid at 0.25 m, 10
     covariance neighbours, KD-tree), ``align`` (GICP) to the cached previous scan from the
@@ -42,6 +45,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import subprocess
 import sys
 import tempfile
@@ -73,7 +77,7 @@ from kentreg_ros.core.rotations import invert_transform  # noqa: E402
 FloatArray = NDArray[np.float64]
 logger = logging.getLogger('per_scan')
 
-METHODS = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
+METHODS = ('kentreg', 'kentreg_numpy', 'gicp', 'icp_pt2pl', 'kiss_icp')
 #: The peers' voxel edge on BALM (the edge giving ~10k points on a raw scan, as in the other
 #: benchmarks) and their neighbour counts (small_gicp's and Open3D's usual values).
 PEER_VOXEL = 0.25
@@ -172,8 +176,16 @@ def _kiss_icp() -> Callable[[FloatArray, int], FloatArray]:
     return step
 
 
+def _kentreg_numpy() -> Callable[[FloatArray, int], FloatArray]:
+    from kentreg_ros.core import kernels
+
+    os.environ[kernels.DISABLE_ENV] = '1'  # this worker process only
+    return _kentreg()
+
+
 FACTORIES: dict[str, Callable[[], Callable[[FloatArray, int], FloatArray]]] = {
     'kentreg': _kentreg,
+    'kentreg_numpy': _kentreg_numpy,
     'gicp': _gicp,
     'icp_pt2pl': _icp_pt2pl,
     'kiss_icp': _kiss_icp,
