@@ -7,6 +7,8 @@ CPU or compiler may fuse a multiply-add on one side only).
 
 from __future__ import annotations
 
+import logging
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -14,6 +16,7 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
+import kentreg_ros.core
 from kentreg_ros.core import kernels
 from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
@@ -69,6 +72,24 @@ def test_kernels_can_be_disabled_by_the_environment(monkeypatch: pytest.MonkeyPa
     assert not kernels.enabled() and kernels.warm_up() is False
     monkeypatch.setenv(kernels.DISABLE_ENV, '0')
     assert kernels.enabled() and kernels.warm_up() is True
+
+
+def test_kernels_that_cannot_compile_fall_back_to_numpy_with_one_warning(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, cloud: np.ndarray
+) -> None:
+    monkeypatch.delenv(kernels.DISABLE_ENV, raising=False)
+    monkeypatch.setattr(kernels, '_loaded', None)  # not tried yet
+    monkeypatch.setattr(kernels, '_module', None)
+    monkeypatch.setitem(sys.modules, 'kentreg_ros.core._jit', None)  # its import fails
+    monkeypatch.delattr(kentreg_ros.core, '_jit', raising=False)
+    with caplog.at_level(logging.WARNING, logger='kentreg_ros.core.kernels'):
+        assert not kernels.enabled()
+        assert not kernels.warm_up()
+        idx = NeighborIndex(cloud).neighbor_indices(cloud, 15)
+        cov = neighbourhood_covariances(cloud, idx)  # the numpy code, no error
+    assert cov.shape == (len(cloud), 6) and np.isfinite(cov).all()
+    warnings = [r for r in caplog.records if 'using numpy' in r.getMessage()]
+    assert len(warnings) == 1
 
 
 def test_neighbourhood_covariances_match_numpy(

@@ -8,18 +8,25 @@ pass. ``benchmarks/per_scan.py`` measures what it pays. Without numba (or with
 ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both give the same bits on one
 machine (the kernels repeat numpy's operations in numpy's order; ``test/test_kernels.py``).
 
-numba is imported, and the kernels compiled (cached on disk after the first run, ~1 s), on
-first use, not when :mod:`kentreg_ros.core` is imported; :func:`warm_up` does it ahead of time.
+numba is imported, and every kernel compiled (cached on disk after the first run: ~3 s the first
+time, ~1 s after), at the first use, not when :mod:`kentreg_ros.core` is imported;
+:func:`warm_up` does it ahead of time (:class:`~kentreg_ros.core.odometry.Odometry` calls it).
+If numba is installed but cannot compile or cache them (e.g. an unsupported platform, or no
+writable cache directory), one warning is logged and the numpy code runs.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
+import threading
 from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
+
+logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
@@ -27,21 +34,49 @@ FloatArray = NDArray[np.float64]
 DISABLE_ENV = 'KENTREG_NO_JIT'
 
 _module: ModuleType | None = None
+_loaded: bool | None = None  # None: not tried yet; then whether the kernels compiled
+_lock = threading.Lock()
 
 
 def enabled() -> bool:
-    """Whether the compiled kernels are used: numba is installed and not disabled."""
+    """Whether the compiled kernels are used: numba is installed, not disabled by
+    ``KENTREG_NO_JIT``, and the kernels compiled (tried once, at the first call)."""
     if os.environ.get(DISABLE_ENV, '') not in ('', '0'):
         return False
-    return importlib.util.find_spec('numba') is not None
+    if _loaded is None:
+        _load()
+    return bool(_loaded)
+
+
+def _load() -> None:
+    global _module, _loaded
+    with _lock:
+        if _loaded is not None:
+            return
+        if importlib.util.find_spec('numba') is None:
+            _loaded = False
+            return
+        try:
+            from kentreg_ros.core import _jit as module
+
+            _module = module
+            _compile_all()
+        except Exception as exc:  # numba raises several types; any means: use numpy
+            _module = None
+            _loaded = False
+            logger.warning(
+                'numba is installed but the compiled kernels are unavailable (%s: %s); using '
+                'numpy (same results, slower).',
+                type(exc).__name__,
+                exc,
+            )
+            return
+        _loaded = True
 
 
 def _jit() -> ModuleType:
-    global _module
     if _module is None:
-        from kentreg_ros.core import _jit as module  # compiles on first call of each kernel
-
-        _module = module
+        raise RuntimeError('The compiled kernels are not loaded; check kernels.enabled() first.')
     return _module
 
 
@@ -149,9 +184,12 @@ def smallest_eigenpairs_3x3(
 
 def warm_up() -> bool:
     """Compile (or load from the cache) every kernel now, e.g. when a node starts, so the first
-    scan does not wait for it. Returns whether the kernels are enabled."""
-    if not enabled():
-        return False
+    scan does not wait for it. Returns whether the kernels are used."""
+    return enabled()
+
+
+def _compile_all() -> None:
+    """Run every kernel once on a tiny input (numba compiles at the first call)."""
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(8, 3))
     nbrs = np.tile(np.arange(4, dtype=np.intp), (8, 1))
@@ -164,4 +202,3 @@ def warm_up() -> bool:
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
     order = np.argsort(keys, kind='stable')
     voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)
-    return True
