@@ -205,6 +205,9 @@ def _local(
             neighbors=neighbors,
         )
         t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
+        # One gate schedule across both stages: the translation stage has shrunk the gate while
+        # it placed the source; the refinement goes on from there instead of re-opening it to
+        # max_gate (paired on the 49 sample pairs: same errors, ~10 % less registration time).
         refine_gate = min(refine_gate, max(tres.gate, gates.min_gate))
         inlier = tres.inlier_fraction
         iterations += tres.iterations
