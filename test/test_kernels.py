@@ -72,6 +72,9 @@ def test_kernels_can_be_disabled_by_the_environment(monkeypatch: pytest.MonkeyPa
     assert not kernels.enabled() and kernels.warm_up() is False
     monkeypatch.setenv(kernels.DISABLE_ENV, '0')
     assert kernels.enabled() and kernels.warm_up() is True
+    # numba's own switch would leave the loops interpreted, far slower than numpy.
+    monkeypatch.setenv('NUMBA_DISABLE_JIT', '1')
+    assert not kernels.enabled()
 
 
 def test_kernels_that_cannot_compile_fall_back_to_numpy_with_one_warning(

@@ -39,10 +39,13 @@ _lock = threading.Lock()
 
 
 def enabled() -> bool:
-    """Whether the compiled kernels are used: numba is installed, not disabled by
-    ``KENTREG_NO_JIT``, and the kernels compiled (tried once, at the first call)."""
+    """Whether the compiled kernels are used: numba is installed, neither ``KENTREG_NO_JIT``
+    nor numba's own ``NUMBA_DISABLE_JIT`` is set, and the kernels compiled (tried once, at the
+    first call)."""
     if os.environ.get(DISABLE_ENV, '') not in ('', '0'):
         return False
+    if os.environ.get('NUMBA_DISABLE_JIT', '') not in ('', '0'):
+        return False  # numba would run the loops as Python: far slower than numpy
     if _loaded is None:
         _load()
     return bool(_loaded)
