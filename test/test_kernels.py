@@ -1,8 +1,10 @@
 """The compiled kernels (numba) against the numpy code they replace.
 
-Each kernel repeats numpy's operations in numpy's order, so on one machine both give the same
-numbers; the tests allow a few units in the last place relative to the data's scale (another
-CPU or compiler may fuse a multiply-add on one side only).
+Each kernel repeats numpy's operations in numpy's order, so on this project's machines both give
+the same numbers. The bounds hold on any CPU: a few units in the last place relative to the
+data's scale, where another CPU or compiler may only sum in another order or fuse a
+multiply-add on one side; divided by the eigen-gap where a result amplifies such differences
+(eigenvectors); by the number of summed points for means.
 """
 
 from __future__ import annotations
@@ -114,8 +116,12 @@ def test_smallest_eigenpairs_match_numpy_also_where_eigh_takes_over(
     compiled, reference = both(lambda: smallest_eigenpairs_3x3(cov), monkeypatch)
     scale = float(np.abs(cov).max())
     assert close(compiled[0], reference[0], scale) and close(compiled[2], reference[2], scale)
-    # Unit eigenvectors, sign included (both take the same cross product).
-    assert close(compiled[1], reference[1], 1.0)
+    # Unit eigenvectors, sign included (both take the same cross product), each as sensitive
+    # to rounding as the matrix's scale over its eigen-gap (where the gap vanishes, both take
+    # numpy's eigh).
+    gap = np.maximum(reference[2] - reference[0], 1e-300)
+    bound = ULPS * np.finfo(float).eps * np.minimum(scale / gap, 1e12)
+    assert np.all(np.abs(compiled[1] - reference[1]) <= bound[:, None])
     assert np.allclose(np.linalg.norm(compiled[1], axis=1), 1.0)
 
 
@@ -167,13 +173,14 @@ def test_cluster_moments_match_numpy(cloud: np.ndarray, monkeypatch: pytest.Monk
 
 def test_voxel_grid_matches_numpy(cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> None:
     compiled, reference = both(lambda: voxel_downsample(cloud, 0.37), monkeypatch)
-    assert close(compiled, reference, float(np.abs(cloud).max()))
+    # Means of up to a few hundred points each, possibly summed in another order.
+    assert close(compiled, reference, 1e3 * float(np.abs(cloud).max()))
     (pc, gc), (pr, gr) = both(
         lambda: downsample(cloud, voxel_size=0.0, target_points=3000, min_voxel_points=2),
         monkeypatch,
     )
     assert gc == gr
-    assert close(pc, pr, float(np.abs(cloud).max()))
+    assert close(pc, pr, 1e3 * float(np.abs(cloud).max()))
 
 
 def test_nearest_neighbour_cache_matches_numpy(
@@ -211,6 +218,8 @@ def test_prepared_sample_scan_is_the_same_with_and_without_kernels(
     compiled, reference = both(lambda: prepare_scan(points, config=KentRegConfig()), monkeypatch)
     assert compiled.voxel_size == reference.voxel_size
     assert len(compiled) == len(reference)
-    assert close(compiled.points, reference.points, float(np.abs(points).max()))
-    assert close(compiled.normals, reference.normals, 1.0)
+    assert close(compiled.points, reference.points, 1e3 * float(np.abs(points).max()))
+    # A billionth of a radian: rounding amplified by any kept neighbourhood's conditioning
+    # stays far below it, and any real difference in the normals far above.
+    assert np.abs(compiled.normals - reference.normals).max() < 1e-9
     assert np.array_equal(compiled.labels, reference.labels)

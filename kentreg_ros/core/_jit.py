@@ -1,11 +1,13 @@
 """numba-compiled loops behind :mod:`kentreg_ros.core.kernels` (imported only through it).
 
 Each kernel performs the same floating-point operations in the same order as the numpy
-expression it replaces (no fast-math; a three-term ``einsum`` is summed as numpy's x86-64 build
-sums it, ``(x + z) + y``); what numpy computes with its own SIMD routines (``**``, ``arccos``)
-stays in numpy. On this project's machines the odometry's poses are bit-identical with and
-without the kernels; the tests compare them within a few units in the last place. They are
-written for one thread (``nogil``: the node's worker releases the GIL while one runs).
+expression it replaces (no fast-math, so no fused multiply-add; a three-term ``einsum`` is summed
+as numpy's x86-64 build sums it, ``(x + z) + y``). Only IEEE-exact operations (+, -, *, /, sqrt)
+run here: what numpy computes with its own SIMD routines, which round differently by CPU
+(``**``, ``arccos``, ``cos``, ``exp``), stays in numpy. On this project's machines the
+odometry's poses are bit-identical with and without the kernels; the tests compare them within
+bounds that hold on any CPU. They are written for one thread (``nogil``: the node's worker
+releases the GIL while one runs).
 """
 
 from __future__ import annotations
@@ -225,15 +227,15 @@ def eigen_cubic(cov):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def eigen_vectors(cov, m, p, phi, gap_ratio):  # type: ignore[no-untyped-def]
+def eigen_vectors(cov, m, p, cos_max, cos_min, gap_ratio):  # type: ignore[no-untyped-def]
     """Second half: the smallest and middle eigenvalues, the eigenvector as the largest cross
-    product of two rows of ``A - lambda_min I``, and which matrices need ``eigh``."""
+    product of two rows of ``A - lambda_min I``, and which matrices need ``eigh``; the cosines
+    of the cubic's angles come from numpy, so only IEEE-exact operations remain here."""
     n = cov.shape[0]
     evals = np.empty(n)
     mid = np.empty(n)
     vecs = np.empty((n, 3))
     hard = np.empty(n, dtype=np.bool_)
-    third = 2.0 * np.pi / 3.0
     for i in range(n):
         a = cov[i, 0]
         b = cov[i, 1]
@@ -241,8 +243,8 @@ def eigen_vectors(cov, m, p, phi, gap_ratio):  # type: ignore[no-untyped-def]
         d = cov[i, 3]
         e = cov[i, 4]
         f = cov[i, 5]
-        l_max = m[i] + 2.0 * p[i] * np.cos(phi[i])
-        l_min = m[i] + 2.0 * p[i] * np.cos(phi[i] + third)
+        l_max = m[i] + 2.0 * p[i] * cos_max[i]
+        l_min = m[i] + 2.0 * p[i] * cos_min[i]
         l_mid = 3.0 * m[i] - l_max - l_min
         r00 = a - l_min
         r11 = d - l_min

@@ -175,13 +175,15 @@ def smallest_eigenpairs_3x3(
     """Smallest eigenvalue, its unit eigenvector and the middle eigenvalue of each symmetric
     3x3 matrix ``(xx, xy, xz, yy, yz, zz)``, and the matrices whose eigenvector is not
     resolved by the closed form (see :func:`~kentreg_ros.core.normals.smallest_eigenpairs_3x3`;
-    the power and arccos between the two loops are numpy's, so the numbers are numpy's)."""
+    the power, arccos and cosines between the two loops are numpy's, so are the numbers)."""
     jit = _jit()
     c = np.ascontiguousarray(cov, dtype=np.float64)
     m, p, det = jit.eigen_cubic(c)
     safe_p = np.where(p > 0.0, p, 1.0)
     phi = np.arccos(np.clip(0.5 * det / safe_p**3, -1.0, 1.0)) / 3.0
-    evals, vecs, mid, hard = jit.eigen_vectors(c, m, p, phi, float(gap_ratio))
+    cos_max = np.cos(phi)
+    cos_min = np.cos(phi + 2.0 * np.pi / 3.0)
+    evals, vecs, mid, hard = jit.eigen_vectors(c, m, p, cos_max, cos_min, float(gap_ratio))
     return evals, vecs, mid, hard
 
 
