@@ -280,3 +280,125 @@ def eigen_vectors(cov, m, p, cos_max, cos_min, gap_ratio):  # type: ignore[no-un
         mid[i] = l_mid
         hard[i] = h
     return evals, vecs, mid, hard
+
+
+@_jit
+def plane_residuals(x, idx, n_target, target, target_normals, source_normals, R):  # type: ignore[no-untyped-def]
+    """For the refinement's Gauss-Newton step: the source points with a correspondence
+    (``idx < n_target``), their point-to-plane residuals ``n_q . (q - x)`` and the cosines
+    between the target normal and the rotated source normal ``n_q . R n_p``."""
+    n = x.shape[0]
+    count = 0
+    for i in range(n):
+        if idx[i] < n_target:
+            count += 1
+    ok = np.empty(count, dtype=np.intp)
+    r = np.empty(count)
+    cos = np.empty(count)
+    k = 0
+    for i in range(n):
+        q = idx[i]
+        if q >= n_target:
+            continue
+        nx = target_normals[q, 0]
+        ny = target_normals[q, 1]
+        nz = target_normals[q, 2]
+        ok[k] = i
+        r[k] = (
+            nx * (target[q, 0] - x[i, 0])
+            + ny * (target[q, 1] - x[i, 1])
+            + nz * (target[q, 2] - x[i, 2])
+        )
+        px = source_normals[i, 0]
+        py = source_normals[i, 1]
+        pz = source_normals[i, 2]
+        rx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
+        ry = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
+        rz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
+        cos[k] = nx * rx + ny * ry + nz * rz
+        k += 1
+    return ok, r, cos
+
+
+@_jit
+def plane_normal_equations(x, idx, ok, target_normals, r, w):  # type: ignore[no-untyped-def]
+    """``H = sum w J^T J`` (6, 6), ``g = sum w J^T r`` (6,), ``sum w r^2`` and ``sum w`` of the
+    point-to-plane rows ``J = [n_q x x, -n_q]`` (left perturbation ``(omega, v)``)."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    wrr = 0.0
+    wsum = 0.0
+    J = np.empty(6)
+    for k in range(ok.shape[0]):
+        i = ok[k]
+        q = idx[i]
+        nx = target_normals[q, 0]
+        ny = target_normals[q, 1]
+        nz = target_normals[q, 2]
+        J[0] = ny * x[i, 2] - nz * x[i, 1]
+        J[1] = nz * x[i, 0] - nx * x[i, 2]
+        J[2] = nx * x[i, 1] - ny * x[i, 0]
+        J[3] = -nx
+        J[4] = -ny
+        J[5] = -nz
+        wk = w[k]
+        for a in range(6):
+            wa = wk * J[a]
+            g[a] += wa * r[k]
+            for b in range(a, 6):
+                H[a, b] += wa * J[b]
+        wrr += wk * r[k] * r[k]
+        wsum += wk
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, wrr, wsum
+
+
+@_jit
+def offset_residuals(x, idx, n_target, target, target_normals):  # type: ignore[no-untyped-def]
+    """For the translation stage: the rows with a correspondence and their signed offsets
+    from the target planes, ``n_q . (x - q)``."""
+    n = x.shape[0]
+    count = 0
+    for i in range(n):
+        if idx[i] < n_target:
+            count += 1
+    ok = np.empty(count, dtype=np.intp)
+    r = np.empty(count)
+    k = 0
+    for i in range(n):
+        q = idx[i]
+        if q >= n_target:
+            continue
+        ok[k] = i
+        r[k] = (
+            target_normals[q, 0] * (x[i, 0] - target[q, 0])
+            + target_normals[q, 1] * (x[i, 1] - target[q, 1])
+            + target_normals[q, 2] * (x[i, 2] - target[q, 2])
+        )
+        k += 1
+    return ok, r
+
+
+@_jit
+def offset_normal_equations(idx, ok, target_normals, r, w):  # type: ignore[no-untyped-def]
+    """``H = sum w n n^T`` (3, 3), ``g = sum w n r`` (3,), ``sum w r^2`` and ``sum w``."""
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    wrr = 0.0
+    wsum = 0.0
+    for k in range(ok.shape[0]):
+        q = idx[ok[k]]
+        wk = w[k]
+        for a in range(3):
+            wa = wk * target_normals[q, a]
+            g[a] += wa * r[k]
+            for b in range(a, 3):
+                H[a, b] += wa * target_normals[q, b]
+        wrr += wk * r[k] * r[k]
+        wsum += wk
+    for a in range(3):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, wrr, wsum

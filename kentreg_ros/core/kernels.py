@@ -187,6 +187,86 @@ def smallest_eigenpairs_3x3(
     return evals, vecs, mid, hard
 
 
+def plane_residuals(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    target: FloatArray,
+    target_normals: FloatArray,
+    source_normals: FloatArray,
+    R: FloatArray,
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+    """Rows of ``x`` with a correspondence (``idx < len(target)``), their residuals
+    ``n_q . (q - x)`` and normal cosines ``n_q . R n_p``."""
+    f = np.ascontiguousarray
+    ok, r, cos = _jit().plane_residuals(
+        f(x, dtype=np.float64),
+        f(idx, dtype=np.intp),
+        len(target),
+        f(target, dtype=np.float64),
+        f(target_normals, dtype=np.float64),
+        f(source_normals, dtype=np.float64),
+        f(R, dtype=np.float64),
+    )
+    return ok, r, cos
+
+
+def plane_normal_equations(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target_normals: FloatArray,
+    r: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float, float]:
+    """Weighted point-to-plane normal equations ``H`` (6, 6), ``g`` (6,), ``sum w r^2``,
+    ``sum w`` over the rows ``ok``."""
+    f = np.ascontiguousarray
+    H, g, wrr, wsum = _jit().plane_normal_equations(
+        f(x, dtype=np.float64),
+        f(idx, dtype=np.intp),
+        f(ok, dtype=np.intp),
+        f(target_normals, dtype=np.float64),
+        f(r, dtype=np.float64),
+        f(w, dtype=np.float64),
+    )
+    return H, g, float(wrr), float(wsum)
+
+
+def offset_residuals(
+    x: FloatArray, idx: NDArray[np.intp], target: FloatArray, target_normals: FloatArray
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """Rows of ``x`` with a correspondence and their plane offsets ``n_q . (x - q)``."""
+    f = np.ascontiguousarray
+    ok, r = _jit().offset_residuals(
+        f(x, dtype=np.float64),
+        f(idx, dtype=np.intp),
+        len(target),
+        f(target, dtype=np.float64),
+        f(target_normals, dtype=np.float64),
+    )
+    return ok, r
+
+
+def offset_normal_equations(
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target_normals: FloatArray,
+    r: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float, float]:
+    """Weighted normal equations of the plane offsets: ``H`` (3, 3), ``g`` (3,), ``sum w r^2``,
+    ``sum w`` over the rows ``ok``."""
+    f = np.ascontiguousarray
+    H, g, wrr, wsum = _jit().offset_normal_equations(
+        f(idx, dtype=np.intp),
+        f(ok, dtype=np.intp),
+        f(target_normals, dtype=np.float64),
+        f(r, dtype=np.float64),
+        f(w, dtype=np.float64),
+    )
+    return H, g, float(wrr), float(wsum)
+
+
 def warm_up() -> bool:
     """Compile (or load from the cache) every kernel now, e.g. when a node starts, so the first
     scan does not wait for it. Returns whether the kernels are used."""
@@ -207,3 +287,7 @@ def _compile_all() -> None:
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
     order = np.argsort(keys, kind='stable')
     voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)
+    ok, r, _ = plane_residuals(pts, labels, pts, unit, unit, np.eye(3))
+    plane_normal_equations(pts, labels, ok, unit, r, np.ones(len(ok)))
+    ok, r = offset_residuals(pts, labels, pts, unit)
+    offset_normal_equations(labels, ok, unit, r, np.ones(len(ok)))
