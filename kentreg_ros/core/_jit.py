@@ -1,13 +1,14 @@
 """numba-compiled loops behind :mod:`kentreg_ros.core.kernels` (imported only through it).
 
-Each kernel performs the same floating-point operations in the same order as the numpy
-expression it replaces (no fast-math, so no fused multiply-add; a three-term ``einsum`` is summed
-as numpy's x86-64 build sums it, ``(x + z) + y``). Only IEEE-exact operations (+, -, *, /, sqrt)
-run here: what numpy computes with its own SIMD routines, which round differently by CPU
-(``**``, ``arccos``, ``cos``, ``exp``), stays in numpy. On this project's machines the
-odometry's poses are bit-identical with and without the kernels; the tests compare them within
-bounds that hold on any CPU. They are written for one thread (``nogil``: the node's worker
-releases the GIL while one runs).
+Each kernel performs the same floating-point operations in the same order as the numpy expression
+it replaces (no fast-math, so no fused multiply-add; a three-term ``einsum`` is summed as numpy's
+x86-64 build sums it, ``(x + z) + y``). Only IEEE-exact operations (+, -, *, /, sqrt) run here:
+what numpy computes with its own SIMD routines, which round differently by CPU (``**``, ``arccos``,
+``cos``, ``exp``), stays in numpy. Only the Gauss-Newton normal equations sum their rows in another
+order than numpy's matrix product (which is BLAS's). On this project's machines the odometry's
+poses are bit-identical with and without the other kernels, and within 1e-14 with all of them; the
+tests compare them within bounds that hold on any CPU. They are written for one thread (``nogil``:
+the node's worker releases the GIL while one runs).
 """
 
 from __future__ import annotations

@@ -2,17 +2,19 @@
 
 Preparing a scan runs a few passes over every point and its 15 neighbours (the neighbourhood
 covariances of the normals, the normals' agreement with their neighbourhood) and the spherical
-k-means of the normals. In numpy each pass is a chain of whole-array operations whose
-temporaries cost more than the arithmetic; a compiled loop does the same operations in one
-pass. ``benchmarks/per_scan.py`` measures what it pays. Without numba (or with
-``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both give the same bits on one
-machine (the kernels repeat numpy's operations in numpy's order; ``test/test_kernels.py``).
+k-means of the normals; registering it, a few Gauss-Newton passes over the sampled points. In numpy
+each pass is a chain of whole-array operations whose temporaries cost more than the arithmetic; a
+compiled loop does the same operations in one pass. ``benchmarks/per_scan.py`` measures what it
+pays. Without numba (or with ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both
+give the same results (the kernels repeat numpy's operations in numpy's order, except the
+Gauss-Newton normal equations, summed in another order than BLAS's: poses agree to ~1e-14;
+``test/test_kernels.py``).
 
 numba is imported, and every kernel compiled (cached on disk after the first run: ~3 s the first
-time, ~1 s after), at the first use, not when :mod:`kentreg_ros.core` is imported;
-:func:`warm_up` does it ahead of time (:class:`~kentreg_ros.core.odometry.Odometry` calls it).
-If numba is installed but cannot compile or cache them (e.g. an unsupported platform, or no
-writable cache directory), one warning is logged and the numpy code runs.
+time, ~1 s after), at the first use, not when :mod:`kentreg_ros.core` is imported; :func:`warm_up`
+does it ahead of time (:class:`~kentreg_ros.core.odometry.Odometry` calls it). If numba is
+installed but cannot compile or cache them (e.g. an unsupported platform, or no writable cache
+directory), one warning is logged and the numpy code runs.
 """
 
 from __future__ import annotations
