@@ -24,6 +24,7 @@ import logging
 import os
 import threading
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,19 +86,29 @@ def _jit() -> ModuleType:
     return _module
 
 
+def _run(name: str, *args: Any) -> Any:
+    """Call kernel ``name`` with every array contiguous in the dtype the kernels are compiled
+    for (integer arrays as ``intp``, all others as float64); scalars pass as they are."""
+    converted = [
+        (
+            np.ascontiguousarray(a, dtype=np.intp if a.dtype.kind in 'iu' else np.float64)
+            if isinstance(a, np.ndarray)
+            else a
+        )
+        for a in args
+    ]
+    return getattr(_jit(), name)(*converted)
+
+
 def neighbourhood_covariances(centred: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """``(xx, xy, xz, yy, yz, zz)`` of each neighbourhood of the centred points (M, 6)."""
-    out: FloatArray = _jit().neighbourhood_covariances(
-        np.ascontiguousarray(centred, dtype=np.float64), np.ascontiguousarray(neighbors)
-    )
+    out: FloatArray = _run('neighbourhood_covariances', centred, neighbors)
     return out
 
 
 def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """Cosine between each normal and the mean normal of its neighbourhood (M,)."""
-    out: FloatArray = _jit().normal_consistency(
-        np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(neighbors)
-    )
+    out: FloatArray = _run('normal_consistency', normals, neighbors)
     return out
 
 
@@ -105,11 +116,7 @@ def assign_and_sum(
     xs: FloatArray, weighted: FloatArray, centers: FloatArray
 ) -> tuple[NDArray[np.intp], FloatArray]:
     """Labels (nearest centre by cosine) and per-centre sums of ``weighted`` (3, N)."""
-    labels, sums = _jit().assign_and_sum(
-        np.ascontiguousarray(xs, dtype=np.float64),
-        np.ascontiguousarray(weighted, dtype=np.float64),
-        np.ascontiguousarray(centers, dtype=np.float64),
-    )
+    labels, sums = _run('assign_and_sum', xs, weighted, centers)
     return labels, sums
 
 
@@ -122,9 +129,7 @@ def certified_distances(
     gate: float,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Distance to the cached neighbour and whether the cache certifies it (N,), (N,)."""
-    dist, valid = _jit().certified_distances(
-        np.ascontiguousarray(x, dtype=np.float64), x0, radius, idx, target, float(gate)
-    )
+    dist, valid = _run('certified_distances', x, x0, radius, idx, target, float(gate))
     return dist, valid
 
 
@@ -132,11 +137,7 @@ def cluster_moments(
     normals: FloatArray, labels: NDArray[np.intp], k: int
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per-cluster count (K,), resultant (K, 3) and scatter (K, 3, 3) of unit normals."""
-    mass, xsum, scatter = _jit().cluster_moments(
-        np.ascontiguousarray(normals, dtype=np.float64),
-        np.ascontiguousarray(labels, dtype=np.intp),
-        int(k),
-    )
+    mass, xsum, scatter = _run('cluster_moments', normals, labels, int(k))
     return mass, xsum, scatter
 
 
@@ -144,12 +145,7 @@ def voxel_keys(
     points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
 ) -> NDArray[np.int64]:
     """Linear voxel index of every point in the grid of ``span`` cells from ``corner``."""
-    keys: NDArray[np.int64] = _jit().voxel_keys(
-        np.ascontiguousarray(points, dtype=np.float64),
-        float(voxel_size),
-        np.ascontiguousarray(corner, dtype=np.float64),
-        np.ascontiguousarray(span, dtype=np.float64),
-    )
+    keys: NDArray[np.int64] = _run('voxel_keys', points, float(voxel_size), corner, span)
     return keys
 
 
@@ -161,13 +157,7 @@ def voxel_centroids(
     min_points: int,
 ) -> FloatArray:
     """Centroids of the voxels of at least ``min_points`` points (runs of ``order``)."""
-    out: FloatArray = _jit().voxel_centroids(
-        np.ascontiguousarray(points, dtype=np.float64),
-        np.ascontiguousarray(order, dtype=np.intp),
-        np.ascontiguousarray(starts, dtype=np.intp),
-        np.ascontiguousarray(counts, dtype=np.intp),
-        int(min_points),
-    )
+    out: FloatArray = _run('voxel_centroids', points, order, starts, counts, int(min_points))
     return out
 
 
@@ -199,16 +189,8 @@ def plane_residuals(
 ) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
     """Rows of ``x`` with a correspondence (``idx < len(target)``), their residuals
     ``n_q . (q - x)`` and normal cosines ``n_q . R n_p``."""
-    f = np.ascontiguousarray
-    ok, r, cos = _jit().plane_residuals(
-        f(x, dtype=np.float64),
-        f(idx, dtype=np.intp),
-        len(target),
-        f(target, dtype=np.float64),
-        f(target_normals, dtype=np.float64),
-        f(source_normals, dtype=np.float64),
-        f(R, dtype=np.float64),
-    )
+    args = (x, idx, len(target), target, target_normals, source_normals, R)
+    ok, r, cos = _run('plane_residuals', *args)
     return ok, r, cos
 
 
@@ -222,15 +204,7 @@ def plane_normal_equations(
 ) -> tuple[FloatArray, FloatArray, float, float]:
     """Weighted point-to-plane normal equations ``H`` (6, 6), ``g`` (6,), ``sum w r^2``,
     ``sum w`` over the rows ``ok``."""
-    f = np.ascontiguousarray
-    H, g, wrr, wsum = _jit().plane_normal_equations(
-        f(x, dtype=np.float64),
-        f(idx, dtype=np.intp),
-        f(ok, dtype=np.intp),
-        f(target_normals, dtype=np.float64),
-        f(r, dtype=np.float64),
-        f(w, dtype=np.float64),
-    )
+    H, g, wrr, wsum = _run('plane_normal_equations', x, idx, ok, target_normals, r, w)
     return H, g, float(wrr), float(wsum)
 
 
@@ -238,14 +212,7 @@ def offset_residuals(
     x: FloatArray, idx: NDArray[np.intp], target: FloatArray, target_normals: FloatArray
 ) -> tuple[NDArray[np.intp], FloatArray]:
     """Rows of ``x`` with a correspondence and their plane offsets ``n_q . (x - q)``."""
-    f = np.ascontiguousarray
-    ok, r = _jit().offset_residuals(
-        f(x, dtype=np.float64),
-        f(idx, dtype=np.intp),
-        len(target),
-        f(target, dtype=np.float64),
-        f(target_normals, dtype=np.float64),
-    )
+    ok, r = _run('offset_residuals', x, idx, len(target), target, target_normals)
     return ok, r
 
 
@@ -258,14 +225,7 @@ def offset_normal_equations(
 ) -> tuple[FloatArray, FloatArray, float, float]:
     """Weighted normal equations of the plane offsets: ``H`` (3, 3), ``g`` (3,), ``sum w r^2``,
     ``sum w`` over the rows ``ok``."""
-    f = np.ascontiguousarray
-    H, g, wrr, wsum = _jit().offset_normal_equations(
-        f(idx, dtype=np.intp),
-        f(ok, dtype=np.intp),
-        f(target_normals, dtype=np.float64),
-        f(r, dtype=np.float64),
-        f(w, dtype=np.float64),
-    )
+    H, g, wrr, wsum = _run('offset_normal_equations', idx, ok, target_normals, r, w)
     return H, g, float(wrr), float(wsum)
 
 
