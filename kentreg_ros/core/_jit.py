@@ -284,27 +284,35 @@ def eigen_vectors(cov, m, p, cos_max, cos_min, gap_ratio):  # type: ignore[no-un
 
 
 @_jit
+def matched_rows(idx, n_target):  # type: ignore[no-untyped-def]
+    """Indices of the rows whose correspondence exists (``idx < n_target``), in order."""
+    count = 0
+    for i in range(idx.shape[0]):
+        if idx[i] < n_target:
+            count += 1
+    ok = np.empty(count, dtype=np.intp)
+    k = 0
+    for i in range(idx.shape[0]):
+        if idx[i] < n_target:
+            ok[k] = i
+            k += 1
+    return ok
+
+
+@_jit
 def plane_residuals(x, idx, n_target, target, target_normals, source_normals, R):  # type: ignore[no-untyped-def]
     """For the refinement's Gauss-Newton step: the source points with a correspondence
     (``idx < n_target``), their point-to-plane residuals ``n_q . (q - x)`` and the cosines
     between the target normal and the rotated source normal ``n_q . R n_p``."""
-    n = x.shape[0]
-    count = 0
-    for i in range(n):
-        if idx[i] < n_target:
-            count += 1
-    ok = np.empty(count, dtype=np.intp)
-    r = np.empty(count)
-    cos = np.empty(count)
-    k = 0
-    for i in range(n):
+    ok = matched_rows(idx, n_target)
+    r = np.empty(ok.shape[0])
+    cos = np.empty(ok.shape[0])
+    for k in range(ok.shape[0]):
+        i = ok[k]
         q = idx[i]
-        if q >= n_target:
-            continue
         nx = target_normals[q, 0]
         ny = target_normals[q, 1]
         nz = target_normals[q, 2]
-        ok[k] = i
         r[k] = (
             nx * (target[q, 0] - x[i, 0])
             + ny * (target[q, 1] - x[i, 1])
@@ -317,7 +325,6 @@ def plane_residuals(x, idx, n_target, target, target_normals, source_normals, R)
         ry = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
         rz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
         cos[k] = nx * rx + ny * ry + nz * rz
-        k += 1
     return ok, r, cos
 
 
@@ -360,25 +367,16 @@ def plane_normal_equations(x, idx, ok, target_normals, r, w):  # type: ignore[no
 def offset_residuals(x, idx, n_target, target, target_normals):  # type: ignore[no-untyped-def]
     """For the translation stage: the rows with a correspondence and their signed offsets
     from the target planes, ``n_q . (x - q)``."""
-    n = x.shape[0]
-    count = 0
-    for i in range(n):
-        if idx[i] < n_target:
-            count += 1
-    ok = np.empty(count, dtype=np.intp)
-    r = np.empty(count)
-    k = 0
-    for i in range(n):
+    ok = matched_rows(idx, n_target)
+    r = np.empty(ok.shape[0])
+    for k in range(ok.shape[0]):
+        i = ok[k]
         q = idx[i]
-        if q >= n_target:
-            continue
-        ok[k] = i
         r[k] = (
             target_normals[q, 0] * (x[i, 0] - target[q, 0])
             + target_normals[q, 1] * (x[i, 1] - target[q, 1])
             + target_normals[q, 2] * (x[i, 2] - target[q, 2])
         )
-        k += 1
     return ok, r
 
 
