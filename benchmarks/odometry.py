@@ -106,19 +106,21 @@ COLOURS = {
 # Threads
 
 
-def pin_threads(threads: int, argv: Sequence[str]) -> None:
+def pin_threads(threads: int, argv: Sequence[str], script: Path | None = None) -> None:
     """Make this process run on at most ``threads`` cores (re-executing it once if needed).
 
     The BLAS/OpenMP variables only take effect before numpy loads, so the first call sets them
-    and replaces the process with a fresh interpreter running the same command; the second call
-    (marked by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity.
+    and replaces the process with a fresh interpreter running the same command (``script``,
+    default this file, with ``argv``); the second call (marked by ``KENTREG_BENCH_THREADS``)
+    only sets the CPU affinity.
     """
     if os.environ.get(PINNED_ENV) != str(threads):
         env = dict(os.environ)
         env.update({name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)})
         sys.stdout.flush()
         sys.stderr.flush()
-        os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *argv], env)
+        path = (script or Path(__file__)).resolve()
+        os.execve(sys.executable, [sys.executable, str(path), *argv], env)
     allowed = sorted(os.sched_getaffinity(0))
     os.sched_setaffinity(0, allowed[:threads])
 
