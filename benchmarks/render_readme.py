@@ -337,9 +337,12 @@ def robustness_goals_block(
     return '| bar | measured | verdict |\n|---|---|---|\n' + '\n'.join(rows) + '\n'
 
 
-def map_goals_block(odometry: dict[str, Any] | None) -> str | None:
+def map_goals_block(
+    odometry: dict[str, Any] | None, simulated: dict[str, Any] | None = None
+) -> str | None:
     """The local-map issue's bars on the sample, measured by ``odometry.py`` (markdown table):
-    local map against previous scan at every stride of the run."""
+    local map against previous scan at every stride of the run; with ``simulated.py``'s
+    results, the ATE bar also on the re-simulated sequences with exact poses."""
     if odometry is None:
         return None
     runs = {'1': odometry['methods'], **(odometry.get('strides') or {})}
@@ -397,6 +400,40 @@ def map_goals_block(odometry: dict[str, Any] | None) -> str | None:
             f'| local map: lower RPE over {ps_seg["frames"]} scans (drift), stride {s} '
             f'| {1e3 * a:.1f} vs {1e3 * b:.1f} mm, {c:.3f}° vs {d:.3f}° '
             f'| {_verdict(a < b and c < d)} |'
+        )
+    sim = [
+        (step, step['summary']['kentreg_local_map'])
+        for step in (simulated or {}).get('steps', [])
+        if 'kentreg_local_map' in step['summary']
+    ]
+    clean = [(step, lm) for step, lm in sim if not step.get('outliers')]
+    if clean:
+        text = ', '.join(
+            f'{step["step_m"]} m ({step["motion"]["rotation_median_deg"]:.0f}°/scan): '
+            f'{lm["ate_ratio_to_kentreg"]["median"]:.2f}× '
+            f'({lm["ate_ratio_to_kentreg"]["min"]:.2f}–{lm["ate_ratio_to_kentreg"]["max"]:.2f})'
+            for step, lm in clean
+        )
+        met = all(lm['ate_ratio_to_kentreg']['median'] <= 0.7 for _, lm in clean)
+        rows.append(
+            '| local map: ATE ≤ 0.7× previous scan on re-simulated faster sequences with exact '
+            f'poses (median and range over {simulated["seeds"]} seeds; `simulated.py`) '
+            f'| {text} | {_verdict(met)} |'
+        )
+    if sim:
+        by_share: dict[float, list[int]] = {}
+        for step, lm in sim:
+            counts = by_share.setdefault(float(step.get('outliers', 0.0)), [0, 0])
+            counts[0] += lm['failed_pairs']
+            counts[1] += lm['pairs']
+        text = ', '.join(
+            f'{100 * share:.0f} % raw outliers: {n}/{total}'
+            for share, (n, total) in sorted(by_share.items())
+        )
+        ok = all(n == 0 for n, _ in by_share.values())
+        rows.append(
+            '| local map: 0 failed pairs on the re-simulated sequences (every step) '
+            f'| {text} | {_verdict(ok)} |'
         )
     failed = ', '.join(
         f'N={s}: {lm["pairs"]["n_failed"]}/{lm["pairs"]["count"]}' for s, _, lm in pairs
@@ -456,7 +493,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if robust_goals is not None:
         blocks['robustness_goals'] = robust_goals
-    map_goals = map_goals_block(_load(args.results / 'odometry.json'))
+    map_goals = map_goals_block(
+        _load(args.results / 'odometry.json'), _load(args.results / 'simulated.json')
+    )
     if map_goals is not None:
         blocks['map_goals'] = map_goals
     main_blocks: dict[str, str] = {}

@@ -9,7 +9,9 @@ sample's reference (a LiDAR-inertial estimate) cannot resolve are measured here;
 faster steps stand in for the recordings the odometry is judged on but that are not in this
 repository (0.6 m and 8 deg median between scans, up to 48 deg).
 
-The four pipelines of ``benchmarks/odometry.py`` run on every sequence, one round each:
+Every step runs clean and with ``--outliers`` (default 40 %) of raw outliers added to every
+scan before anything else (uniform in the scan's bounding box, as ``robustness.py`` adds
+them). The four pipelines of ``benchmarks/odometry.py`` run on every sequence, one round each:
 ``kentreg`` (previous scan), ``kentreg_local_map``, ``kiss_icp`` and ``gicp``, with the same
 settings as there. Per step the table gives, over the seeds: the median ATE (rmse after SE(3)
 alignment), the median and range of each pipeline's per-seed ATE ratio to ``kentreg``, the
@@ -23,10 +25,11 @@ has less room to grow than over a long recording).
 
 Usage::
 
-    python3 benchmarks/simulated.py                # steps 0.15 0.3 0.6 m, 5 seeds
+    python3 benchmarks/simulated.py                # steps 0.15 0.3 0.6 m, 0 and 40 %, 5 seeds
     python3 benchmarks/simulated.py --steps 0.6 --seeds 2 --out /tmp/sim
 
-Writes ``benchmarks/results/simulated.json`` and ``simulated.md``.
+Writes ``benchmarks/results/simulated.json`` and ``simulated.md``; ``--table JSON`` prints
+the table of an earlier results file again.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import json
 import logging
 import sys
 import time
@@ -55,9 +59,18 @@ from benchmarks.odometry import (  # noqa: E402
     run_kentreg,
     run_kiss_icp,
 )
-from benchmarks.simulate import DEFAULT_INPUT, Sensor, build_world, motion_stats, simulate  # noqa: E402
+from benchmarks.robustness import inject_raw_outliers  # noqa: E402
+from benchmarks.simulate import (  # noqa: E402
+    DEFAULT_INPUT,
+    Sensor,
+    World,
+    build_world,
+    motion_stats,
+    simulate,
+)
 from kentreg_ros.core.config import KentRegConfig  # noqa: E402
 from kentreg_ros.core.registration import prepare_scan  # noqa: E402
+from kentreg_ros.io.bags import Scan  # noqa: E402
 
 logger = logging.getLogger('benchmarks.simulated')
 
@@ -77,6 +90,75 @@ def run_sequence(name: str, scans: list[Any], voxel: float, cfg: KentRegConfig) 
     if name == 'kiss_icp':
         return run_kiss_icp(scans, threads=1)
     return run_gicp(scans, voxel, threads=1)
+
+
+def run_condition(
+    world: World,
+    step: float,
+    share: float,
+    args: argparse.Namespace,
+    sensor: Sensor,
+    cfg: KentRegConfig,
+) -> dict[str, Any]:
+    """Every pipeline on ``args.seeds`` sequences at ``step`` metres per scan, with a share
+    ``share`` of raw outliers added to every scan before anything else (uniform in the scan's
+    bounding box, as ``robustness.py`` adds them; seeded by the sequence's seed)."""
+    runs: list[dict[str, Any]] = []
+    errors: dict[str, str] = {}
+    motion: dict[str, float] = {}
+    n_scans = 0
+    for seed in range(args.seeds):
+        scans, gt = simulate(world, step, seed, sensor)
+        if share > 0.0:
+            rng = np.random.default_rng([seed, 1])
+            scans = [
+                Scan(s.stamp_ns, s.frame_id, inject_raw_outliers(s.points, share, rng)[0], {})
+                for s in scans
+            ]
+        motion = motion_stats(gt.trajectory.T_world_sensor)
+        n_scans = len(scans)
+        voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
+        entry: dict[str, Any] = {'seed': seed, 'methods': {}}
+        for name in args.methods:
+            try:
+                run = run_sequence(name, scans, voxel, cfg)
+            except Exception as exc:  # a pipeline crashing is a result, not a stop
+                logger.exception('%s failed at step %s seed %d', name, step, seed)
+                errors[name] = f'{type(exc).__name__}: {exc}'
+                entry['methods'][name] = {'error': errors[name]}
+                continue
+            m, _, _ = evaluate_pipeline(run, scans, gt)
+            entry['methods'][name] = {
+                'ate_m': m['ate']['rmse'],
+                'drift_pct': m['drift']['translation_pct'],
+                'rpe_frame_m': m['rpe']['translation_m']['rmse'],
+                'rpe_frame_deg': m['rpe']['rotation_deg']['rmse'],
+                'n_failed': m['pairs']['n_failed'],
+                'n_pairs': m['pairs']['count'],
+                'ms_per_scan_mean': float(np.mean(run.ms_per_scan)),
+                'health': run.health,
+            }
+        runs.append(entry)
+        logger.warning(
+            'step %s outliers %s seed %d: %s',
+            step,
+            share,
+            seed,
+            ', '.join(
+                f'{k} {1e3 * v["ate_m"]:.2f} mm'
+                for k, v in entry['methods'].items()
+                if 'ate_m' in v
+            ),
+        )
+    return {
+        'step_m': step,
+        'outliers': share,
+        'n_scans': n_scans,
+        'motion': motion,
+        'runs': runs,
+        'summary': summarize_step(runs, args.methods),
+        'errors': errors,
+    }
 
 
 def summarize_step(runs: list[dict[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
@@ -114,17 +196,18 @@ def format_table(report: dict[str, Any]) -> str:
         f'Re-simulated `bags/balm_50` scene, exact poses; {report["seeds"]} seeds per step '
         f'(independent sampling and noise); 1 thread; one round per pipeline.',
         '',
-        '| step [m] | scans | rotation/scan median, max [deg] | method | ATE median [mm] '
-        '| ATE / kentreg: median (range) | drift [%] | RPE/frame [mm] | failures '
-        '| ms/scan |',
-        '|---|---|---|---|---|---|---|---|---|---|',
+        '| step [m] | raw outliers | scans | rotation/scan median, max [deg] | method '
+        '| ATE median [mm] | ATE / kentreg: median (range) | drift [%] | RPE/frame [mm] '
+        '| failures | ms/scan |',
+        '|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for step in report['steps']:
         motion = step['motion']
         for name, s in step['summary'].items():
             ratio = s['ate_ratio_to_kentreg']
             lines.append(
-                f'| {step["step_m"]} | {step["n_scans"]} '
+                f'| {step["step_m"]} | {100 * step.get("outliers", 0.0):.0f} % '
+                f'| {step["n_scans"]} '
                 f'| {motion["rotation_median_deg"]:.1f}, {motion["rotation_max_deg"]:.1f} '
                 f'| {name} | {1e3 * s["ate_m_median"]:.2f} '
                 f'| {ratio["median"]:.2f} ({ratio["min"]:.2f}–{ratio["max"]:.2f}) '
@@ -133,7 +216,13 @@ def format_table(report: dict[str, Any]) -> str:
             )
     for step in report['steps']:
         for name, error in step.get('errors', {}).items():
-            lines.append(f'\n{name} at step {step["step_m"]}: {error}')
+            lines.append(
+                f'\n{name} at step {step["step_m"]}, {step.get("outliers", 0.0)} outliers: {error}'
+            )
+    machine = report.get('machine', {})
+    if machine.get('git'):
+        command = ' '.join(report.get('command', []))
+        lines += ['', f'Run at {machine["git"]}: `{command}`.']
     return '\n'.join(lines) + '\n'
 
 
@@ -152,19 +241,35 @@ def build_parser() -> argparse.ArgumentParser:
         metavar='M',
         help='metres per scan (default 0.15 0.3 0.6)',
     )
+    parser.add_argument(
+        '--outliers',
+        type=float,
+        nargs='+',
+        default=[0.0, 0.4],
+        metavar='SHARE',
+        help='raw outlier shares, each a run of every step (default 0 0.4)',
+    )
     parser.add_argument('--seeds', type=int, default=5, help='sequences per step (default 5)')
     parser.add_argument(
         '--methods', nargs='+', choices=METHODS, default=list(METHODS), help='pipelines to run'
     )
     parser.add_argument('--out', type=Path, default=RESULTS, help='folder for the results')
+    parser.add_argument(
+        '--table', type=Path, metavar='JSON', help='only print the table of a results file'
+    )
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if args.table is not None:
+        print(format_table(json.loads(args.table.read_text())), end='')
+        return 0
     if args.seeds < 1 or any(s <= 0 for s in args.steps):
         raise SystemExit('--seeds must be >= 1 and --steps > 0')
+    if any(not 0.0 <= f < 1.0 for f in args.outliers):
+        raise SystemExit('--outliers must be in [0, 1)')
     if 'kentreg' not in args.methods:
         raise SystemExit('--methods must include kentreg (the ratios are to it)')
     pin_threads(1, argv, Path(__file__))
@@ -186,56 +291,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         'steps': [],
     }
     for step in args.steps:
-        runs: list[dict[str, Any]] = []
-        errors: dict[str, str] = {}
-        motion: dict[str, float] = {}
-        n_scans = 0
-        for seed in range(args.seeds):
-            scans, gt = simulate(world, step, seed, sensor)
-            motion = motion_stats(gt.trajectory.T_world_sensor)
-            n_scans = len(scans)
-            voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
-            entry: dict[str, Any] = {'seed': seed, 'methods': {}}
-            for name in args.methods:
-                try:
-                    run = run_sequence(name, scans, voxel, cfg)
-                except Exception as exc:  # a pipeline crashing is a result, not a stop
-                    logger.exception('%s failed at step %s seed %d', name, step, seed)
-                    errors[name] = f'{type(exc).__name__}: {exc}'
-                    entry['methods'][name] = {'error': errors[name]}
-                    continue
-                m, _, _ = evaluate_pipeline(run, scans, gt)
-                entry['methods'][name] = {
-                    'ate_m': m['ate']['rmse'],
-                    'drift_pct': m['drift']['translation_pct'],
-                    'rpe_frame_m': m['rpe']['translation_m']['rmse'],
-                    'rpe_frame_deg': m['rpe']['rotation_deg']['rmse'],
-                    'n_failed': m['pairs']['n_failed'],
-                    'n_pairs': m['pairs']['count'],
-                    'ms_per_scan_mean': float(np.mean(run.ms_per_scan)),
-                    'health': run.health,
-                }
-            runs.append(entry)
-            logger.warning(
-                'step %s seed %d: %s',
-                step,
-                seed,
-                ', '.join(
-                    f'{k} {1e3 * v["ate_m"]:.2f} mm'
-                    for k, v in entry['methods'].items()
-                    if 'ate_m' in v
-                ),
-            )
-        report['steps'].append(
-            {
-                'step_m': step,
-                'n_scans': n_scans,
-                'motion': motion,
-                'runs': runs,
-                'summary': summarize_step(runs, args.methods),
-                'errors': errors,
-            }
-        )
+        for share in args.outliers:
+            report['steps'].append(run_condition(world, step, share, args, sensor, cfg))
     report['seconds'] = time.perf_counter() - t_start
     report['machine']['git_at_end'] = git_describe()
     args.out.mkdir(parents=True, exist_ok=True)

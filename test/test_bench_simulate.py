@@ -114,7 +114,7 @@ def test_summary_ratios_are_per_seed_and_failures_add_up() -> None:
         ],
     }
     table = format_table(report)
-    assert '| 0.6 | 11 | 8.0, 40.0 | kentreg_local_map | 2.00 | 0.50 (0.30–1.00) |' in table
+    assert '| 0.6 | 0 % | 11 | 8.0, 40.0 | kentreg_local_map | 2.00 | 0.50 (0.30–1.00) |' in table
 
 
 @pytest.fixture(scope='module')
