@@ -73,6 +73,39 @@ def test_voxel_map_crop_drops_points_beyond_the_radius_and_frees_their_voxels() 
     assert dense.n_voxels == len(counts)
 
 
+def test_averaging_voxel_map_keeps_the_running_mean_of_each_voxel() -> None:
+    vmap = VoxelMap(1.0, with_normals=True, average=True)
+    up, tilted = np.array([0.0, 0.0, 1.0]), np.array([0.6, 0.0, 0.8])
+    # Two points in voxel (0, 0, 0) in one insertion, one in (2, 0, 0).
+    assert vmap.insert([[0.1, 0.2, 0.3], [0.3, 0.4, 0.5], [2.5, 0.5, 0.5]], [up, up, up]) == 2
+    np.testing.assert_allclose(vmap.points[0], [0.2, 0.3, 0.4], rtol=0, atol=1e-15)
+    # A later point merges; its normal, pointing the other way, is turned to agree first.
+    assert vmap.insert([[0.5, 0.0, 0.1]], [-tilted]) == 0
+    np.testing.assert_allclose(vmap.points[0], [0.3, 0.2, 0.3], rtol=0, atol=1e-15)
+    expected = (2 * up + tilted) / np.linalg.norm(2 * up + tilted)
+    np.testing.assert_allclose(vmap.normals[0], expected, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(vmap.points[1], [2.5, 0.5, 0.5])  # untouched
+    assert len(vmap) == 2 and vmap.n_voxels == 2
+
+
+def test_averaging_voxel_map_merges_into_the_nearest_point_and_survives_crops() -> None:
+    vmap = VoxelMap(1.0, max_points_per_voxel=2, average=True)
+    vmap.insert([[0.1, 0.1, 0.1], [0.9, 0.9, 0.9], [5.5, 0.5, 0.5]])
+    vmap.insert([[0.2, 0.1, 0.1], [0.8, 0.9, 0.9], [0.7, 0.7, 0.7]])
+    np.testing.assert_allclose(vmap.points[0], [0.15, 0.1, 0.1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(vmap.points[1], [0.8, 0.8333333333333334, 0.8333333333333334])
+    # Cropping drops the far voxel; the sums of the kept points stay theirs.
+    assert vmap.crop(np.zeros(3), 3.0) == 1
+    vmap.insert([[0.3, 0.1, 0.1]])
+    np.testing.assert_allclose(vmap.points[0], [0.2, 0.1, 0.1], rtol=0, atol=1e-15)
+    assert len(vmap) == 2 and vmap.n_voxels == 1
+    # The default map drops what does not fit instead.
+    plain = VoxelMap(1.0)
+    plain.insert([[0.1, 0.1, 0.1]])
+    assert plain.insert([[0.9, 0.9, 0.9]]) == 0
+    np.testing.assert_array_equal(plain.points, [[0.1, 0.1, 0.1]])
+
+
 def test_voxel_map_rejects_bad_input() -> None:
     with pytest.raises(InvalidInputError, match='voxel_size'):
         VoxelMap(0.0)
@@ -125,10 +158,18 @@ def test_local_map_target_is_the_map_in_the_given_frame() -> None:
     lmap = LocalMap(scan.voxel_size or nearest_spacing(scan.points), max_points_per_voxel=1)
     lmap.insert_scan(scan, T_true[0], radius=100.0)
     target = lmap.target(T_true[1], config=cfg)
-    # The map holds scan points posed in the world (one per voxel) ...
+    # The map holds one point per voxel, the mean of the scan's points posed in the world in
+    # that voxel ...
     in_world = scan.points @ T_true[0][:3, :3].T + T_true[0][:3, 3]
-    assert 0 < len(lmap) <= len(scan)
-    assert set(map(tuple, lmap.points.round(9))) <= set(map(tuple, in_world.round(9)))
+    keys = lmap.voxels.keys_of(in_world)
+    unique, inverse = np.unique(keys, return_inverse=True)
+    means = (
+        np.stack([np.bincount(inverse, weights=in_world[:, k]) for k in range(3)], axis=1)
+        / np.bincount(inverse)[:, None]
+    )
+    assert 0 < len(lmap) == len(unique) <= len(scan)
+    order = np.argsort(lmap.voxels.keys_of(lmap.points))
+    np.testing.assert_allclose(lmap.points[order], means, rtol=0, atol=1e-12)
     # ... and the target is the map in frame 1: p_1 = T_1^-1 p_w.
     T_1w = invert_transform(T_true[1])
     np.testing.assert_allclose(target.points, lmap.points @ T_1w[:3, :3].T + T_1w[:3, 3])

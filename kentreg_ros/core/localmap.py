@@ -2,9 +2,12 @@
 
 :class:`VoxelMap` keeps at most ``max_points_per_voxel`` points (with their normals, when given)
 per cubic voxel of edge ``voxel_size``, in the frame the points are inserted in (the odometry
-frame). The first points to land in a voxel stay; later ones are dropped once it is full, so a
-surface seen again and again does not pile up and the points already registered against keep
-their place (as in KISS-ICP's voxel map, Vizzo et al. 2023). :meth:`VoxelMap.crop` drops every
+frame). The first points to land in a voxel take its places, so a surface seen again and again
+does not pile up (as in KISS-ICP's voxel map, Vizzo et al. 2023); later points are dropped
+(``average=False``) or averaged into the nearest of them (``average=True``, the local map's
+choice: a map point is then the mean of every sample of its patch of surface, so its noise and
+sampling offset shrink as the surface is seen again, where a kept first sample keeps one scan's
+error for as long as it stays in the map). :meth:`VoxelMap.crop` drops every
 point beyond a radius of the sensor, so the memory is bounded by the volume of that ball, not by
 the length of the run.
 
@@ -53,6 +56,11 @@ class VoxelMap:
         Points a voxel keeps (default 1); later points landing in a full voxel are dropped.
     with_normals : bool, optional
         Whether every inserted point comes with a normal (default False).
+    average : bool, optional
+        What becomes of a point landing in a full voxel: dropped (False, default), or averaged
+        into the voxel's point nearest to it (True): that point is then the running mean of
+        every point merged into it, and its normal the normalised sum of their normals, each
+        turned to agree in sign with the mean so far.
 
     Notes
     -----
@@ -71,7 +79,12 @@ class VoxelMap:
     """
 
     def __init__(
-        self, voxel_size: float, *, max_points_per_voxel: int = 1, with_normals: bool = False
+        self,
+        voxel_size: float,
+        *,
+        max_points_per_voxel: int = 1,
+        with_normals: bool = False,
+        average: bool = False,
     ) -> None:
         if not (np.isfinite(voxel_size) and voxel_size > 0.0):
             raise InvalidInputError(f'Expected `voxel_size` > 0, got {voxel_size!r}.')
@@ -82,6 +95,7 @@ class VoxelMap:
         self.voxel_size = float(voxel_size)
         self.max_points_per_voxel = int(max_points_per_voxel)
         self.with_normals = bool(with_normals)
+        self.average = bool(average)
         self.clear()
 
     def clear(self) -> None:
@@ -89,6 +103,11 @@ class VoxelMap:
         self._points = np.zeros((0, 3))
         self._normals = np.zeros((0, 3))
         self._keys = np.zeros(0, dtype=np.int64)
+        # average=True: per point, the sums of the positions and normals merged into it and
+        # their count (the point is sums / count).
+        self._sums = np.zeros((0, 3))
+        self._normal_sums = np.zeros((0, 3))
+        self._merged = np.zeros(0)
         # Sorted keys of the occupied voxels and their point counts.
         self._voxel_keys = np.zeros(0, dtype=np.int64)
         self._voxel_counts = np.zeros(0, dtype=np.int64)
@@ -118,7 +137,16 @@ class VoxelMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the map's arrays."""
-        arrays = (self._points, self._normals, self._keys, self._voxel_keys, self._voxel_counts)
+        arrays = (
+            self._points,
+            self._normals,
+            self._keys,
+            self._voxel_keys,
+            self._voxel_counts,
+            self._sums,
+            self._normal_sums,
+            self._merged,
+        )
         return int(sum(a.nbytes for a in arrays))
 
     def keys_of(self, points: FloatArray) -> NDArray[np.int64]:
@@ -140,7 +168,8 @@ class VoxelMap:
         return (grid[:, 0] << (2 * KEY_BITS)) | (grid[:, 1] << KEY_BITS) | grid[:, 2]
 
     def insert(self, points: ArrayLike, normals: ArrayLike | None = None) -> int:
-        """Add the points that find room in their voxel; return how many were added.
+        """Add the points that find room in their voxel; return how many were added (the
+        others are dropped, or averaged into the map when the map averages).
 
         Parameters
         ----------
@@ -181,8 +210,13 @@ class VoxelMap:
         existing = np.zeros(len(new_voxels), dtype=np.int64)
         existing[present] = self._voxel_counts[pos[present]]
         keep = rank + existing[group] < self.max_points_per_voxel
+        overflow = order[~keep] if self.average else order[:0]
         chosen = order[keep]
         if not len(chosen):
+            if len(overflow):
+                self._merge(
+                    pts[overflow], nrm[overflow] if self.with_normals else None, keys[overflow]
+                )
             return 0
         added = np.bincount(group[keep], minlength=len(new_voxels))
         self._voxel_counts[pos[present]] += added[present]
@@ -193,7 +227,41 @@ class VoxelMap:
         self._keys = np.concatenate([self._keys, keys[chosen]])
         if self.with_normals:
             self._normals = np.concatenate([self._normals, nrm[chosen]])
+        if self.average:
+            self._sums = np.concatenate([self._sums, pts[chosen]])
+            self._merged = np.concatenate([self._merged, np.ones(len(chosen))])
+            if self.with_normals:
+                self._normal_sums = np.concatenate([self._normal_sums, nrm[chosen]])
+        if len(overflow):
+            # After the new points are in: a voxel first filled by this insertion takes the
+            # rest of its points into the ones it kept.
+            self._merge(
+                pts[overflow], nrm[overflow] if self.with_normals else None, keys[overflow]
+            )
         return len(chosen)
+
+    def _merge(self, pts: FloatArray, nrm: FloatArray | None, keys: NDArray[np.int64]) -> None:
+        """Average points landing in full voxels into the nearest point of their voxel."""
+        # The map's points grouped by voxel: voxel v holds sorted_rows[first[v]:first[v] + n].
+        order = argsort_keys(self._keys)
+        sorted_keys = self._keys[order]
+        first = np.searchsorted(sorted_keys, keys)
+        count = self._voxel_counts[np.searchsorted(self._voxel_keys, keys)]
+        slots = np.arange(self.max_points_per_voxel)
+        valid = slots[None, :] < count[:, None]
+        rows = order[np.minimum(first[:, None] + slots[None, :], len(order) - 1)]
+        dist = np.sum((self._points[rows] - pts[:, None, :]) ** 2, axis=2)
+        dist[~valid] = np.inf
+        target = rows[np.arange(len(rows)), np.argmin(dist, axis=1)]
+        np.add.at(self._sums, target, pts)
+        np.add.at(self._merged, target, 1.0)
+        touched = np.unique(target)
+        self._points[touched] = self._sums[touched] / self._merged[touched, None]
+        if nrm is not None:
+            sign = np.where(np.einsum('ij,ij->i', self._normals[target], nrm) < 0.0, -1.0, 1.0)
+            np.add.at(self._normal_sums, target, nrm * sign[:, None])
+            sums = self._normal_sums[touched]
+            self._normals[touched] = sums / np.linalg.norm(sums, axis=1, keepdims=True)
 
     def crop(self, center: ArrayLike, radius: float) -> int:
         """Drop the points farther than ``radius`` from ``center``; return how many."""
@@ -218,6 +286,11 @@ class VoxelMap:
             if self.with_normals:
                 self._normals = self._normals[inside]
             self._keys = self._keys[inside]
+            if self.average:
+                self._sums = self._sums[inside]
+                self._merged = self._merged[inside]
+                if self.with_normals:
+                    self._normal_sums = self._normal_sums[inside]
         return n_out
 
 
@@ -243,8 +316,9 @@ class LocalMap:
     -----
     What is maintained incrementally and what is not (measured on the sample, ~40k map points):
 
-    - normals: each point keeps the normal estimated in the scan it came from, rotated into the
-      world frame; no normal is ever estimated on the map. Their cosine outlier test also ran
+    - points and normals: a point is the running mean of the scan points merged into it, its
+      normal the normalised sum of theirs, each estimated in the scan it came from and rotated
+      into the world frame; no normal is ever estimated on the map. Their cosine outlier test also ran
       in that scan, so it is not repeated on the map (it would cost a 15-neighbour query of
       every map point per scan, the largest part of preparing a cloud).
     - clusters: spherical k-means runs in the world frame, warm-started from the previous
@@ -257,7 +331,7 @@ class LocalMap:
 
     def __init__(self, voxel_size: float, *, max_points_per_voxel: int) -> None:
         self.voxels = VoxelMap(
-            voxel_size, max_points_per_voxel=max_points_per_voxel, with_normals=True
+            voxel_size, max_points_per_voxel=max_points_per_voxel, with_normals=True, average=True
         )
         self._centers: FloatArray | None = None  # world frame
 
