@@ -312,7 +312,7 @@ class OdometryConfig:
         1,
         'Points a local-map voxel keeps: the first to arrive take the places, and every later '
         'point is averaged into the nearest of them, so a surface seen again and again is '
-        'held by the mean of its samples rather than by one scan\'s. With voxels of the scan '
+        "held by the mean of its samples rather than by one scan's. With voxels of the scan "
         "size, one keeps the map at a scan's sampling density, so the neighbour index and the "
         'cluster moments the map needs each step cost about what a scan costs; more keep both '
         'surfaces where a voxel straddles an edge, at a proportional cost.',

@@ -242,24 +242,33 @@ class VoxelMap:
 
     def _merge(self, pts: FloatArray, nrm: FloatArray | None, keys: NDArray[np.int64]) -> None:
         """Average points landing in full voxels into the nearest point of their voxel."""
-        # The map's points grouped by voxel: voxel v holds sorted_rows[first[v]:first[v] + n].
+        # The map's points grouped by voxel: the points of the voxel of key k are
+        # order[first:first + count] with first = searchsorted(sorted keys, k).
         order = argsort_keys(self._keys)
-        sorted_keys = self._keys[order]
-        first = np.searchsorted(sorted_keys, keys)
-        count = self._voxel_counts[np.searchsorted(self._voxel_keys, keys)]
-        slots = np.arange(self.max_points_per_voxel)
-        valid = slots[None, :] < count[:, None]
-        rows = order[np.minimum(first[:, None] + slots[None, :], len(order) - 1)]
-        dist = np.sum((self._points[rows] - pts[:, None, :]) ** 2, axis=2)
-        dist[~valid] = np.inf
-        target = rows[np.arange(len(rows)), np.argmin(dist, axis=1)]
-        np.add.at(self._sums, target, pts)
-        np.add.at(self._merged, target, 1.0)
-        touched = np.unique(target)
+        first = np.searchsorted(self._keys[order], keys)
+        if self.max_points_per_voxel == 1:
+            target = order[first]
+        else:
+            count = self._voxel_counts[np.searchsorted(self._voxel_keys, keys)]
+            slots = np.arange(self.max_points_per_voxel)
+            rows = order[np.minimum(first[:, None] + slots, len(order) - 1)]
+            dist = np.sum((self._points[rows] - pts[:, None, :]) ** 2, axis=2)
+            dist[slots >= count[:, None]] = np.inf
+            target = rows[np.arange(len(rows)), np.argmin(dist, axis=1)]
+        n = len(self._points)
+        added = np.bincount(target, minlength=n)
+        touched = np.flatnonzero(added)
+        self._merged[touched] += added[touched]
+        for axis in range(3):
+            self._sums[touched, axis] += np.bincount(target, pts[:, axis], n)[touched]
         self._points[touched] = self._sums[touched] / self._merged[touched, None]
         if nrm is not None:
-            sign = np.where(np.einsum('ij,ij->i', self._normals[target], nrm) < 0.0, -1.0, 1.0)
-            np.add.at(self._normal_sums, target, nrm * sign[:, None])
+            agree = np.einsum('ij,ij->i', self._normals[target], nrm) >= 0.0
+            turned = np.where(agree[:, None], nrm, -nrm)
+            for axis in range(3):
+                self._normal_sums[touched, axis] += np.bincount(target, turned[:, axis], n)[
+                    touched
+                ]
             sums = self._normal_sums[touched]
             self._normals[touched] = sums / np.linalg.norm(sums, axis=1, keepdims=True)
 
@@ -318,9 +327,9 @@ class LocalMap:
 
     - points and normals: a point is the running mean of the scan points merged into it, its
       normal the normalised sum of theirs, each estimated in the scan it came from and rotated
-      into the world frame; no normal is ever estimated on the map. Their cosine outlier test also ran
-      in that scan, so it is not repeated on the map (it would cost a 15-neighbour query of
-      every map point per scan, the largest part of preparing a cloud).
+      into the world frame; no normal is ever estimated on the map. Their cosine outlier test
+      also ran in that scan, so it is not repeated on the map (it would cost a 15-neighbour
+      query of every map point per scan, the largest part of preparing a cloud).
     - clusters: spherical k-means runs in the world frame, warm-started from the previous
       centres (a few Lloyd iterations, since the map changes by one scan per step), instead of
       seeded k-means++ restarts; the Kent frames and normal bins of the clusters are then
