@@ -366,12 +366,16 @@ def map_goals_block(
         f'| local map: ATE ≤ 0.7× previous scan (the bar on recordings not in this repository; '
         f'here on the sample) | {ate_text} | {_verdict(all(r <= 0.7 for _, r in ratios))} |',
     ]
-    one = [(s, m['rpe_per_metre']['translation_pct']['rmse'], lm['rpe_per_metre']
-            ['translation_pct']['rmse']) for s, m, lm in pairs if s == '1']  # fmt: skip
-    for s, ps_rpe, lm_rpe in one:
+    consecutive = [
+        (s, ps['rpe_per_metre']['translation_pct']['rmse'],
+         lm['rpe_per_metre']['translation_pct']['rmse'])
+        for s, ps, lm in pairs
+    ]  # fmt: skip
+    if consecutive:
+        text = ', '.join(f'N={s}: {b:.2f} % vs {a:.2f} %' for s, a, b in consecutive)
         rows.append(
-            f'| local map: lower RPE per metre (consecutive scans, stride {s}) '
-            f'| {lm_rpe:.2f} % vs {ps_rpe:.2f} % | {_verdict(lm_rpe < ps_rpe)} |'
+            '| local map: lower RPE per metre between consecutive (processed) scans, every N-th '
+            f'scan | {text} | {_verdict(all(b < a for _, a, b in consecutive))} |'
         )
     drift = [
         (s, ps['drift'], lm['drift']) for s, ps, lm in pairs if 'drift' in ps and 'drift' in lm

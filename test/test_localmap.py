@@ -106,6 +106,26 @@ def test_averaging_voxel_map_merges_into_the_nearest_point_and_survives_crops() 
     np.testing.assert_array_equal(plain.points, [[0.1, 0.1, 0.1]])
 
 
+def test_averaging_map_holds_a_resampled_noisy_surface_closer_than_one_scan() -> None:
+    # Ten noisy samplings of the plane z = 0.1 (1 cm along z), in the middle of a layer of
+    # 0.2 m voxels: the averaged map's points lie about 1/sqrt(samples) as far from the plane as
+    # one scan's, which the first-wins map keeps. (A surface on a voxel face would be split in
+    # two layers at about +-0.8 sigma, the means of the noise on either side.)
+    rng = np.random.default_rng(5)
+    maps = {avg: VoxelMap(0.2, with_normals=True, average=avg) for avg in (False, True)}
+    for _ in range(10):
+        pts = np.column_stack([rng.uniform(-3, 3, (4000, 2)), rng.normal(0.1, 0.01, 4000)])
+        nrm = np.tile([0.0, 0.0, 1.0], (4000, 1)) + rng.normal(0.0, 0.05, (4000, 3))
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        for vmap in maps.values():
+            vmap.insert(pts, nrm)
+    rms = {avg: float(np.sqrt(np.mean((m.points[:, 2] - 0.1) ** 2))) for avg, m in maps.items()}
+    assert len(maps[True]) == len(maps[False])
+    assert rms[True] < 0.5 * rms[False]
+    tilt = {avg: float(np.median(np.abs(m.normals[:, :2]))) for avg, m in maps.items()}
+    assert tilt[True] < 0.5 * tilt[False]
+
+
 def test_voxel_map_rejects_bad_input() -> None:
     with pytest.raises(InvalidInputError, match='voxel_size'):
         VoxelMap(0.0)
