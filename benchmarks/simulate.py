@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation, Slerp
 
 from kentreg_ros.eval import GroundTruth
@@ -60,6 +61,9 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_INPUT = ROOT / 'bags' / 'balm_50'
 #: Elevation band of the sample's sensor (deg): what the simulated sensor sees.
 ELEVATION_DEG = (-45.0, 45.0)
+#: Time slices of a sweep: the points of a slice share the pose of its middle (at 10 Hz,
+#: 0.5 ms: 0.6 mm at 1.2 m/s, 0.2 mm per 10 m at 30 deg/s).
+SWEEP_SLICES = 200
 
 logger = logging.getLogger('simulate')
 
@@ -73,6 +77,10 @@ class Sensor:
     range_noise: float = 0.02
     min_range: float = 1.0
     max_range: float = 30.0
+    #: Duration of one sweep (s); 0 takes every point at the scan's stamp. With a sweep, the
+    #: sensor turns once from the stamp on (azimuth -180 deg first), moving meanwhile with the
+    #: scan's velocity, and every point carries its time in the field ``t`` (s from the stamp).
+    sweep_period: float = 0.0
 
 
 @dataclass
@@ -144,9 +152,20 @@ def direction_bins(q: FloatArray, r: FloatArray, size_deg: float) -> NDArray[np.
 
 
 def simulate_scan(
-    world: FloatArray, T: FloatArray, rng: np.random.Generator, args: Sensor
-) -> FloatArray:
-    """The points a spinning LiDAR at pose ``T`` sees of ``world`` (sensor frame)."""
+    world: FloatArray,
+    T: FloatArray,
+    rng: np.random.Generator,
+    args: Sensor,
+    twist: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """The points a spinning LiDAR at pose ``T`` sees of ``world`` (sensor frame), and their
+    times from the stamp (s).
+
+    With ``args.sweep_period > 0`` and the sensor's ``twist`` (the 4x4 ``se(3)`` matrix of its
+    body velocity, per second), a point taken at time ``tau`` is expressed in the frame of the
+    pose ``T exp(tau twist)`` it was taken from; which points are visible is decided from
+    ``T``.
+    """
     q = (world - T[:3, 3]) @ T[:3, :3]
     r = np.linalg.norm(q, axis=1)
     el = np.degrees(np.arcsin(np.clip(q[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0)))
@@ -168,8 +187,20 @@ def simulate_scan(
     first[1:] = beam[order][1:] != beam[order][:-1]
     chosen = order[first]
     q, r = q[chosen], r[chosen]
+    times = np.zeros(len(q))
+    if args.sweep_period > 0.0 and twist is not None:
+        azimuth = np.arctan2(q[:, 1], q[:, 0]) + np.pi  # 0 .. 2 pi
+        slot = np.minimum(
+            (azimuth / (2.0 * np.pi) * SWEEP_SLICES).astype(np.intp), SWEEP_SLICES - 1
+        )
+        times = (slot + 0.5) * args.sweep_period / SWEEP_SLICES
+        for k in np.unique(slot):
+            M = expm(twist * times[slot == k][0])  # pose at tau in the frame at the stamp
+            sel = slot == k
+            q[sel] = (q[sel] - M[:3, 3]) @ M[:3, :3]
+        r = np.linalg.norm(q, axis=1)
     noisy = r + rng.normal(0.0, args.range_noise, len(r))
-    return q * (noisy / r)[:, None]
+    return q * (noisy / r)[:, None], times
 
 
 def simulate(
@@ -187,10 +218,17 @@ def simulate(
     rng = np.random.default_rng(seed)
     start_ns = 10**18
     stamps = start_ns + np.round(np.arange(len(T)) * world.period * 1e9).astype(np.int64)
-    scans = [
-        Scan(int(ts), 'lidar', simulate_scan(world.points, Ti, rng, sensor), {})
-        for ts, Ti in zip(stamps, T, strict=True)
+    # Body velocity of each scan: the motion to the next scan over the period (the last scan
+    # keeps the one before), constant within the sweep.
+    twists = [
+        np.real(logm(np.linalg.solve(T[i], T[i + 1]))) / world.period for i in range(len(T) - 1)
     ]
+    twists.append(twists[-1] if twists else np.zeros((4, 4)))
+    scans = []
+    for ts, Ti, twist in zip(stamps, T, twists, strict=True):
+        points, times = simulate_scan(world.points, Ti, rng, sensor, twist)
+        extras = {'t': times.astype(np.float32)} if sensor.sweep_period > 0.0 else {}
+        scans.append(Scan(int(ts), 'lidar', points, extras))
     origin = f'simulated: step {step} m, seed {seed}'
     return scans, GroundTruth(Trajectory(stamps, T), origin)
 
@@ -241,6 +279,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument('--min-range', type=float, default=1.0, help='m')
     parser.add_argument('--max-range', type=float, default=30.0, help='m')
+    parser.add_argument(
+        '--sweep-period',
+        type=float,
+        default=0.0,
+        help='s per sweep, points timed in field t (default 0: every point at the stamp)',
+    )
     return parser
 
 
@@ -254,6 +298,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         range_noise=args.range_noise,
         min_range=args.min_range,
         max_range=args.max_range,
+        sweep_period=args.sweep_period,
     )
     scans, gt = simulate(
         world,
@@ -265,7 +310,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args.out.mkdir(parents=True, exist_ok=True)
     for i, scan in enumerate(scans):
-        write_pcd(args.out / f'scan_{i:04d}.pcd', scan.points.astype(np.float32))
+        write_pcd(args.out / f'scan_{i:04d}.pcd', scan.points.astype(np.float32), scan.extras)
     T = gt.trajectory.T_world_sensor
     stamps_s = np.asarray(gt.trajectory.stamps_ns) * 1e-9
     write_balm_poses(args.out / 'alidarPose.csv', T, stamps_s)

@@ -114,8 +114,8 @@ def test_deskewing_recovers_a_sweep_distorted_by_known_motion(
     assert raw_R + 1e3 * raw_t > 2.0 * (fix_R + 1e3 * fix_t)
     # The geometry: a distorted sweep, deskewed with the motion the odometry estimated, lies on
     # the undistorted one: 99 % of its points within a centimetre, where the sweep had moved
-    # them by several centimetres. (Left: the first-order motion model, <= 2.6 mm here, the
-    # 0.5 ms time slices of the synthesis, <= 3.5 mm at 25 m, the estimated motion's error.)
+    # them by several centimetres. (Left: the 0.5 ms time slices of the synthesis, <= 3.5 mm
+    # at 25 m, and the estimated motion's error.)
     rng = np.random.default_rng(11)
     distorted, times = _observe(world, truth[0], rng, distort=True)
     rng = np.random.default_rng(11)
@@ -128,21 +128,39 @@ def test_deskewing_recovers_a_sweep_distorted_by_known_motion(
 
 
 def test_deskew_undoes_its_own_motion_model_exactly() -> None:
+    # A point measured at tau from the pose exp(tau xi) (the exact SE(3) exponential) goes
+    # back to where it is at the stamp.
     rng = np.random.default_rng(0)
     q = rng.normal(scale=10.0, size=(500, 3))
     times = rng.uniform(0.0, 0.1, 500)
     twist = np.array([0.1, -0.2, 0.5, 1.0, 0.3, -0.2])
-    R = Rotation.from_rotvec(times[:, None] * twist[None, :3]).as_matrix()
-    measured = np.einsum('nji,nj->ni', R, q - times[:, None] * twist[3:])  # R^T (q - tau v)
-    np.testing.assert_allclose(deskew(measured, times, twist), q, atol=1e-9)
+    measured = np.empty_like(q)
+    for i, tau in enumerate(times):
+        T = _se3_exp(tau * twist)
+        measured[i] = T[:3, :3].T @ (q[i] - T[:3, 3])
+    np.testing.assert_allclose(deskew(measured, times, twist), q, rtol=0, atol=1e-12 * 10.0)
     np.testing.assert_allclose(deskew(q, times, np.zeros(6)), q)
+    # Tiny rotations take the series branch and agree with the exponential there too.
+    slow = np.array([1e-7, 0.0, 2e-7, 1.0, 0.0, 0.0])
+    T = _se3_exp(0.05 * slow)
+    np.testing.assert_allclose(
+        deskew(q[:1], np.array([0.05]), slow)[0], T[:3, :3] @ q[0] + T[:3, 3], atol=1e-12
+    )
 
 
 def test_twist_of_a_motion_is_its_log_over_the_gap() -> None:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.3]).as_matrix()
-    T[:3, 3] = [0.5, 0.0, 0.0]
-    np.testing.assert_allclose(twist_of(T, 0.5), [0, 0, 0.6, 1.0, 0, 0], atol=1e-12)
+    T[:3, 3] = [0.5, 0.1, -0.2]
+    twist = twist_of(T, 0.5)
+    np.testing.assert_allclose(twist[:3], [0.0, 0.0, 0.6], atol=1e-12)
+    np.testing.assert_allclose(_se3_exp(0.5 * twist), T, rtol=0, atol=1e-12)
+    # A pure translation is a straight line; a tiny turn takes the series branch.
+    T_line = np.eye(4)
+    T_line[:3, 3] = [0.5, 0.0, 0.0]
+    np.testing.assert_allclose(twist_of(T_line, 0.5), [0, 0, 0, 1.0, 0, 0], atol=1e-12)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 1e-6, 0.0]).as_matrix()
+    np.testing.assert_allclose(_se3_exp(0.5 * twist_of(T, 0.5)), T, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(twist_of(T, 0.0), np.zeros(6))
 
 
