@@ -337,6 +337,10 @@ def robustness_goals_block(
     return '| bar | measured | verdict |\n|---|---|---|\n' + '\n'.join(rows) + '\n'
 
 
+#: The local map without deskewing in ``simulated.json`` (see ``benchmarks/simulated.py``).
+NO_DESKEW_NAME = 'kentreg_local_map_no_deskew'
+
+
 def map_goals_block(
     odometry: dict[str, Any] | None, simulated: dict[str, Any] | None = None
 ) -> str | None:
@@ -410,7 +414,9 @@ def map_goals_block(
         for step in (simulated or {}).get('steps', [])
         if 'kentreg_local_map' in step['summary']
     ]
-    clean = [(step, lm) for step, lm in sim if not step.get('outliers')]
+    clean = [
+        (step, lm) for step, lm in sim if not step.get('outliers') and not step.get('sweep_s')
+    ]
     if clean:
         text = ', '.join(
             f'{step["step_m"]} m ({step["motion"]["rotation_median_deg"]:.0f}°/scan): '
@@ -425,19 +431,49 @@ def map_goals_block(
             f'| {text} | {_verdict(met)} |'
         )
     if sim:
-        by_share: dict[float, list[int]] = {}
+        by_input: dict[str, list[int]] = {}
         for step, lm in sim:
-            counts = by_share.setdefault(float(step.get('outliers', 0.0)), [0, 0])
+            if step.get('sweep_s'):
+                label = f'{1e3 * step["sweep_s"]:.0f} ms sweeps'
+            else:
+                label = f'{100 * float(step.get("outliers", 0.0)):.0f} % raw outliers'
+            counts = by_input.setdefault(label, [0, 0])
             counts[0] += lm['failed_pairs']
             counts[1] += lm['pairs']
-        text = ', '.join(
-            f'{100 * share:.0f} % raw outliers: {n}/{total}'
-            for share, (n, total) in sorted(by_share.items())
-        )
-        ok = all(n == 0 for n, _ in by_share.values())
+        text = ', '.join(f'{label}: {n}/{total}' for label, (n, total) in by_input.items())
+        ok = all(n == 0 for n, _ in by_input.values())
         rows.append(
             '| local map: 0 failed pairs on the re-simulated sequences (every step) '
             f'| {text} | {_verdict(ok)} |'
+        )
+    swept = [
+        (step, step['summary']['kentreg_local_map'], step['summary'].get(NO_DESKEW_NAME))
+        for step in (simulated or {}).get('steps', [])
+        if step.get('sweep_s') and 'kentreg_local_map' in step['summary']
+    ]
+    swept = [(step, lm, raw) for step, lm, raw in swept if raw is not None]
+    if swept:
+        clean_ate = {step['step_m']: lm['ate_m_median'] for step, lm in clean}
+        text = ', '.join(
+            f'{step["step_m"]} m: {1e3 * lm["ate_m_median"]:.2f} mm deskewed, '
+            f'{1e3 * raw["ate_m_median"]:.2f} mm not'
+            + (
+                f', {1e3 * clean_ate[step["step_m"]]:.2f} mm without sweeps'
+                if step['step_m'] in clean_ate
+                else ''
+            )
+            for step, lm, raw in swept
+        )
+        ok = all(
+            step['step_m'] in clean_ate
+            and lm['ate_m_median'] <= 1.5 * clean_ate[step['step_m']]
+            and lm['ate_m_median'] < raw['ate_m_median']
+            for step, lm, raw in swept
+        )
+        rows.append(
+            f'| local map on swept sequences ({1e3 * swept[0][0]["sweep_s"]:.0f} ms sweeps, '
+            'points timed): deskewed ATE within 1.5× of the unswept, below the undeskewed '
+            f'(medians over the seeds) | {text} | {_verdict(ok)} |'
         )
     failed = ', '.join(
         f'N={s}: {lm["pairs"]["n_failed"]}/{lm["pairs"]["count"]}' for s, _, lm in pairs

@@ -78,8 +78,9 @@ class Sensor:
     min_range: float = 1.0
     max_range: float = 30.0
     #: Duration of one sweep (s); 0 takes every point at the scan's stamp. With a sweep, the
-    #: sensor turns once from the stamp on (azimuth -180 deg first), moving meanwhile with the
-    #: scan's velocity, and every point carries its time in the field ``t`` (s from the stamp).
+    #: sensor turns once, ending at the stamp (azimuth -180 deg first), moving meanwhile with
+    #: the velocity that brought it from the previous scan, and every point carries its time
+    #: in the field ``t`` (s from the stamp, negative).
     sweep_period: float = 0.0
 
 
@@ -193,7 +194,7 @@ def simulate_scan(
         slot = np.minimum(
             (azimuth / (2.0 * np.pi) * SWEEP_SLICES).astype(np.intp), SWEEP_SLICES - 1
         )
-        times = (slot + 0.5) * args.sweep_period / SWEEP_SLICES
+        times = ((slot + 0.5) / SWEEP_SLICES - 1.0) * args.sweep_period
         for k in np.unique(slot):
             M = expm(twist * times[slot == k][0])  # pose at tau in the frame at the stamp
             sel = slot == k
@@ -218,12 +219,12 @@ def simulate(
     rng = np.random.default_rng(seed)
     start_ns = 10**18
     stamps = start_ns + np.round(np.arange(len(T)) * world.period * 1e9).astype(np.int64)
-    # Body velocity of each scan: the motion to the next scan over the period (the last scan
-    # keeps the one before), constant within the sweep.
+    # Body velocity of each scan's sweep, which ends at its stamp: the motion from the previous
+    # scan over the period (the first scan takes the next one's), constant within the sweep.
     twists = [
-        np.real(logm(np.linalg.solve(T[i], T[i + 1]))) / world.period for i in range(len(T) - 1)
+        np.real(logm(np.linalg.solve(T[i - 1], T[i]))) / world.period for i in range(1, len(T))
     ]
-    twists.append(twists[-1] if twists else np.zeros((4, 4)))
+    twists.insert(0, twists[0] if twists else np.zeros((4, 4)))
     scans = []
     for ts, Ti, twist in zip(stamps, T, twists, strict=True):
         points, times = simulate_scan(world.points, Ti, rng, sensor, twist)

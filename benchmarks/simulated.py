@@ -81,6 +81,9 @@ RESULTS = ROOT / 'benchmarks' / 'results'
 #: volume: with 40 % of them one 66-scan sequence had not finished after 10 minutes (against
 #: about 10 s clean), which would make this benchmark take hours.
 CLEAN_ONLY = ('kiss_icp',)
+#: The local map with deskewing off, run on the swept sequences only (beside the default,
+#: which deskews them): what the deskewing is worth.
+NO_DESKEW = 'kentreg_local_map_no_deskew'
 #: Thinning of the merged world (m): finer than the simulated beams' footprint at 4 m
 #: (0.5 deg -> 3.5 cm), so the beams, not the world's grid, set a scan's sampling.
 WORLD_VOXEL = 0.03
@@ -93,6 +96,9 @@ def run_sequence(name: str, scans: list[Any], voxel: float, cfg: KentRegConfig) 
     if name == 'kentreg_local_map':
         local = cfg.with_updates({'odometry.model': 'local_map'})
         return run_kentreg(scans, local, 'kentreg_local_map')
+    if name == NO_DESKEW:
+        local = cfg.with_updates({'odometry.model': 'local_map', 'odometry.deskew': 'off'})
+        return run_kentreg(scans, local, NO_DESKEW)
     if name == 'kiss_icp':
         return run_kiss_icp(scans, threads=1)
     return run_gicp(scans, voxel, threads=1)
@@ -108,7 +114,11 @@ def run_condition(
 ) -> dict[str, Any]:
     """Every pipeline on ``args.seeds`` sequences at ``step`` metres per scan, with a share
     ``share`` of raw outliers added to every scan before anything else (uniform in the scan's
-    bounding box, as ``robustness.py`` adds them; seeded by the sequence's seed)."""
+    bounding box, as ``robustness.py`` adds them; seeded by the sequence's seed), or swept
+    (``sensor.sweep_period > 0``: every point timed; then also :data:`NO_DESKEW`)."""
+    methods = list(args.methods)
+    if sensor.sweep_period > 0.0 and 'kentreg_local_map' in methods:
+        methods.insert(methods.index('kentreg_local_map') + 1, NO_DESKEW)
     runs: list[dict[str, Any]] = []
     errors: dict[str, str] = {}
     motion: dict[str, float] = {}
@@ -119,13 +129,13 @@ def run_condition(
             rng = np.random.default_rng([seed, 1])
             scans = [
                 Scan(s.stamp_ns, s.frame_id, inject_raw_outliers(s.points, share, rng)[0], {})
-                for s in scans
+                for s in scans  # (no sweep with outliers: their times would be undefined)
             ]
         motion = motion_stats(gt.trajectory.T_world_sensor)
         n_scans = len(scans)
         voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
         entry: dict[str, Any] = {'seed': seed, 'methods': {}}
-        for name in args.methods:
+        for name in methods:
             if share > 0.0 and name in CLEAN_ONLY:
                 continue
             try:
@@ -148,9 +158,10 @@ def run_condition(
             }
         runs.append(entry)
         logger.warning(
-            'step %s outliers %s seed %d: %s',
+            'step %s outliers %s sweep %s s seed %d: %s',
             step,
             share,
+            sensor.sweep_period,
             seed,
             ', '.join(
                 f'{k} {1e3 * v["ate_m"]:.2f} mm'
@@ -161,10 +172,11 @@ def run_condition(
     return {
         'step_m': step,
         'outliers': share,
+        'sweep_s': sensor.sweep_period,
         'n_scans': n_scans,
         'motion': motion,
         'runs': runs,
-        'summary': summarize_step(runs, args.methods),
+        'summary': summarize_step(runs, methods),
         'errors': errors,
     }
 
@@ -198,13 +210,21 @@ def summarize_step(runs: list[dict[str, Any]], methods: Sequence[str]) -> dict[s
     return out
 
 
+def _input_text(step: dict[str, Any]) -> str:
+    """What a condition fed the pipelines: clean, with raw outliers, or swept."""
+    if step.get('sweep_s'):
+        return f'{1e3 * step["sweep_s"]:.0f} ms sweeps, timed'
+    share = step.get('outliers', 0.0)
+    return f'{100 * share:.0f} % raw outliers' if share else 'clean'
+
+
 def format_table(report: dict[str, Any]) -> str:
     """Markdown table of the per-step summaries."""
     lines = [
         f'Re-simulated `bags/balm_50` scene, exact poses; {report["seeds"]} seeds per step '
         f'(independent sampling and noise); 1 thread; one round per pipeline.',
         '',
-        '| step [m] | raw outliers | scans | rotation/scan median, max [deg] | method '
+        '| step [m] | input | scans | rotation/scan median, max [deg] | method '
         '| ATE median [mm] | ATE / kentreg: median (range) | drift [%] | RPE/frame [mm] '
         '| failures | ms/scan |',
         '|---|---|---|---|---|---|---|---|---|---|---|',
@@ -214,7 +234,7 @@ def format_table(report: dict[str, Any]) -> str:
         for name, s in step['summary'].items():
             ratio = s['ate_ratio_to_kentreg']
             lines.append(
-                f'| {step["step_m"]} | {100 * step.get("outliers", 0.0):.0f} % '
+                f'| {step["step_m"]} | {_input_text(step)} '
                 f'| {step["n_scans"]} '
                 f'| {motion["rotation_median_deg"]:.1f}, {motion["rotation_max_deg"]:.1f} '
                 f'| {name} | {1e3 * s["ate_m_median"]:.2f} '
@@ -256,6 +276,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=[0.0, 0.4],
         metavar='SHARE',
         help='raw outlier shares, each a run of every step (default 0 0.4)',
+    )
+    parser.add_argument(
+        '--sweep',
+        type=float,
+        default=0.1,
+        metavar='S',
+        help='also run every step with sweeps of S seconds, points timed (default 0.1: a 10 Hz '
+        'spinning LiDAR; 0: no such run)',
     )
     parser.add_argument('--seeds', type=int, default=5, help='sequences per step (default 5)')
     parser.add_argument(
@@ -301,6 +329,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for step in args.steps:
         for share in args.outliers:
             report['steps'].append(run_condition(world, step, share, args, sensor, cfg))
+        if args.sweep > 0.0:
+            swept = dataclasses.replace(sensor, sweep_period=args.sweep)
+            report['steps'].append(run_condition(world, step, 0.0, args, swept, cfg))
     report['seconds'] = time.perf_counter() - t_start
     report['machine']['git_at_end'] = git_describe()
     args.out.mkdir(parents=True, exist_ok=True)

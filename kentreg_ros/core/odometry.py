@@ -86,6 +86,12 @@ FloatArray = NDArray[np.float64]
 #: this many voxel edges from where the predicted motion put them: below half a voxel the
 #: difference is under the sampling resolution of the scan.
 DESKEW_ITERATE_SPACINGS = 0.5
+#: Most deskew-and-register rounds per scan. A registration of a sweep deskewed with a twist
+#: off by d lands off by about d x (sweep / 2) and so re-estimates the twist off by about
+#: d x sweep / (2 gap), at most d / 2 (a sweep fills the gap between scans at most): three
+#: rounds divide a sudden change of velocity at least by eight, by 1000 when the sweep lasts a
+#: fifth of the gap.
+MAX_DESKEW_ITERATIONS = 3
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
 
@@ -95,6 +101,21 @@ def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
     if factor == 1.0:
         return T.copy()
     return make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
+
+
+def _resolvable(change: FloatArray, span_s: float, choice: _Choice) -> bool:
+    """Whether deskewing a sweep of ``span_s`` seconds with a twist differing by ``change``
+    would move its registered pose by more than the registration resolves: the pose lands
+    about half the sweep's motion difference away (``change x span / 2``), compared with the
+    covariance of the registration (Mahalanobis distance above 1)."""
+    if choice.result is None:
+        return False
+    bias = 0.5 * span_s * np.concatenate([change[3:], change[:3]])  # (x, y, z, roll, ...)
+    cov = np.asarray(choice.result.covariance, dtype=np.float64)
+    try:
+        return bool(bias @ np.linalg.solve(cov, bias) > 1.0)
+    except np.linalg.LinAlgError:
+        return False
 
 
 def _as_stamp(stamp_ns: int) -> int:
@@ -459,49 +480,59 @@ class Odometry:
     def _deskewed(
         self, points: ArrayLike, times: FloatArray, scan: PreparedScan, choice: _Choice, stamp: int
     ) -> tuple[PreparedScan, _Choice]:
-        """Deskew again with the motion just registered when it moves the sweep's points by more
-        than half a voxel from where the predicted motion put them; register once more from the
-        pose found (the registration and the deskewing converge together: constant velocity
-        within the sweep, iterated with the registration)."""
+        """Deskew again with the motion just registered while it moves the sweep's points by
+        more than half a voxel from where the last deskewing put them, registering once more
+        from the pose found each time (the registration and the deskewing converge together:
+        constant velocity within the sweep, iterated with the registration; at most
+        :data:`MAX_DESKEW_ITERATIONS` times)."""
         assert self._model is not None
-        twist = twist_of(choice.T, (stamp - self._model_stamp) * 1e-9)
-        change = twist - self._predicted_twist(stamp)
+        gap_s = (stamp - self._model_stamp) * 1e-9
+        used = self._predicted_twist(stamp)
         reach = float(np.max(np.linalg.norm(scan.points, axis=1))) if len(scan) else 0.0
-        shift = (np.linalg.norm(change[:3]) * reach + np.linalg.norm(change[3:])) * np.ptp(times)
         spacing = max(scan.voxel_size, 1e-9)
-        if shift <= DESKEW_ITERATE_SPACINGS * spacing:
-            return scan, choice
-        try:
-            if self._model_sweep is not None:
-                # The model was prepared before any motion was known (the first scan): its sweep
-                # moved like this one (constant velocity), so deskew it now, once.
-                model_points, model_times = self._model_sweep
-                first = prepare_scan(
-                    deskew(model_points, model_times, twist),
-                    config=self._config,
-                    voxel_size_hint=self._model.voxel_size,
-                )
-                if self._map is not None:  # the map holds only the first scan yet
-                    self._map.clear()
-                    first = self._map_model(first, self._T_world_model)
-                self._model = first
-                self._model_sweep = None
-            again = prepare_scan(
-                deskew(as_points(points), times, twist),
-                config=self._config,
-                voxel_size_hint=scan.voxel_size,
+        for _ in range(MAX_DESKEW_ITERATIONS):
+            twist = twist_of(choice.T, gap_s)
+            change = twist - used
+            shift = (np.linalg.norm(change[:3]) * reach + np.linalg.norm(change[3:])) * np.ptp(
+                times
             )
-            result = register(again, self._model, init=choice.T, config=self._config)
-        except (KentRegError, np.linalg.LinAlgError):
-            return scan, choice
-        if (
-            result.status == STATUS_FAILED
-            or not result.fit >= choice.fit * self._config.search.ambiguity_ratio
-        ):
-            return scan, choice
-        return again, _Choice(
-            result, result.T_target_source, result.fit, choice.health, choice.message
-        )
+            if shift <= DESKEW_ITERATE_SPACINGS * spacing and not _resolvable(
+                change, np.ptp(times), choice
+            ):
+                break
+            try:
+                if self._model_sweep is not None:
+                    # The model was prepared before any motion was known (the first scan): its
+                    # sweep moved like this one (constant velocity), so deskew it now, once.
+                    model_points, model_times = self._model_sweep
+                    first = prepare_scan(
+                        deskew(model_points, model_times, twist),
+                        config=self._config,
+                        voxel_size_hint=self._model.voxel_size,
+                    )
+                    if self._map is not None:  # the map holds only the first scan yet
+                        self._map.clear()
+                        first = self._map_model(first, self._T_world_model)
+                    self._model = first
+                    self._model_sweep = None
+                again = prepare_scan(
+                    deskew(as_points(points), times, twist),
+                    config=self._config,
+                    voxel_size_hint=scan.voxel_size,
+                )
+                result = register(again, self._model, init=choice.T, config=self._config)
+            except (KentRegError, np.linalg.LinAlgError):
+                break
+            if (
+                result.status == STATUS_FAILED
+                or not result.fit >= choice.fit * self._config.search.ambiguity_ratio
+            ):
+                break
+            scan, used = again, twist
+            choice = _Choice(
+                result, result.T_target_source, result.fit, choice.health, choice.message
+            )
+        return scan, choice
 
     def _register(self, scan: PreparedScan, pending: _Pending, gap: int) -> _Choice:
         """Choose the pose of ``scan`` in the model frame (see the module docstring)."""
