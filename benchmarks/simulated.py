@@ -9,9 +9,13 @@ sample's reference (a LiDAR-inertial estimate) cannot resolve are measured here;
 faster steps stand in for the recordings the odometry is judged on but that are not in this
 repository (0.6 m and 8 deg median between scans, up to 48 deg).
 
-Every step runs clean and with ``--outliers`` (default 40 %) of raw outliers added to every
+Every step runs clean, with ``--outliers`` (default 40 %) of raw outliers added to every
 scan before anything else (uniform in the scan's bounding box, as ``robustness.py`` adds
-them). The four pipelines of ``benchmarks/odometry.py`` run on every sequence (KISS-ICP on the
+them), and swept (``--sweep``, default 0.1 s: each scan taken over a sweep ending at its
+stamp while the sensor moves with the velocity that brought it from the previous scan, every
+point timed in a field ``t``; kentreg deskews, KISS-ICP deskews with its own model, GICP uses
+the points as they are, and ``kentreg_local_map_no_deskew`` shows the local map without
+deskewing). The four pipelines of ``benchmarks/odometry.py`` run on every sequence (KISS-ICP on the
 clean ones only, see ``CLEAN_ONLY``), one round each:
 ``kentreg`` (previous scan), ``kentreg_local_map``, ``kiss_icp`` and ``gicp``, with the same
 settings as there. Per step the table gives, over the seeds: the median ATE (rmse after SE(3)
@@ -19,14 +23,15 @@ alignment), the median and range of each pipeline's per-seed ATE ratio to ``kent
 drift per metre over KITTI segments scaled to the path, the failed pairs (``e_R > 2 deg`` or
 ``e_t > 0.2 m``) and the mean milliseconds per scan.
 
-What the simulation leaves out, so what these numbers do not show: motion within a sweep (the
-scans are taken at one instant), moving objects, reflectivity-dependent dropouts and the
-path's length (the scene is the sample's 10 m; the longest sequence has 66 scans, so drift
-has less room to grow than over a long recording).
+What the simulation leaves out, so what these numbers do not show: smooth changes of
+velocity (the simulated velocity is constant between scans and jumps at each; a real sensor's
+changes within a sweep), moving objects, reflectivity-dependent dropouts and the path's
+length (the scene is the sample's 10 m; the longest sequence has 66 scans, so drift has less
+room to grow than over a long recording).
 
 Usage::
 
-    python3 benchmarks/simulated.py                # steps 0.15 0.3 0.6 m, 0 and 40 %, 5 seeds
+    python3 benchmarks/simulated.py                # 0.15 0.3 0.6 m; clean, 40 %, swept
     python3 benchmarks/simulated.py --steps 0.6 --seeds 2 --out /tmp/sim
 
 Writes ``benchmarks/results/simulated.json`` and ``simulated.md``; ``--table JSON`` prints
