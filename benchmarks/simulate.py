@@ -59,6 +59,9 @@ FloatArray = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_INPUT = ROOT / 'bags' / 'balm_50'
+#: Thinning of the merged world (m): finer than the simulated beams' footprint at 4 m
+#: (0.5 deg -> 3.5 cm), so the beams, not the world's grid, set a scan's sampling.
+WORLD_VOXEL = 0.03
 #: Elevation band of the sample's sensor (deg): what the simulated sensor sees.
 ELEVATION_DEG = (-45.0, 45.0)
 #: Time slices of a sweep: the points of a slice share the pose of its middle (at 10 Hz,
@@ -272,20 +275,22 @@ def build_parser() -> argparse.ArgumentParser:
         '--yaw-period', type=float, default=9.0, help='yaw oscillation period, scans'
     )
     parser.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
-    parser.add_argument('--world-voxel', type=float, default=0.03, help='world thinning (m)')
-    parser.add_argument('--occlusion-bin', type=float, default=1.0, help='deg (default 1)')
-    parser.add_argument('--beam-bin', type=float, default=0.5, help='deg (default 0.5)')
     parser.add_argument(
-        '--range-noise', type=float, default=0.02, help='m, 1 sigma (default 0.02)'
+        '--world-voxel', type=float, default=WORLD_VOXEL, help=f'world thinning, m ({WORLD_VOXEL})'
     )
-    parser.add_argument('--min-range', type=float, default=1.0, help='m')
-    parser.add_argument('--max-range', type=float, default=30.0, help='m')
-    parser.add_argument(
-        '--sweep-period',
-        type=float,
-        default=0.0,
-        help='s per sweep, points timed in field t (default 0: every point at the stamp)',
-    )
+    default = Sensor()
+    for name, unit in (
+        ('occlusion_bin', 'deg'),
+        ('beam_bin', 'deg'),
+        ('range_noise', 'm, 1 sigma'),
+        ('min_range', 'm'),
+        ('max_range', 'm'),
+        ('sweep_period', 's per sweep, points timed in a field t; 0: every point at the stamp'),
+    ):
+        value = getattr(default, name)
+        parser.add_argument(
+            '--' + name.replace('_', '-'), type=float, default=value, help=f'{unit} ({value})'
+        )
     return parser
 
 

@@ -68,6 +68,7 @@ from benchmarks.odometry import (  # noqa: E402
 from benchmarks.robustness import inject_raw_outliers  # noqa: E402
 from benchmarks.simulate import (  # noqa: E402
     DEFAULT_INPUT,
+    WORLD_VOXEL,
     Sensor,
     World,
     build_world,
@@ -95,9 +96,6 @@ UNSWEPT_ONLY = ('kiss_icp',)
 #: The local map with deskewing off, run on the swept sequences only (beside the default,
 #: which deskews them): what the deskewing is worth.
 NO_DESKEW = 'kentreg_local_map_no_deskew'
-#: Thinning of the merged world (m): finer than the simulated beams' footprint at 4 m
-#: (0.5 deg -> 3.5 cm), so the beams, not the world's grid, set a scan's sampling.
-WORLD_VOXEL = 0.03
 
 
 def run_sequence(name: str, scans: list[Any], voxel: float, cfg: KentRegConfig) -> Any:
