@@ -84,7 +84,8 @@ FloatArray = NDArray[np.float64]
 
 #: Deskew once more with the registered motion when it moves the sweep's points by more than
 #: this many voxel edges from where the predicted motion put them: below half a voxel the
-#: difference is under the sampling resolution of the scan.
+#: difference is under the sampling resolution of the scan (a smaller change is still acted
+#: on when it would bias the registered pose by more than its covariance, see _resolvable).
 DESKEW_ITERATE_SPACINGS = 0.5
 #: Most deskew-and-register rounds per scan. A registration of a sweep deskewed with a twist
 #: off by d lands off by about d x (sweep / 2) and so re-estimates the twist off by about
@@ -481,8 +482,9 @@ class Odometry:
         self, points: ArrayLike, times: FloatArray, scan: PreparedScan, choice: _Choice, stamp: int
     ) -> tuple[PreparedScan, _Choice]:
         """Deskew again with the motion just registered while it moves the sweep's points by
-        more than half a voxel from where the last deskewing put them, registering once more
-        from the pose found each time (the registration and the deskewing converge together:
+        more than half a voxel from where the last deskewing put them, or the registered pose by
+        more than the registration resolves (:func:`_resolvable`), registering once more from
+        the pose found each time (the registration and the deskewing converge together:
         constant velocity within the sweep, iterated with the registration; at most
         :data:`MAX_DESKEW_ITERATIONS` times)."""
         assert self._model is not None
