@@ -212,26 +212,21 @@ class VoxelMap:
         keep = rank + existing[group] < self.max_points_per_voxel
         overflow = order[~keep] if self.average else order[:0]
         chosen = order[keep]
-        if not len(chosen):
-            if len(overflow):
-                self._merge(
-                    pts[overflow], nrm[overflow] if self.with_normals else None, keys[overflow]
-                )
-            return 0
-        added = np.bincount(group[keep], minlength=len(new_voxels))
-        self._voxel_counts[pos[present]] += added[present]
-        fresh = ~present & (added > 0)
-        self._voxel_keys = np.insert(self._voxel_keys, pos[fresh], new_voxels[fresh])
-        self._voxel_counts = np.insert(self._voxel_counts, pos[fresh], added[fresh])
-        self._points = np.concatenate([self._points, pts[chosen]])
-        self._keys = np.concatenate([self._keys, keys[chosen]])
-        if self.with_normals:
-            self._normals = np.concatenate([self._normals, nrm[chosen]])
-        if self.average:
-            self._sums = np.concatenate([self._sums, pts[chosen]])
-            self._merged = np.concatenate([self._merged, np.ones(len(chosen))])
+        if len(chosen):
+            added = np.bincount(group[keep], minlength=len(new_voxels))
+            self._voxel_counts[pos[present]] += added[present]
+            fresh = ~present & (added > 0)
+            self._voxel_keys = np.insert(self._voxel_keys, pos[fresh], new_voxels[fresh])
+            self._voxel_counts = np.insert(self._voxel_counts, pos[fresh], added[fresh])
+            self._points = np.concatenate([self._points, pts[chosen]])
+            self._keys = np.concatenate([self._keys, keys[chosen]])
             if self.with_normals:
-                self._normal_sums = np.concatenate([self._normal_sums, nrm[chosen]])
+                self._normals = np.concatenate([self._normals, nrm[chosen]])
+            if self.average:
+                self._sums = np.concatenate([self._sums, pts[chosen]])
+                self._merged = np.concatenate([self._merged, np.ones(len(chosen))])
+                if self.with_normals:
+                    self._normal_sums = np.concatenate([self._normal_sums, nrm[chosen]])
         if len(overflow):
             # After the new points are in: a voxel first filled by this insertion takes the
             # rest of its points into the ones it kept.
