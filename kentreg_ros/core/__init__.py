@@ -1,31 +1,70 @@
-"""Registration core of kentreg_ros: numpy/scipy only, never imports rclpy or rosbags."""
+"""Registration core of kentreg_ros: numpy/scipy only, never imports rclpy or rosbags.
 
+Everything a command line, the node, the evaluation or a benchmark needs from the core is
+importable from here; the modules behind these names may move.
+"""
+
+from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import (
     ConfigError,
     DegenerateSceneError,
+    InvalidInputError,
     InvalidPointCloudError,
     KentRegError,
 )
-from kentreg_ros.core.preprocess import as_points, drop_nonfinite, voxel_downsample
+from kentreg_ros.core.localmap import LocalMap, VoxelMap
+from kentreg_ros.core.odometry import Odometry
+from kentreg_ros.core.preprocess import (
+    as_points,
+    choose_voxel_size,
+    count_voxels,
+    drop_nonfinite,
+    voxel_downsample,
+)
 from kentreg_ros.core.registration import (
     PreparedScan,
     RegistrationResult,
     prepare_scan,
     register,
 )
+from kentreg_ros.core.rotations import (
+    exp_so3,
+    invert_transform,
+    log_so3,
+    make_transform,
+    project_to_so3,
+    rotation_angle,
+)
+from kentreg_ros.core.step import ACCEPTED, HEALTHS, OdometryStep
 
 __all__ = [
+    'ACCEPTED',
+    'HEALTHS',
     'ConfigError',
     'DegenerateSceneError',
+    'InvalidInputError',
     'InvalidPointCloudError',
     'KentRegConfig',
     'KentRegError',
+    'LocalMap',
+    'Odometry',
+    'OdometryStep',
     'PreparedScan',
     'RegistrationResult',
+    'VoxelMap',
     'as_points',
+    'choose_voxel_size',
+    'count_voxels',
     'drop_nonfinite',
+    'exp_so3',
+    'invert_transform',
+    'kernels',
+    'log_so3',
+    'make_transform',
     'prepare_scan',
+    'project_to_so3',
     'register',
+    'rotation_angle',
     'voxel_downsample',
 ]
