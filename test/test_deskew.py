@@ -11,7 +11,13 @@ from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.core import KentRegConfig
-from kentreg_ros.core.deskew import deskew, relative_point_times, twist_of
+from kentreg_ros.core.deskew import (
+    ImplausibleTimesError,
+    PointTimes,
+    deskew,
+    sweep_times,
+    twist_of,
+)
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.odometry import Odometry
 from kentreg_ros.core.rotations import hat, rotation_angle
@@ -165,24 +171,170 @@ def test_twist_of_a_motion_is_its_log_over_the_gap() -> None:
 
 
 STAMP_NS = 1_630_577_758_569_490_000
+NS = 1_000_000_000
+#: An azimuth order for synthetic sweeps: 0 ... 1 over the points.
+SWEEP = np.linspace(0.0, 1.0, 1000)
 
 
 @pytest.mark.parametrize(
-    ('values', 'expected'),
+    ('values', 'field', 'expected'),
     [
-        (np.array([0.0, 0.05, 0.099]), [0.0, 0.05, 0.099]),  # Velodyne `time`: s from sweep start
-        (np.array([0, 50_000_000, 99_000_000], dtype=np.uint32), [0.0, 0.05, 0.099]),  # Ouster ns
-        (np.array([0.0, 50.0, 99.0], dtype=np.float32), [0.0, 0.05, 0.099]),  # milliseconds
-        (STAMP_NS * 1e-9 + np.array([0.0, 0.05, 0.099]), [0.0, 0.05, 0.099]),  # absolute s
-        (np.array([STAMP_NS, STAMP_NS + 50_000_000], dtype=np.uint64), [0.0, 0.05]),  # abs ns
+        (np.array([0.0, 0.05, 0.099]), '', [0.0, 0.05, 0.099]),  # Velodyne `time`: s
+        (np.array([0, 50_000_000, 99_000_000], dtype=np.uint32), 't', [0.0, 0.05, 0.099]),
+        (np.array([0.0, 50.0, 99.0], dtype=np.float32), '', [0.0, 0.05, 0.099]),  # ms
+        (STAMP_NS * 1e-9 + np.array([0.0, 0.05, 0.099]), 'timestamp', [0.0, 0.05, 0.099]),
+        (np.array([STAMP_NS, STAMP_NS + 50_000_000], dtype=np.uint64), '', [0.0, 0.05]),
+        # The defect: relative nanoseconds above 1e8 (sweeps over 0.1 s) read as absolute s.
+        (np.array([0, 100_200_000], dtype=np.uint32), 't', [0.0, 0.1002]),  # 10 Hz, 100.2 ms
+        (np.array([0, 150_000_000], dtype=np.uint32), 't', [0.0, 0.15]),  # 6.7 Hz Ouster
+        (np.array([0, 199_000_000], dtype=np.uint32), 'offset_time', [0.0, 0.199]),  # 5 Hz
+        (np.array([0, 150_000_000], dtype=np.uint32), '', [0.0, 0.15]),  # unknown name
+        (np.array([0.0, 150_000_000.0]), 'time_offset', [0.0, 0.15]),  # float ns, unknown
+        # livox_ros_driver2: float64 absolute nanoseconds.
+        (np.array([STAMP_NS, STAMP_NS + 5e7]), 'timestamp', [0.0, 0.05]),
     ],
 )
 def test_driver_time_fields_become_seconds_from_the_stamp(
-    values: np.ndarray, expected: list[float]
+    values: np.ndarray, field: str, expected: list[float]
 ) -> None:
-    np.testing.assert_allclose(relative_point_times(values, STAMP_NS), expected, atol=2e-6)
+    got = sweep_times(values, STAMP_NS, field=field).seconds
+    np.testing.assert_allclose(got, expected, atol=2e-6)
 
 
-def test_non_finite_time_fields_are_refused() -> None:
-    with pytest.raises(InvalidPointCloudError, match='NaN'):
-        relative_point_times(np.array([0.0, np.nan]), STAMP_NS)
+def test_a_stated_unit_and_reference_override_the_field() -> None:
+    # A driver that puts microseconds into a field named `t` as uint32.
+    values = np.array([0, 50_000, 100_000], dtype=np.uint32)
+    assert sweep_times(values, STAMP_NS, field='t').span == pytest.approx(1e-4)  # as Ouster ns
+    got = sweep_times(values, STAMP_NS, field='t', unit='us').seconds
+    np.testing.assert_allclose(got, [0.0, 0.05, 0.1])
+    absolute = sweep_times(
+        np.array([1.0, 1.05]), 1 * NS, unit='s', reference='absolute'
+    ).seconds  # small stamps (simulation): auto prefers relative, stating it decides
+    np.testing.assert_allclose(absolute, [0.0, 0.05], atol=1e-12)
+
+
+def test_times_that_are_no_sweep_are_refused_not_misread() -> None:
+    with pytest.raises(ImplausibleTimesError, match='no sweep'):
+        sweep_times(np.array([0.0, 5.0]), STAMP_NS, unit='s')  # 5 s: no sweep
+    with pytest.raises(ImplausibleTimesError, match='no sweep'):  # absolute, 1 h off the stamp
+        sweep_times(STAMP_NS * 1e-9 + 3600.0 + np.array([0.0, 0.1]), STAMP_NS, field='timestamp')
+
+
+def test_non_finite_times_are_nan_not_an_error() -> None:
+    got = sweep_times(np.array([0.0, np.nan, 0.05, np.inf]), STAMP_NS)
+    assert np.isnan(got.seconds[[1, 3]]).all()
+    np.testing.assert_allclose(got.seconds[[0, 2]], [0.0, 0.05])
+    with pytest.raises(ImplausibleTimesError, match='no finite value'):
+        sweep_times(np.full(3, np.nan), STAMP_NS)
+
+
+def _timed_scans(repo_root: Path, n: int, span_ns: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Sample-bag scans with an Ouster-style `t` field (uint32 ns from the sweep start, by
+    azimuth) spanning ``span_ns``."""
+    pytest.importorskip('rosbags', reason='rosbags is not installed (pip install -e .[io])')
+    from kentreg_ros.io import open_scan_source
+
+    out = []
+    for _, scan in zip(range(n), open_scan_source(repo_root / 'bags' / 'balm_50'), strict=False):
+        p = scan.points
+        azimuth = (np.arctan2(p[:, 1], p[:, 0]) + np.pi) / (2.0 * np.pi)
+        out.append((p, np.round(azimuth * span_ns).astype(np.uint32)))
+    return out
+
+
+@pytest.mark.parametrize('named', [True, False], ids=['field-t', 'bare-values'])
+def test_odometry_deskews_relative_nanoseconds_over_a_tenth_of_a_second(
+    repo_root: Path, named: bool
+) -> None:
+    """The defect's recording: a `t` field of uint32 ns spanning 150 ms was read as absolute
+    seconds, so every scan after the first was thrown ~1.7e9 s of motion away and rejected."""
+    scans = _timed_scans(repo_root, 4, 150_000_000)
+    plain, timed = Odometry(KentRegConfig()), Odometry(KentRegConfig())
+    for i, (points, t) in enumerate(scans):
+        stamp = STAMP_NS + i * NS // 2
+        ref = plain.step(points, stamp)
+        step = timed.step(points, stamp, point_times=PointTimes(t, 't') if named else t)
+        assert step.health in ('first', 'ok'), step.message
+        # The sample moves ~5 cm a scan: deskewing a 0.15 s sweep moves the pose by mm.
+        assert np.linalg.norm(step.T_world_lidar[:3, 3] - ref.T_world_lidar[:3, 3]) < 0.02
+
+
+def test_points_without_a_finite_time_are_dropped_and_counted(repo_root: Path) -> None:
+    scans = _timed_scans(repo_root, 3, 100_000_000)
+    odometry = Odometry(KentRegConfig())
+    for i, (points, t) in enumerate(scans):
+        times = t.astype(np.float64) * 1e-9
+        times[::50] = np.nan  # one point in 50 without a time
+        step = odometry.step(points, STAMP_NS + i * NS // 2, point_times=times)
+        assert step.health in ('first', 'ok'), step.message
+        assert step.n_untimed == len(times[::50])
+    # Too few timed points left: rejected, saying why.
+    times = np.full(len(scans[0][1]), np.nan)
+    times[:5] = 0.0
+    step = odometry.step(scans[0][0], STAMP_NS + 5 * NS, point_times=times)
+    assert step.health == 'rejected' and 'finite time' in step.message
+
+
+def test_implausible_times_skip_deskewing_with_one_warning(
+    repo_root: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    scans = _timed_scans(repo_root, 3, 100_000_000)
+    config = KentRegConfig().with_updates({'odometry.point_time_unit': 's'})  # wrong: ns
+    odometry, plain = Odometry(config), Odometry(KentRegConfig())
+    with caplog.at_level('WARNING', logger='kentreg_ros'):
+        for i, (points, t) in enumerate(scans):
+            step = odometry.step(points, STAMP_NS + i * NS // 2, point_times=t)
+            ref = plain.step(points, STAMP_NS + i * NS // 2)
+            assert step.health in ('first', 'ok'), step.message
+            np.testing.assert_array_equal(step.T_world_lidar, ref.T_world_lidar)  # undeskewed
+    warnings = [r for r in caplog.records if 'Not deskewing' in r.getMessage()]
+    assert len(warnings) == 1 and 'point_time_unit' in warnings[0].getMessage()
+
+
+@pytest.mark.parametrize('tamper', ['none', 'degenerate', 'too_fast'])
+def test_each_deskew_round_is_judged_on_its_own(
+    world_and_start: tuple[np.ndarray, np.ndarray],
+    monkeypatch: pytest.MonkeyPatch,
+    tamper: str,
+) -> None:
+    """The registrations after deskewing (rounds 2 and 3 of a step) never run the start-free
+    search (not even with search.mode always), report their own degeneracy, and are not taken
+    when they break the speed limits."""
+    import dataclasses
+
+    import kentreg_ros.core.odometry as odometry_module
+
+    real = odometry_module.register
+    calls: list[bool | None] = []  # global_search of each call in the current step
+
+    def spy(*args: object, **kwargs: object) -> object:
+        result = real(*args, **kwargs)  # type: ignore[arg-type]
+        calls.append(kwargs.get('global_search'))  # type: ignore[arg-type]
+        if len(calls) > 1 and kwargs.get('global_search') is not True:  # a deskew round
+            if tamper == 'degenerate':
+                result = dataclasses.replace(result, status='degenerate', message='Degenerate.')
+            elif tamper == 'too_fast':
+                T = result.T_target_source.copy()
+                T[:3, 3] += [100.0, 0.0, 0.0]  # 1000 m/s at 10 Hz
+                result = dataclasses.replace(result, T_target_source=T)
+        return result
+
+    monkeypatch.setattr(odometry_module, 'register', spy)
+    world, start = world_and_start
+    config = KentRegConfig().with_updates({'search.mode': 'always'})
+    odometry = Odometry(config, initial_pose=start)
+    rng = np.random.default_rng(3)
+    T, motion = start, _se3_exp(PERIOD_S * TWIST)
+    rounds = 0
+    for i in range(4):
+        calls.clear()
+        points, times = _observe(world, T, rng, distort=True)
+        step = odometry.step(points, int(i * PERIOD_S * 1e9), point_times=times)
+        assert None not in calls, 'a registration left global_search to search.mode'
+        rounds += sum(1 for c in calls[1:] if c is not True)
+        if i > 0:
+            assert np.linalg.norm(step.T_prev_curr[:3, 3]) < 1.0, step.message
+            if tamper == 'degenerate' and len(calls) > 1 and calls[-1] is not True:
+                assert step.health == 'degenerate', step.message
+        T = T @ motion
+    assert rounds > 0  # the scans were deskewed again after their first registration

@@ -337,6 +337,23 @@ class OdometryConfig:
         '(auto), always (on: warns once when they do not), or never (off).',
         choices=('auto', 'on', 'off'),
     )
+    point_time_unit: str = _f(
+        'auto',
+        'Unit of the per-point time field: auto reads it from the field (name and datatype of '
+        'the common drivers: Ouster t and Livox offset_time uint32 ns, Velodyne time float32 s, '
+        'Hesai/Robosense timestamp float64 absolute s), then from the values (the unit that '
+        'makes them a sweep of at most 2 s around the stamp); s, ms, us or ns state it for a '
+        'driver that does something else.',
+        choices=('auto', 's', 'ms', 'us', 'ns'),
+    )
+    point_time_reference: str = _f(
+        'auto',
+        "What the per-point times count from: relative (the scan stamp, i.e. the driver's "
+        'zero, usually the sweep start), absolute (the clock of the stamp), or auto (from the '
+        'field, then from the values). Times that are no sweep around the stamp in the unit '
+        'and reference used are not used: that scan is not deskewed, with one warning.',
+        choices=('auto', 'relative', 'absolute'),
+    )
     max_angular_speed_deg: float = _f(
         360.0,
         'Fastest plausible turn of the sensor (deg/s); a step turning more than this times its '

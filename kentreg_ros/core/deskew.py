@@ -15,61 +15,226 @@ into the arc a turning sensor follows; a straight path (``t = tau v``) would mis
 points at the end of a 0.1 s sweep by ``tau^2 |omega| |v| / 2``: 2.6 mm at 1 m/s and 30 deg/s,
 4 cm for a car at 15 m/s.
 
-Per-point times come in several units and references (Velodyne ``time``: seconds from the
-sweep start; Ouster ``t`` and Livox ``offset_time``: nanoseconds from it; Hesai and Robosense
-``timestamp``: absolute seconds). :func:`relative_point_times` turns them into seconds from the
-scan's stamp.
+Per-point times come in several units and references (Velodyne ``time``: float32 seconds from
+the sweep start; Ouster ``t`` and Livox ``offset_time``: uint32 nanoseconds from it; Hesai and
+Robosense ``timestamp``: float64 absolute seconds). :func:`sweep_times` turns them into seconds
+from the scan's stamp: from what the message says first (the field's name and datatype, see
+:data:`DRIVER_TIME_FIELDS`), then from the values, and a stated unit and reference
+(``odometry.point_time_unit`` / ``odometry.point_time_reference``) overrides both. Times that do
+not describe a plausible sweep around the stamp are not used: a wrong deskew throws points far
+off, which is worse than none.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.rotations import log_so3
 
 FloatArray = NDArray[np.float64]
 
-#: Values above this are absolute times (seconds since 1970 are ~1.7e9, nanoseconds ~1.7e18);
-#: relative times within a sweep of at most a few seconds stay far below it in any unit up to
-#: microseconds, and Ouster/Livox relative nanoseconds stay below 1e9 for sweeps under 1 s.
-ABSOLUTE_TIME_MIN = 1.0e8
-#: The longest sweep the unit rule assumes (s): spinning LiDARs turn at 5-20 Hz, and a 0.5 Hz
-#: scanner's sweep is 2 s. A relative time field spanning at most this is in seconds, at most
-#: 1e3 times it in milliseconds, 1e6 times it in microseconds, more in nanoseconds.
+
+class TimeUnit(StrEnum):
+    """Unit of a per-point time field (``auto``: from the field, then from the values)."""
+
+    AUTO = 'auto'
+    S = 's'
+    MS = 'ms'
+    US = 'us'
+    NS = 'ns'
+
+
+class TimeReference(StrEnum):
+    """What a per-point time is counted from: the scan's stamp (``relative``: the driver's zero,
+    usually the sweep start, which most drivers also stamp) or the stamp's own clock
+    (``absolute``); ``auto``: from the field, then from the values."""
+
+    AUTO = 'auto'
+    RELATIVE = 'relative'
+    ABSOLUTE = 'absolute'
+
+
+#: Seconds per unit.
+UNIT_SECONDS = {TimeUnit.S: 1.0, TimeUnit.MS: 1e-3, TimeUnit.US: 1e-6, TimeUnit.NS: 1e-9}
+
+#: The longest sweep a per-point time field may describe (s): spinning LiDARs turn at 5-20 Hz,
+#: a 0.5 Hz scanner's sweep is 2 s. Read in the right unit, every point of a sweep lies within
+#: this of the scan's stamp; times spanning more are not a sweep (a wrong unit, or garbage).
 MAX_SWEEP_S = 2.0
 
 
-def relative_point_times(values: ArrayLike, stamp_ns: int) -> FloatArray:
-    """Per-point times in seconds relative to the scan stamp, from a driver's time field.
+@dataclass(frozen=True)
+class DriverTimeField:
+    """What a driver's per-point time field means (``unit`` None: read it off the values)."""
 
-    Absolute times (any value above :data:`ABSOLUTE_TIME_MIN`) are read as nanoseconds when
-    above 1e15 and as seconds otherwise, and the stamp is subtracted. Relative times keep their
-    zero (the driver's: usually the sweep start, which most drivers also stamp) and their unit
-    is the one that makes their span a plausible sweep (:data:`MAX_SWEEP_S`).
+    unit: TimeUnit | None
+    reference: TimeReference
+    driver: str
+
+
+#: Per-point time fields of common drivers, by name and numpy datatype code.
+DRIVER_TIME_FIELDS: dict[tuple[str, str], DriverTimeField] = {
+    ('t', 'u4'): DriverTimeField(TimeUnit.NS, TimeReference.RELATIVE, 'Ouster'),
+    ('offset_time', 'u4'): DriverTimeField(TimeUnit.NS, TimeReference.RELATIVE, 'Livox'),
+    ('time', 'f4'): DriverTimeField(TimeUnit.S, TimeReference.RELATIVE, 'Velodyne'),
+    ('time', 'f8'): DriverTimeField(TimeUnit.S, TimeReference.RELATIVE, 'Velodyne-style'),
+    # float64 absolute: seconds (Hesai, Robosense) or nanoseconds (livox_ros_driver2); the
+    # magnitude tells them apart (1.7e9 against 1.7e18).
+    ('timestamp', 'f8'): DriverTimeField(None, TimeReference.ABSOLUTE, 'Hesai/Robosense'),
+    ('timestamp', 'u8'): DriverTimeField(TimeUnit.NS, TimeReference.ABSOLUTE, 'absolute ns'),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class PointTimes:
+    """A per-point time field as a message carried it: its values (in their own datatype,
+    which is part of what they say) and the field's name ('' when unknown). Behaves as the
+    array of its values (``np.asarray``)."""
+
+    values: NDArray[Any]
+    field: str = ''
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> NDArray[Any]:
+        return np.asarray(self.values, dtype=dtype)
+
+
+@dataclass(frozen=True)
+class SweepTimes:
+    """Per-point times in seconds from the scan's stamp, and how they were read.
+
+    Attributes
+    ----------
+    seconds : ndarray, shape (N,)
+        NaN where the field's value is not finite.
+    unit, reference : str
+        The unit and reference used.
+    source : str
+        How they were decided, for messages (``"field 't' (uint32, Ouster)"``, ``'stated'``,
+        ``'values'``).
+    """
+
+    seconds: FloatArray
+    unit: TimeUnit
+    reference: TimeReference
+    source: str
+
+    @property
+    def span(self) -> float:
+        """Seconds between the first and the last finite time (0 without any)."""
+        finite = self.seconds[np.isfinite(self.seconds)]
+        return float(np.ptp(finite)) if len(finite) else 0.0
+
+
+class ImplausibleTimesError(ValueError):
+    """A time field that does not describe a sweep around the stamp in the unit and reference
+    given or found; its message says what was tried."""
+
+
+def _plausible(seconds: FloatArray) -> bool:
+    return bool(len(seconds) == 0 or np.max(np.abs(seconds)) <= MAX_SWEEP_S)
+
+
+def _convert(
+    values: FloatArray, stamp_ns: int, unit: TimeUnit, reference: TimeReference
+) -> FloatArray:
+    scale = UNIT_SECONDS[unit]
+    if reference is TimeReference.RELATIVE:
+        return values * scale
+    if unit is TimeUnit.NS:  # integral nanoseconds: subtract before scaling (float64 holds
+        return (values - float(stamp_ns)) * 1e-9  # 1.7e18 to ~256 ns, the stamp exactly)
+    return values * scale - stamp_ns * 1e-9
+
+
+def sweep_times(
+    values: ArrayLike,
+    stamp_ns: int,
+    *,
+    field: str = '',
+    unit: TimeUnit | str = TimeUnit.AUTO,
+    reference: TimeReference | str = TimeReference.AUTO,
+) -> SweepTimes:
+    """Per-point times in seconds from the scan stamp, from a driver's time field.
+
+    The unit and reference are, in this order of precedence: the ones stated (``unit``,
+    ``reference``), the driver's for a known field name and datatype
+    (:data:`DRIVER_TIME_FIELDS`), and those that make the values a plausible sweep around the
+    stamp: read as absolute times in the first unit (s, ms, us, ns) that puts every point within
+    :data:`MAX_SWEEP_S` of the stamp, otherwise as relative times in the coarsest unit whose
+    span is a plausible sweep. A relative field is preferred when both readings are plausible
+    (stamps near zero, as in simulation), since drivers publish relative fields far more often.
+
+    Parameters
+    ----------
+    values : array_like, shape (N,)
+        The field as the message carried it (its datatype is part of what it says).
+    stamp_ns : int
+        The scan's stamp, integer nanoseconds.
+    field : str
+        The field's name in the message ('' when unknown).
+
+    Returns
+    -------
+    SweepTimes
+        ``seconds`` is NaN where a value is not finite.
 
     Raises
     ------
-    InvalidPointCloudError
-        Non-finite times.
+    ImplausibleTimesError
+        The times are no sweep around the stamp in any reading allowed (wrong stated unit,
+        garbage, a span longer than :data:`MAX_SWEEP_S`): deskewing must be skipped.
     """
-    t = np.asarray(values, dtype=np.float64).ravel()
-    if len(t) == 0:
-        return t
-    if not np.isfinite(t).all():
-        raise InvalidPointCloudError('The per-point time field has NaN or inf values.')
-    top = float(np.max(np.abs(t)))
-    if top > ABSOLUTE_TIME_MIN:
-        if top > 1e15:  # absolute nanoseconds: subtract in integers-as-floats carefully
-            return (t - float(stamp_ns)) * 1e-9
-        return t - stamp_ns * 1e-9
-    span = float(t.max() - t.min())
-    # Relative values stay below ABSOLUTE_TIME_MIN, so as nanoseconds they always fit a sweep.
-    for scale in (1.0, 1e-3, 1e-6):
-        if span * scale <= MAX_SWEEP_S:
-            return t * scale
-    return t * 1e-9
+    raw = np.asarray(values)
+    t = raw.astype(np.float64).ravel()
+    unit = TimeUnit(unit)
+    reference = TimeReference(reference)
+    finite = np.isfinite(t)
+    tf = t[finite]
+    known = DRIVER_TIME_FIELDS.get((field, raw.dtype.str[1:])) if field else None
+    source = 'stated'
+    if known is not None and (unit is TimeUnit.AUTO or reference is TimeReference.AUTO):
+        source = f'field {field!r} ({raw.dtype.name}, {known.driver})'
+        if unit is TimeUnit.AUTO and known.unit is not None:
+            unit = known.unit
+        if reference is TimeReference.AUTO:
+            reference = known.reference
+    elif unit is TimeUnit.AUTO or reference is TimeReference.AUTO:
+        source = 'values'
+    units = list(UNIT_SECONDS) if unit is TimeUnit.AUTO else [unit]
+    refs = (
+        [TimeReference.RELATIVE, TimeReference.ABSOLUTE]
+        if reference is TimeReference.AUTO
+        else [reference]
+    )
+    if not len(tf):
+        raise ImplausibleTimesError('the per-point time field has no finite value')
+    span = float(np.ptp(tf))
+    readings: list[tuple[TimeUnit, TimeReference]] = []
+    for ref in refs:
+        for u in units:
+            if ref is TimeReference.RELATIVE and span * UNIT_SECONDS[u] > MAX_SWEEP_S:
+                continue
+            if _plausible(_convert(tf, stamp_ns, u, ref)):
+                readings.append((u, ref))
+                break  # the coarsest plausible unit for this reference
+    if not readings:
+        tried = ', '.join(f'{r.value} {u.value}' for r in refs for u in units)
+        raise ImplausibleTimesError(
+            f'the per-point times ({source}: {len(tf)} finite values from {tf.min():.6g} to '
+            f'{tf.max():.6g}) are no sweep of at most {MAX_SWEEP_S} s around the stamp '
+            f'{stamp_ns} ns as any of: {tried}'
+        )
+    u, ref = readings[0]
+    out = np.full(len(t), np.nan)
+    out[finite] = _convert(tf, stamp_ns, u, ref)
+    return SweepTimes(out, u, ref, source)
 
 
 def _arc_coefficients(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -43,7 +43,13 @@ from numpy.typing import ArrayLike, NDArray
 from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.covariance import prediction_covariance, propagate_covariance
-from kentreg_ros.core.deskew import deskew, relative_point_times, twist_of
+from kentreg_ros.core.deskew import (
+    ImplausibleTimesError,
+    PointTimes,
+    deskew,
+    sweep_times,
+    twist_of,
+)
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError, KentRegError
 from kentreg_ros.core.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.preprocess import as_points
@@ -93,6 +99,9 @@ DESKEW_ITERATE_SPACINGS = 0.5
 #: rounds divide a sudden change of velocity at least by eight, by 1000 when the sweep lasts a
 #: fifth of the gap.
 MAX_DESKEW_ITERATIONS = 3
+#: Fewest points with a finite time a deskewed scan keeps (points without one are dropped):
+#: below this the scan cannot be prepared anyway (the neighbourhood of the normals needs more).
+MIN_TIMED_POINTS = 20
 #: Largest factor by which the last motion is stretched when the scan gap grows (dropped scans).
 MAX_VELOCITY_SCALE = 5.0
 
@@ -117,6 +126,17 @@ def _resolvable(change: FloatArray, span_s: float, choice: _Choice) -> bool:
         return bool(bias @ np.linalg.solve(cov, bias) > 1.0)
     except np.linalg.LinAlgError:
         return False
+
+
+def _judged(result: RegistrationResult, before: _Choice) -> tuple[str, str]:
+    """Health and message of a re-registration (after deskewing) from the pose ``before``
+    chose: its own status decides ok or degenerate; a pose found by the search, or chosen among
+    ambiguous ones, keeps saying so."""
+    if result.status == STATUS_DEGENERATE:
+        return HEALTH_DEGENERATE, f'{result.message} (re-registered after deskewing)'
+    if before.health in (HEALTH_RECOVERED, HEALTH_AMBIGUOUS):
+        return before.health, before.message
+    return HEALTH_OK, f'{result.message} (re-registered after deskewing)'
 
 
 def _as_stamp(stamp_ns: int) -> int:
@@ -216,7 +236,7 @@ class Odometry:
         self._model_stamp = 0
         self._fits: deque[float] = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
-        self._warned_no_times = False
+        self._warned: set[str] = set()
         # Raw points and times of a model prepared before any motion was known (see _deskewed).
         self._model_sweep: tuple[FloatArray, FloatArray] | None = None
         # odometry.model == 'local_map': the map of the accepted scans, in the world frame.
@@ -353,7 +373,7 @@ class Odometry:
         stamp_ns: int,
         *,
         frame_id: str | None = None,
-        point_times: ArrayLike | None = None,
+        point_times: ArrayLike | PointTimes | None = None,
     ) -> OdometryStep:
         """Register a new scan against the model (previous scan or local map); return its pose.
 
@@ -366,11 +386,14 @@ class Odometry:
         frame_id : str, optional
             Sensor frame of the scan; recorded in the step.
         point_times : array_like, shape (N,), optional
-            The driver's per-point acquisition times (any unit, relative or absolute, see
-            :func:`kentreg_ros.core.deskew.relative_point_times`). With ``odometry.deskew``
-            'auto' or 'on' every point is moved to the stamp's time with the motion of the
-            sweep (constant velocity, re-estimated from the registration; see
-            :meth:`_deskewed`).
+            The driver's per-point acquisition times (any unit, relative or absolute; a
+            :class:`~kentreg_ros.core.deskew.PointTimes` also names the field, which tells
+            the unit: see :func:`kentreg_ros.core.deskew.sweep_times`). With
+            ``odometry.deskew`` 'auto' or 'on' every point is moved to the stamp's time with
+            the motion of the sweep (constant velocity, re-estimated from the registration;
+            see :meth:`_deskewed`). Points whose time is not finite are dropped and counted
+            (``n_untimed``); times that are no plausible sweep leave the scan undeskewed,
+            with one warning.
 
         Returns
         -------
@@ -412,7 +435,7 @@ class Odometry:
 
         t0 = time.perf_counter()
         try:
-            times = self._sweep_times(points, point_times, stamp)
+            points, times = self._sweep_times(points, point_times, stamp, pending)
             swept = points
             if times is not None:
                 swept = deskew(as_points(points), times, self._predicted_twist(stamp))
@@ -455,21 +478,60 @@ class Odometry:
         )
 
     def _sweep_times(
-        self, points: ArrayLike, point_times: ArrayLike | None, stamp: int
-    ) -> FloatArray | None:
-        """Seconds from the stamp of every point, when the scan is to be deskewed."""
-        mode = self._config.odometry.deskew
-        if mode == 'off' or point_times is None:
-            if mode == 'on' and point_times is None and not self._warned_no_times:
-                logger.warning('odometry.deskew is on but the scans carry no per-point times.')
-                self._warned_no_times = True
-            return None
-        times = relative_point_times(point_times, stamp)
-        if len(times) != int(np.shape(points)[0]):
+        self,
+        points: ArrayLike,
+        point_times: ArrayLike | PointTimes | None,
+        stamp: int,
+        pending: _Pending,
+    ) -> tuple[ArrayLike, FloatArray | None]:
+        """The points to prepare and their seconds from the stamp, when the scan is to be
+        deskewed (else the points as given and None). Points without a finite time are dropped
+        (counted in ``pending.n_untimed``); times that are no plausible sweep are not used."""
+        odo = self._config.odometry
+        if odo.deskew == 'off' or point_times is None:
+            if odo.deskew == 'on' and point_times is None:
+                self._warn_once(
+                    'no_times', 'odometry.deskew is on but the scans carry no per-point times.'
+                )
+            return points, None
+        field = point_times.field if isinstance(point_times, PointTimes) else ''
+        values = np.asarray(point_times)
+        if values.ndim != 1 or len(values) != int(np.shape(points)[0]):
             raise InvalidPointCloudError(
-                f'Expected one time per point ({np.shape(points)[0]}), got {len(times)}.'
+                f'Expected one time per point ({np.shape(points)[0]}), got shape {values.shape}.'
             )
-        return times if np.ptp(times) > 0.0 else None
+        try:
+            found = sweep_times(
+                values,
+                stamp,
+                field=field,
+                unit=odo.point_time_unit,
+                reference=odo.point_time_reference,
+            )
+        except ImplausibleTimesError as exc:
+            self._warn_once(
+                'implausible_times',
+                f'Not deskewing: {exc}. Set odometry.point_time_unit and '
+                'odometry.point_time_reference if the driver uses another convention.',
+            )
+            return points, None
+        times = found.seconds
+        timed = np.isfinite(times)
+        if not timed.all():
+            pending.n_untimed = int(np.count_nonzero(~timed))
+            points, times = as_points(points)[timed], times[timed]
+            if len(times) < MIN_TIMED_POINTS:
+                raise InvalidPointCloudError(
+                    f'only {len(times)} of {pending.n_points} points have a finite time '
+                    f'(need {MIN_TIMED_POINTS}).'
+                )
+        return points, (times if np.ptp(times) > 0.0 else None)
+
+    def _warn_once(self, key: str, message: str) -> None:
+        """Log ``message`` the first time ``key`` happens in this trajectory."""
+        if key not in self._warned:
+            self._warned.add(key)
+            logger.warning(message)
 
     def _predicted_twist(self, stamp: int) -> FloatArray:
         """The sensor's velocity during the sweep: the last accepted motion (zero before one)."""
@@ -522,18 +584,19 @@ class Odometry:
                     config=self._config,
                     voxel_size_hint=scan.voxel_size,
                 )
-                result = register(again, self._model, init=choice.T, config=self._config)
+                result = register(
+                    again, self._model, init=choice.T, config=self._config, global_search=False
+                )
             except (KentRegError, np.linalg.LinAlgError):
                 break
             if (
                 result.status == STATUS_FAILED
                 or not result.fit >= choice.fit * self._config.search.ambiguity_ratio
+                or self._implausible(result.T_target_source, stamp - self._model_stamp)
             ):
-                break
+                break  # keep the last round: this one is no better, or breaks the limits
             scan, used = again, twist
-            choice = _Choice(
-                result, result.T_target_source, result.fit, choice.health, choice.message
-            )
+            choice = _Choice(result, result.T_target_source, result.fit, *_judged(result, choice))
         return scan, choice
 
     def _register(self, scan: PreparedScan, pending: _Pending, gap: int) -> _Choice:
@@ -697,6 +760,7 @@ class Odometry:
             timings=pending.timings,
             n_points=pending.n_points,
             n_prepared=pending.n_prepared,
+            n_untimed=pending.n_untimed,
             covariance=covariance,
             fit=pending.fit,
             searched=pending.searched,
@@ -718,6 +782,7 @@ class _Pending:
     timings: dict[str, float] = field(default_factory=dict)
     fit: float = float('nan')
     searched: bool = False
+    n_untimed: int = 0
 
 
 @dataclass(frozen=True, eq=False)

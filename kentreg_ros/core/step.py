@@ -82,6 +82,8 @@ class OdometryStep:
         Points given.
     n_prepared : int
         Points kept after preprocessing (0 if rejected).
+    n_untimed : int
+        Points dropped before deskewing because their time was not finite.
     covariance : ndarray, shape (6, 6)
         First-order covariance of ``T_world_lidar`` in the order (x, y, z, rot_x, rot_y, rot_z)
         of nav_msgs/Odometry: position error in world axes, rotation error about world axes
@@ -103,6 +105,7 @@ class OdometryStep:
     timings: dict[str, float] = field(default_factory=dict)
     n_points: int = 0
     n_prepared: int = 0
+    n_untimed: int = 0
     covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     fit: float = float('nan')
     searched: bool = False

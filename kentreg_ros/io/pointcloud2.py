@@ -25,6 +25,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
+from kentreg_ros.core.deskew import PointTimes
 from kentreg_ros.core.errors import InvalidPointCloudError
 
 logger = logging.getLogger(__name__)
@@ -59,14 +60,17 @@ PADDING_FIELDS = frozenset({'', '_'})
 POINT_TIME_FIELDS = ('t', 'time', 'timestamp', 'offset_time', 'time_offset')
 
 
-def point_time_field(extras: Mapping[str, Any] | None) -> NDArray[Any] | None:
+def point_time_field(extras: Mapping[str, Any] | None) -> PointTimes | None:
     """The per-point times among a cloud's extra fields (the first of
-    :data:`POINT_TIME_FIELDS` present, one value per point), or None."""
+    :data:`POINT_TIME_FIELDS` present, one value per point) with the field's name, or None.
+
+    The values keep the datatype the message gave them: with the name it tells the
+    odometry the unit and reference (:data:`kentreg_ros.core.deskew.DRIVER_TIME_FIELDS`)."""
     for name in POINT_TIME_FIELDS:
         if extras and name in extras:
             values = np.asarray(extras[name])
             if values.ndim == 1 or (values.ndim == 2 and values.shape[1] == 1):
-                return values.ravel()
+                return PointTimes(values.ravel(), name)
     return None
 
 

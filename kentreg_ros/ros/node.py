@@ -80,6 +80,7 @@ from std_srvs.srv import Trigger
 
 from kentreg_ros.cli.common import interrupt_through_rclpy
 from kentreg_ros.core.config import KentRegConfig, iter_fields
+from kentreg_ros.core.deskew import PointTimes
 from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.localmap import VoxelMap
 from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
@@ -143,7 +144,7 @@ class _Scan:
     frame_id: str
     received: float  # time.monotonic()
     n_nonfinite: int
-    point_times: np.ndarray | None = None  # the driver's per-point times, for deskewing
+    point_times: PointTimes | None = None  # the driver's per-point times, for deskewing
 
 
 class _Counters:
