@@ -18,7 +18,6 @@ from kentreg_ros.core.deskew import (
     sweep_times,
     twist_of,
 )
-from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.odometry import Odometry
 from kentreg_ros.core.rotations import hat, rotation_angle
 

@@ -100,6 +100,8 @@ class VoxelMap:
 
     def clear(self) -> None:
         """Drop every point."""
+        #: Points :meth:`insert` dropped because they lay beyond the reach of a key.
+        self.n_out_of_reach = 0
         self._points = np.zeros((0, 3))
         self._normals = np.zeros((0, 3))
         self._keys = np.zeros(0, dtype=np.int64)
@@ -169,7 +171,9 @@ class VoxelMap:
 
     def insert(self, points: ArrayLike, normals: ArrayLike | None = None) -> int:
         """Add the points that find room in their voxel; return how many were added (the
-        others are dropped, or averaged into the map when the map averages).
+        others are dropped, or averaged into the map when the map averages). Points beyond the
+        reach of a key (see Notes of the class) are dropped and counted in
+        :attr:`n_out_of_reach`.
 
         Parameters
         ----------
@@ -192,6 +196,17 @@ class VoxelMap:
             raise InvalidInputError('This map keeps no normals: give `with_normals=True`.')
         if not len(pts):
             return 0
+        # Points beyond the keys' reach (far beyond any sensor's range: garbage returns) are
+        # not the map's; dropping them keeps a scan with a few of them usable.
+        grid = np.floor(pts / self.voxel_size)
+        inside = np.all((grid >= -_OFFSET) & (grid < _OFFSET), axis=1)
+        if not inside.all():
+            self.n_out_of_reach += int(np.count_nonzero(~inside))
+            pts = pts[inside]
+            if self.with_normals:
+                nrm = nrm[inside]
+            if not len(pts):
+                return 0
         keys = self.keys_of(pts)
         order = argsort_keys(keys)  # stable: the first points of a voxel win
         sorted_keys = keys[order]

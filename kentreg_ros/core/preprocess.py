@@ -92,12 +92,19 @@ def _voxel_keys(
     ``bounds`` are the per-axis minimum and maximum of ``points`` when already known (the
     voxel-size search reuses them). The grid corner is ``floor(min / voxel_size)``, which equals
     the smallest per-point voxel index because ``floor(p / s)`` is monotonic in ``p``; the index
-    arithmetic runs in float64 (exact below 2**53 cells), in int64 above.
+    arithmetic runs in float64 (exact below 2**53 cells), in int64 below 2**62 cells; a grid of
+    more cells (points far beyond any sensor's range) numbers its occupied voxels in the same
+    order instead (a sort of the voxel coordinates: exact, and bounded by the point count).
     """
     lo, hi = bounds if bounds is not None else _bounds(points)
     corner = np.floor(lo / voxel_size)
     span = np.floor(hi / voxel_size) - corner + 1.0
-    if float(np.prod(span)) >= 2.0**53:
+    cells = float(np.prod(span))
+    if cells >= 2.0**62:
+        coords = np.floor(points / voxel_size)
+        ranks: NDArray[np.int64] = np.unique(coords, axis=0, return_inverse=True)[1]
+        return ranks.astype(np.int64).ravel()
+    if cells >= 2.0**53:
         idx = np.floor(points / voxel_size).astype(np.int64) - corner.astype(np.int64)
         s = span.astype(np.int64)
         wide: NDArray[np.int64] = (idx[:, 0] * s[1] + idx[:, 1]) * s[2] + idx[:, 2]

@@ -139,6 +139,8 @@ def prepare_scan(
     if normals is None:
         t0 = time.perf_counter()
         pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
+        n_cropped = len(pts)
+        extent = float(np.max(np.ptp(pts, axis=0))) if len(pts) else 0.0
         pts, grid = downsample(
             pts,
             voxel_size=cfg.preprocess.voxel_size,
@@ -151,7 +153,9 @@ def prepare_scan(
         if len(pts) < max(k, MIN_POINTS):
             raise InvalidPointCloudError(
                 f'Expected at least {max(k, MIN_POINTS)} points after preprocessing '
-                f'(k_neighbors={k}), got {len(pts)} (from {n_input} input points).'
+                f'(k_neighbors={k}), got {len(pts)} (from {n_input} input points, '
+                f'{n_cropped} within preprocess.min_range/max_range, spanning {extent:.4g} m, '
+                f'in voxels of {voxel:.4g} m).'
             )
         t0 = time.perf_counter()
         tree = NeighborIndex(pts)

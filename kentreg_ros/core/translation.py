@@ -30,6 +30,14 @@ GATE_SHRINK = 0.7
 PLANE_COSINE = 0.9
 #: Fewest points (per cloud) a direction's histogram needs for a usable correlation peak.
 PLANE_MIN_POINTS = 50
+#: Histogram bins per point (of both clouds) at most, and the floor of that cap. A histogram
+#: of n offsets needs resolution only where offsets are; beyond a few bins per point it is
+#: mostly empty. The bins are widened where the offsets spread farther than the cap allows
+#: (points far beyond any sensor's range, e.g. garbage returns or a wrong deskew), so memory
+#: and time follow the point count, never the cloud's extent. Real scans stay far below it
+#: (10k points at 0.1 m bins: 8 km).
+MAX_BINS_PER_POINT = 8
+MIN_MAX_BINS = 4096
 
 FloatArray = NDArray[np.float64]
 
@@ -81,7 +89,6 @@ def plane_offset_translation(
     # Lags searched on each side of the prior: at least one bin, so a coarse bin (large
     # voxels) still gets a three-point peak to interpolate.
     half = max(int(np.ceil(max_shift / bin_size)), 1)
-    lags = np.arange(-half, half + 1)
     for d in directions:
         mt = target_normals @ d > min_cosine
         ms = src_n @ d > min_cosine
@@ -94,12 +101,18 @@ def plane_offset_translation(
         off_s = off_s[(off_s >= lo) & (off_s <= hi)]
         if len(off_s) < min_points:
             continue
-        edges_n = int(np.ceil((hi - lo) / bin_size)) + 1
-        ht = np.bincount(((off_t - lo) / bin_size).astype(np.intp), minlength=edges_n)
-        hs = np.bincount(((off_s - lo) / bin_size).astype(np.intp), minlength=edges_n)
+        step, n_lags = bin_size, half
+        max_bins = max(MIN_MAX_BINS, MAX_BINS_PER_POINT * (len(off_t) + len(off_s)))
+        if (hi - lo) / step + 2 * n_lags > max_bins:
+            step = max(step, (hi - lo + 2 * max_shift) / max_bins)
+            n_lags = max(int(np.ceil(max_shift / step)), 1)
+        edges_n = int(np.ceil((hi - lo) / step)) + 1
+        ht = np.bincount(((off_t - lo) / step).astype(np.intp), minlength=edges_n)
+        hs = np.bincount(((off_s - lo) / step).astype(np.intp), minlength=edges_n)
         ht = ht.astype(np.float64)
         hs = hs.astype(np.float64)
-        size = 1 << int(np.ceil(np.log2(2 * edges_n + 2 * half)))
+        lags = np.arange(-n_lags, n_lags + 1)
+        size = 1 << int(np.ceil(np.log2(2 * edges_n + 2 * n_lags)))
         corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
         shifts = corr[lags % size]  # correlation at each lag (circular index, no wrap-around)
         best = int(np.argmax(shifts))
@@ -113,7 +126,7 @@ def plane_offset_translation(
             denom = a - 2 * b + c
             if denom < 0:
                 frac = 0.5 * (a - c) / denom
-        shift = (lags[best] + frac) * bin_size
+        shift = (lags[best] + frac) * step
         # Confidence: peak over mean correlation, times the points involved.
         contrast = peak / max(float(np.mean(np.abs(shifts))), 1e-12)
         rows.append(d)
