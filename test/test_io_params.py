@@ -83,3 +83,43 @@ def test_effective_config_applies_overrides_on_top_of_the_file(tmp_path: Path) -
     assert effective_config(None, {'normals.k_neighbors': 20}).normals.k_neighbors == 20
     with pytest.raises(ConfigError, match='Unknown configuration key'):
         effective_config(None, ['em.no_such_key=1'])
+
+
+@pytest.mark.parametrize(
+    ('text', 'value'),
+    [
+        ('1e-3', 1e-3),
+        ('1E-3', 1e-3),
+        ('.5', 0.5),
+        ('1e3', 1000.0),
+        ('-2E-2', -0.02),
+        ('+1.5e+2', 150.0),
+        ('3', 3),
+        ('1e-3x', '1e-3x'),
+    ],
+)
+def test_numbers_read_as_a_user_writes_them(text: str, value: object, tmp_path: Path) -> None:
+    """YAML 1.1 (PyYAML) reads 1e-3 as a string; rcl, which reads the node's files, and YAML
+    1.2 read it as a number: --set and parameter files must agree with the node."""
+    assert parse_overrides([f'em.tolerance={text}']) == {'em.tolerance': value}
+    path = tmp_path / 'c.yaml'
+    path.write_text(f'/**:\n  ros__parameters:\n    em:\n      tolerance: {text}\n')
+    assert parameters_from_yaml(path) == {'em.tolerance': value}
+    if isinstance(value, float) and 0 <= value <= 1:
+        assert load_config(path).em.tolerance == value
+
+
+def test_the_replay_takes_exponent_numbers_from_set(tmp_path: Path) -> None:
+    import contextlib
+    import io
+
+    pytest.importorskip('rosbags', reason='rosbags is not installed (pip install -e .[io])')
+    from kentreg_ros.cli.replay import main
+
+    out = tmp_path / 'run'
+    argv = [str(REPO / 'bags' / 'balm_50'), '--max-scans', '2', '--no-progress', '--no-plot']
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        code = main([*argv, '--out', str(out), '--set', 'em.tolerance=1e-3'])
+    assert code == 0, err.getvalue()
+    assert load_config(out / 'config.yaml').em.tolerance == 1e-3

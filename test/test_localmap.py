@@ -135,8 +135,8 @@ def test_voxel_map_rejects_bad_input() -> None:
         VoxelMap(1.0, with_normals=True).insert(np.zeros((3, 3)))
     with pytest.raises(InvalidInputError, match='no normals'):
         VoxelMap(1.0).insert(np.zeros((3, 3)), np.ones((3, 3)))
-    with pytest.raises(InvalidPointCloudError, match='within'):
-        VoxelMap(0.01).insert(np.array([[1e5, 0.0, 0.0]]))
+    far = VoxelMap(0.01)  # beyond the keys' reach: dropped and counted, not raised
+    assert far.insert(np.array([[1e5, 0.0, 0.0]])) == 0 and far.n_out_of_reach == 1
     with pytest.raises(InvalidPointCloudError, match=r'shape \(N, 3\)'):
         VoxelMap(1.0).insert(np.zeros((3, 2)))
 

@@ -15,7 +15,7 @@ import dataclasses
 import types
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
-from typing import Any, get_type_hints
+from typing import Any, ClassVar, get_type_hints
 
 from kentreg_ros.core.errors import ConfigError
 
@@ -35,8 +35,51 @@ def _f(
     return field(default=default, metadata=meta)
 
 
+class Section:
+    """A section of the configuration tree: every field is validated when an instance is made,
+    however it is made (directly, :meth:`KentRegConfig.from_dict`, ``with_updates``, the node's
+    parameters): :func:`coerce_value` by the field's type (an integral float is an integer, an
+    integer a float; nothing else changes type), then :func:`validate_value` by its metadata.
+    Rules that tie fields together live in :meth:`check`.
+    """
+
+    #: Dotted prefix of the section's fields in messages and parameter names (``'em.'``).
+    prefix: ClassVar[str] = ''
+
+    def __init_subclass__(cls, *, prefix: str = '', **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.prefix = prefix
+
+    def __post_init__(self) -> None:
+        validate_fields(self, self.prefix)
+        self.check()
+
+    def check(self) -> None:
+        """Cross-field rules of the section (none by default); raise ConfigError."""
+
+
+def validate_fields(obj: Any, prefix: str = '') -> None:
+    """Coerce and validate every scalar field of the dataclass ``obj`` in place (see
+    :class:`Section`); sections inside it validate themselves.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``prefix + field``, what was expected and the value given.
+    """
+    hints = get_type_hints(type(obj))
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if is_dataclass(value):
+            continue
+        coerced = coerce_value(prefix + f.name, value, hints[f.name])
+        validate_value(prefix + f.name, coerced, f.metadata)
+        if coerced is not value:
+            object.__setattr__(obj, f.name, coerced)
+
+
 @dataclass(frozen=True)
-class PreprocessConfig:
+class PreprocessConfig(Section, prefix='preprocess.'):
     """Range cropping and voxel downsampling applied to every scan."""
 
     voxel_size: float = _f(
@@ -66,9 +109,17 @@ class PreprocessConfig:
         0.0, 'Drop points farther than this (m); 0 keeps all.', range=(0.0, 10000.0)
     )
 
+    def check(self) -> None:
+        if self.max_range > 0.0 and self.min_range >= self.max_range:
+            raise ConfigError(
+                f'Expected preprocess.min_range < preprocess.max_range (or max_range 0: no '
+                f'limit), got min_range={self.min_range} >= max_range={self.max_range}: every '
+                'point would be cropped.'
+            )
+
 
 @dataclass(frozen=True)
-class NormalsConfig:
+class NormalsConfig(Section, prefix='normals.'):
     """PCA surface normals and their cosine-similarity outlier removal."""
 
     k_neighbors: int = _f(15, 'Neighbours for PCA normals (paper: 15).', range=(5, 100))
@@ -89,7 +140,7 @@ class NormalsConfig:
 
 
 @dataclass(frozen=True)
-class ClusteringConfig:
+class ClusteringConfig(Section, prefix='clustering.'):
     """Spherical k-means over the normals."""
 
     n_clusters: int = _f(6, 'Number of spherical k-means clusters K.', range=(1, 64))
@@ -106,7 +157,7 @@ class ClusteringConfig:
 
 
 @dataclass(frozen=True)
-class EMConfig:
+class EMConfig(Section, prefix='em.'):
     """The EM on the sphere that estimates rotation from normals."""
 
     max_iterations: int = _f(50, 'Maximum EM iterations.', range=(1, 10000))
@@ -155,9 +206,16 @@ class EMConfig:
         range=(10, 100000),
     )
 
+    def check(self) -> None:
+        if self.kappa_cap_end < self.kappa_cap_start:
+            raise ConfigError(
+                f'Expected em.kappa_cap_end >= em.kappa_cap_start, got '
+                f'{self.kappa_cap_end} < {self.kappa_cap_start}.'
+            )
+
 
 @dataclass(frozen=True)
-class TranslationConfig:
+class TranslationConfig(Section, prefix='translation.'):
     """Translation with the rotation fixed."""
 
     method: str = _f(
@@ -199,7 +257,7 @@ class TranslationConfig:
 
 
 @dataclass(frozen=True)
-class RefineConfig:
+class RefineConfig(Section, prefix='refine.'):
     """Final joint 6-DOF refinement on positions and Kent-weighted normals."""
 
     method: str = _f(
@@ -250,7 +308,7 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
-class SearchConfig:
+class SearchConfig(Section, prefix='search.'):
     """Start-free rotation search from the two clouds' normal-mixture summaries."""
 
     mode: str = _f(
@@ -289,7 +347,7 @@ class SearchConfig:
 
 
 @dataclass(frozen=True)
-class OdometryConfig:
+class OdometryConfig(Section, prefix='odometry.'):
     """Scan-to-model pose integration: the model is the previous scan or a local map."""
 
     model: str = _f(
@@ -391,7 +449,7 @@ class OdometryConfig:
 
 
 @dataclass(frozen=True)
-class KentRegConfig:
+class KentRegConfig(Section):
     """All settings of the registrar and the odometry.
 
     ``mode='paper'`` runs the recipe of Fahandezh-Saadi et al. as written (per-cluster EM on
@@ -414,14 +472,12 @@ class KentRegConfig:
     search: SearchConfig = field(default_factory=SearchConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
 
-    def __post_init__(self) -> None:
-        for name, value, f in iter_fields(self):
-            validate_value(name, value, f.metadata)
-        if self.em.kappa_cap_end < self.em.kappa_cap_start:
-            raise ConfigError(
-                f'Expected em.kappa_cap_end >= em.kappa_cap_start, got '
-                f'{self.em.kappa_cap_end} < {self.em.kappa_cap_start}.'
-            )
+    def check(self) -> None:
+        hints = get_type_hints(KentRegConfig)
+        for f in fields(self):
+            value, kind = getattr(self, f.name), hints[f.name]
+            if isinstance(kind, type) and is_dataclass(kind) and not isinstance(value, kind):
+                raise ConfigError(f'Expected `{f.name}` to be a {kind.__name__}, got {value!r}.')
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> KentRegConfig:
@@ -550,7 +606,7 @@ def _from_mapping(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
                 raise ConfigError(f'Expected `{full}` to be a mapping, got {value!r}.')
             kwargs[name] = _from_mapping(hint, value, full + '.')
         else:
-            kwargs[name] = coerce_value(full, value, hint)
+            kwargs[name] = value  # coerced and validated by the section itself
     return cls(**kwargs)
 
 

@@ -9,6 +9,7 @@ The node's own ``node.*`` keys live in the same file and are skipped by :func:`l
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,26 @@ from kentreg_ros.core.errors import ConfigError
 
 #: The node's name: the top key of the parameter file.
 NODE_NAME = 'kentreg_node'
+
+
+class NumberLoader(yaml.SafeLoader):
+    """PyYAML's safe loader reading numbers as a user writes them and as ROS reads them.
+
+    PyYAML follows YAML 1.1, where a float needs a decimal point: ``1e-3``, ``1E-3`` and ``1e3``
+    come back as strings, while rcl (which reads the node's parameter files) and YAML 1.2 read
+    them as numbers. This loader adds YAML 1.2's float forms (an exponent with or without a
+    point or sign), so the command lines and the node read a file alike.
+    """
+
+
+_FLOAT_12 = re.compile(r'^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$')
+for _first in '-+.0123456789':
+    NumberLoader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_12, [_first])
+
+
+def load_yaml(text: str) -> Any:
+    """``text`` parsed by :class:`NumberLoader`."""
+    return yaml.load(text, Loader=NumberLoader)  # noqa: S506 - a SafeLoader subclass
 
 
 def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
@@ -42,7 +63,7 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
             f'Cannot read configuration file {str(path)!r}: {exc.strerror}.'
         ) from exc
     try:
-        data = yaml.safe_load(text) or {}
+        data = load_yaml(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f'Configuration file {str(path)!r} is not valid YAML: {exc}.') from exc
     if not isinstance(data, dict):
@@ -102,7 +123,7 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
         if not sep or not key.strip():
             raise ConfigError(f'Expected KEY=VALUE, got {item!r}.')
         try:
-            updates[key.strip()] = yaml.safe_load(text) if text.strip() else ''
+            updates[key.strip()] = load_yaml(text) if text.strip() else ''
         except yaml.YAMLError:
             updates[key.strip()] = text
     return updates
