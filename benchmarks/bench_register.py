@@ -29,8 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from kentreg_ros.core import KentRegConfig, prepare_scan, register  # noqa: E402
-from kentreg_ros.core.rotations import exp_so3, make_transform  # noqa: E402
+from kentreg_ros.core import KentRegConfig, exp_so3, make_transform, prepare_scan, register  # noqa: E402  # noqa: E402
 from kentreg_ros.io import read_scan  # noqa: E402
 
 BALM = ROOT.parent / 'shared' / 'data' / 'balm'

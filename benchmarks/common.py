@@ -20,8 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import drop_nonfinite
-from kentreg_ros.core.rotations import project_to_so3
+from kentreg_ros.core import drop_nonfinite, project_to_so3
 from kentreg_ros.eval import jsonable, orthonormalize
 from kentreg_ros.eval.metrics import failed_pairs, pair_errors
 from kentreg_ros.io import list_scans, read_poses, read_scan

@@ -41,9 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import KentRegConfig, prepare_scan, register
+from kentreg_ros.core import KentRegConfig, choose_voxel_size, prepare_scan, register
 from kentreg_ros.core import voxel_downsample as _core_voxel_downsample
-from kentreg_ros.core.preprocess import choose_voxel_size
 
 logger = logging.getLogger(__name__)
 

@@ -74,9 +74,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import git_describe, machine_info, write_json  # noqa: E402
-from kentreg_ros.core.config import KentRegConfig  # noqa: E402
-from kentreg_ros.core.odometry import HEALTHS, Odometry  # noqa: E402
-from kentreg_ros.core.registration import prepare_scan  # noqa: E402
+from kentreg_ros.core import (  # noqa: E402
+    HEALTHS,
+    KentRegConfig,  # noqa: E402
+    Odometry,
+    prepare_scan,  # noqa: E402
+)
 from kentreg_ros.eval import GroundTruth, associate, evaluate, metrics, run_odometry  # noqa: E402
 from kentreg_ros.io.bags import Scan, open_recording  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402

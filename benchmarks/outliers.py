@@ -58,7 +58,7 @@ from benchmarks.methods import (  # noqa: E402
     paper_voxel,
     voxel_downsample,
 )
-from kentreg_ros.core.preprocess import _voxel_keys  # noqa: E402
+from kentreg_ros.core.scan.voxels import _voxel_keys  # noqa: E402
 
 logger = logging.getLogger('outliers')
 

@@ -6,7 +6,7 @@ previous-scan odometry over the same raw scans (``../shared/data/balm``: 72k-90k
 (:func:`benchmarks.methods.limit_threads`) with the library's own thread count set to 1:
 
 ``kentreg``
-    ``kentreg_ros.core.odometry.Odometry(KentRegConfig())`` as is: automatic voxel size,
+    ``kentreg_ros.core.odometry.loop.Odometry(KentRegConfig())`` as is: automatic voxel size,
     normals, clusters, the registration from the constant-velocity prediction, and the start-free
     search whenever a step is doubtful (its cost is in the scans that needed it).
 ``kentreg_numpy``
@@ -73,7 +73,7 @@ from benchmarks.common import (  # noqa: E402
     machine_info,
     write_json,
 )
-from kentreg_ros.core.rotations import invert_transform  # noqa: E402
+from kentreg_ros.core import invert_transform  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 logger = logging.getLogger('per_scan')
@@ -93,8 +93,7 @@ LONG_STEPS = 450
 
 
 def _kentreg() -> Callable[[FloatArray, int], FloatArray]:
-    from kentreg_ros.core import KentRegConfig
-    from kentreg_ros.core.odometry import Odometry
+    from kentreg_ros.core import KentRegConfig, Odometry
 
     odometry = Odometry(KentRegConfig(), max_history=2)
 

@@ -4,7 +4,7 @@ Three stress tests on the 50 real BALM scans (``../shared/data/balm``, or the re
 ``bags/balm_50`` when the shared data are absent), every method at the settings a user gets:
 
 ``kentreg``
-    ``KentRegConfig()`` as is: :class:`~kentreg_ros.core.odometry.Odometry` for the strides
+    ``KentRegConfig()`` as is: :class:`~kentreg_ros.core.odometry.loop.Odometry` for the strides
     (run by :func:`kentreg_ros.eval.run_odometry`, i.e. what ``kentreg_replay --stride N``
     does) and ``register(source_raw, target_raw, init=...)`` for the pairs, on the *raw* scans,
     with its own automatic preprocessing (voxel size chosen per scan for
@@ -506,8 +506,7 @@ def _motion_stats(T_world: FloatArray) -> dict[str, float]:
 def _kentreg_odometry(
     scans: list[Any], stride: int
 ) -> tuple[FloatArray, FloatArray, dict[str, Any]]:
-    from kentreg_ros.core import KentRegConfig
-    from kentreg_ros.core.odometry import HEALTHS, Odometry
+    from kentreg_ros.core import HEALTHS, KentRegConfig, Odometry
     from kentreg_ros.eval import run_odometry
 
     run = run_odometry(scans, Odometry(KentRegConfig()), stride=stride)

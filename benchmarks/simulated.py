@@ -75,8 +75,7 @@ from benchmarks.simulate import (  # noqa: E402
     motion_stats,
     simulate,
 )
-from kentreg_ros.core.config import KentRegConfig  # noqa: E402
-from kentreg_ros.core.registration import prepare_scan  # noqa: E402
+from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
 from kentreg_ros.io.bags import Scan  # noqa: E402
 
 logger = logging.getLogger('benchmarks.simulated')

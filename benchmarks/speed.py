@@ -11,7 +11,7 @@ Clouds (from the real BALM scans, ``../shared/data/balm``: 72k-90k points each):
 - N up to half the smallest raw scan (3k, 10k, 30k): each cloud is one raw scan, voxel-
   downsampled (voxel centroids, :func:`benchmarks.methods.voxel_downsample`) with one voxel edge
   per N: the median over the pairs' scans of the edge that gives about N points (bisection on
-  :func:`kentreg_ros.core.preprocess.count_voxels`), so counts vary a little per scan.
+  :func:`kentreg_ros.core.scan.voxels.count_voxels`), so counts vary a little per scan.
 - Larger N (100k, more than one scan holds): each cloud is a two-scan submap, scans ``k`` and
   ``k + 1`` merged into the frame of ``k`` with the reference poses (about 160k points), then
   downsampled the same way; the pairs join disjoint submaps (``k + 2, k + 3`` onto ``k, k + 1``).
@@ -161,7 +161,7 @@ def voxel_for_count(points: FloatArray, count: int, *, iterations: int = 24) -> 
     bisection converges where kentreg's few-step secant search (which assumes surface scaling,
     ``count ~ size**-2``) stops short near the raw density.
     """
-    from kentreg_ros.core.preprocess import count_voxels
+    from kentreg_ros.core import count_voxels
 
     if count >= len(points):
         raise SystemExit(f'cannot keep {count} of {len(points)} points by downsampling')

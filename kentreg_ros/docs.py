@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kentreg_ros.core.config import KentRegConfig, iter_fields
+from kentreg_ros.core.config import KentRegConfig, iter_fields, plain_value
 from kentreg_ros.ros.params import NODE_PARAMETERS
 
 PROG = 'python3 -m kentreg_ros.docs'
@@ -87,6 +87,7 @@ def config_parameters(config: KentRegConfig | None = None) -> list[ParameterDoc]
     cfg = KentRegConfig() if config is None else config
     rows = []
     for name, value, f in iter_fields(cfg):
+        value = plain_value(value)
         meta = f.metadata
         rows.append(
             ParameterDoc(

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.rotations import exp_so3, make_transform
+from kentreg_ros.core import exp_so3, make_transform
 
 FloatArray = NDArray[np.float64]
 

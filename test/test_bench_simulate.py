@@ -28,10 +28,13 @@ from benchmarks.simulate import (  # noqa: E402
     trajectory,
 )
 from benchmarks.simulated import format_table, summarize_step  # noqa: E402
-from kentreg_ros.core import odometry as odometry_module  # noqa: E402
-from kentreg_ros.core.deskew import deskew  # noqa: E402
-from kentreg_ros.core.odometry import Odometry  # noqa: E402
-from kentreg_ros.core.rotations import exp_so3, make_transform  # noqa: E402
+from kentreg_ros.core import (  # noqa: E402
+    Odometry,  # noqa: E402
+    exp_so3,
+    make_transform,
+)
+from kentreg_ros.core.odometry import stages as odometry_module  # noqa: E402
+from kentreg_ros.core.odometry.deskew import deskew  # noqa: E402
 from kentreg_ros.eval import run_odometry  # noqa: E402
 from kentreg_ros.eval.metrics import rpe  # noqa: E402
 from kentreg_ros.io import open_recording  # noqa: E402

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from kentreg_ros.core import ConfigError
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.core.errors import ConfigError
 
 
 def test_every_field_has_a_description_and_a_range_or_choices_or_is_bool() -> None:
@@ -45,7 +45,7 @@ def test_bad_values_are_rejected_with_the_reason(update: dict, match: str) -> No
         ('EMConfig', {'rotation': 'mean'}, '`em.rotation` to be one of'),
         ('NormalsConfig', {'k_neighbors': 3}, r'`normals.k_neighbors` in \[5, 100\]'),
         ('OdometryConfig', {'constant_velocity': 1}, 'true or false'),
-        ('RefineConfig', {'method': None}, '`refine.method` to be a string'),
+        ('RefineConfig', {'method': None}, '`refine.method` to be one of'),
         ('PreprocessConfig', {'voxel_size': '0.1'}, '`preprocess.voxel_size` to be a number'),
     ],
 )

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.rotations import exp_so3
+from kentreg_ros.core import exp_so3
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 
 
 def _scene(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -10,16 +10,15 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core import KentRegConfig
-from kentreg_ros.core.deskew import (
+from kentreg_ros.core import KentRegConfig, Odometry
+from kentreg_ros.core.geometry import hat, rotation_angle
+from kentreg_ros.core.odometry.deskew import (
     ImplausibleTimesError,
     PointTimes,
     deskew,
     sweep_times,
     twist_of,
 )
-from kentreg_ros.core.odometry import Odometry
-from kentreg_ros.core.rotations import hat, rotation_angle
 
 PERIOD_S = 0.1  # a 10 Hz spinning LiDAR
 #: The issue's motion: 1 m/s forward and 30 deg/s of yaw, constant (sensor frame).
@@ -301,7 +300,7 @@ def test_each_deskew_round_is_judged_on_its_own(
     when they break the speed limits."""
     import dataclasses
 
-    import kentreg_ros.core.odometry as odometry_module
+    import kentreg_ros.core.odometry.stages as odometry_module
 
     real = odometry_module.register
     calls: list[bool | None] = []  # global_search of each call in the current step

@@ -8,16 +8,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_kent import _population_moment_estimate
 
-from kentreg_ros.core.em import (
+from kentreg_ros.core import exp_so3, rotation_angle
+from kentreg_ros.core.kent import KentParams, fit_kent_moments_batch, sample_kent
+from kentreg_ros.core.registration.em import paper_cluster_em, shared_rotation_em
+from kentreg_ros.core.scan.clusters import (
     ModelClusters,
     NormalBins,
     bin_cell_for,
     kent_moments_of_bins,
-    paper_cluster_em,
-    shared_rotation_em,
 )
-from kentreg_ros.core.kent import KentParams, fit_kent_moments_batch, sample_kent
-from kentreg_ros.core.rotations import exp_so3, rotation_angle
 
 MEANS = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-0.6, -0.8, 0]])
 
@@ -146,8 +145,8 @@ def test_m_step_without_ovalness_is_wahbas_svd_solution(seed: int) -> None:
     """With A = 0 (von Mises-Fisher kernels) the M-step returns the SVD solution directly; it
     must be the minimiser the Newton solver reaches, and a rank-1 C (one normal direction)
     must leave the twist about it where it was."""
-    from kentreg_ros.core.em import _shared_m_step
-    from kentreg_ros.core.rotations import KentRotationProblem, solve_kent_rotation
+    from kentreg_ros.core.registration.em import _shared_m_step
+    from kentreg_ros.core.registration.rotations import KentRotationProblem, solve_kent_rotation
 
     rng = np.random.default_rng(seed)
     x = rng.normal(size=(40, 3))

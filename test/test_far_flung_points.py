@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kentreg_ros.core import HEALTHS, KentRegConfig, Odometry, VoxelMap, prepare_scan
-from kentreg_ros.core.translation import plane_offset_translation
+from kentreg_ros.core.registration.translation import plane_offset_translation
 
 
 def _peak_bytes(run: Callable[[], object]) -> int:
@@ -102,7 +102,7 @@ def test_voxel_map_drops_points_beyond_its_keys_reach() -> None:
 def test_voxel_keys_of_a_grid_beyond_int64_stay_exact() -> None:
     """Two points 1e12 voxels apart on every axis: the linear index of their grid overflows
     int64 and made distinct voxels share keys; they must stay distinct and ordered."""
-    from kentreg_ros.core.preprocess import count_voxels
+    from kentreg_ros.core import count_voxels
 
     near = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.15, 0.0, 0.0]])
     far = np.array([[1e11, 1e11, 1e11], [1e11 + 0.05, 1e11, 1e11]])

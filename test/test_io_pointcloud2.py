@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core import InvalidPointCloudError
 from kentreg_ros.io import pointcloud2 as pc2
 from kentreg_ros.io.pointcloud2 import (
     array_to_pointcloud2,

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from kentreg_ros.core import kent
-from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core import KentRegError, kent
 from kentreg_ros.core.kent import (
     KAPPA_MAX,
     KAPPA_SWITCH,

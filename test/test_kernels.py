@@ -18,20 +18,21 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
-import kentreg_ros.core
-from kentreg_ros.core import kernels
-from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.normals import (
+from kentreg_ros.core import KentRegConfig, kernels, prepare_scan
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
+from kentreg_ros.core.scan.clusters import (
+    _cluster_kappa,
+    refine_spherical_kmeans,
+    spherical_kmeans,
+)
+from kentreg_ros.core.scan.neighbors import NeighborIndex
+from kentreg_ros.core.scan.normals import (
     estimate_normals,
     neighbourhood_covariances,
     normal_consistency,
     smallest_eigenpairs_3x3,
 )
-from kentreg_ros.core.preprocess import downsample, voxel_downsample
-from kentreg_ros.core.scan import _cluster_kappa, prepare_scan
+from kentreg_ros.core.scan.voxels import downsample, voxel_downsample
 
 pytest.importorskip('numba', reason='numba is not installed (pip install -e .[fast])')
 
@@ -85,8 +86,8 @@ def test_kernels_that_cannot_compile_fall_back_to_numpy_with_one_warning(
     monkeypatch.delenv(kernels.DISABLE_ENV, raising=False)
     monkeypatch.setattr(kernels, '_loaded', None)  # not tried yet
     monkeypatch.setattr(kernels, '_module', None)
-    monkeypatch.setitem(sys.modules, 'kentreg_ros.core._jit', None)  # its import fails
-    monkeypatch.delattr(kentreg_ros.core, '_jit', raising=False)
+    monkeypatch.setitem(sys.modules, 'kentreg_ros.core.kernels._jit', None)  # its import fails
+    monkeypatch.delattr(kernels, '_jit', raising=False)
     with caplog.at_level(logging.WARNING, logger='kentreg_ros.core.kernels'):
         assert not kernels.enabled()
         assert not kernels.warm_up()
@@ -241,7 +242,7 @@ def _pair(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
 def test_point_to_plane_refinement_matches_numpy(
     cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from kentreg_ros.core.refine import refine_joint
+    from kentreg_ros.core.registration.refine import refine_joint
 
     target, normals, source, src_normals, T_true = _pair(cloud)
     tree = NeighborIndex(target)
@@ -268,7 +269,7 @@ def test_point_to_plane_refinement_matches_numpy(
 def test_translation_stage_matches_numpy(
     cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from kentreg_ros.core.translation import point_to_plane_translation
+    from kentreg_ros.core.registration.translation import point_to_plane_translation
 
     target, normals, source, _, T_true = _pair(cloud)
     tree = NeighborIndex(target)

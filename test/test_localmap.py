@@ -1,4 +1,4 @@
-"""Tests of kentreg_ros.core.localmap and of the odometry's ``local_map`` model."""
+"""Tests of kentreg_ros.core.odometry.localmap and of the odometry's ``local_map`` model."""
 
 from __future__ import annotations
 
@@ -8,12 +8,17 @@ import numpy as np
 import pytest
 from test_odometry import STEP_NS, healths, observe, run, true_trajectory
 
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
-from kentreg_ros.core.localmap import LocalMap, VoxelMap, nearest_spacing
-from kentreg_ros.core.odometry import Odometry
-from kentreg_ros.core.registration import prepare_scan, register
-from kentreg_ros.core.rotations import invert_transform, rotation_angle
+from kentreg_ros.core import (
+    InvalidInputError,
+    InvalidPointCloudError,
+    KentRegConfig,
+    Odometry,
+    invert_transform,
+    prepare_scan,
+    register,
+    rotation_angle,
+)
+from kentreg_ros.core.odometry.localmap import LocalMap, VoxelMap, nearest_spacing
 from kentreg_ros.eval.metrics import rpe
 
 LOCAL_MAP = KentRegConfig().with_updates({'odometry.model': 'local_map'})

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scenes import read_ply_xyz
 
-from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core import InvalidPointCloudError
 from kentreg_ros.io.errors import ScanFileError
 from kentreg_ros.io.mapfile import write_map
 from kentreg_ros.io.scanfiles import read_scan

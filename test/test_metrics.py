@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.errors import DegenerateSceneError
+from kentreg_ros.core import DegenerateSceneError
 from kentreg_ros.eval.kitti import (
     KITTI_LENGTHS,
     drift_per_metre,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from kentreg_ros.core.neighbors import HAVE_SMALL_GICP, NeighborIndex
+from kentreg_ros.core.scan.neighbors import HAVE_SMALL_GICP, NeighborIndex
 
 NO_SMALL_GICP = 'small_gicp is not installed (pip install -e .[fast])'
 BACKENDS = [

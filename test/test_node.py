@@ -383,7 +383,7 @@ def test_node_map_reaches_a_late_transient_local_subscriber(
     assert np.linalg.norm(points - T_last[:3, 3], axis=1).max() <= radius + 1e-3
     # The first scan's registered (prepared) points, moved by its pose (the identity), are in
     # the map: the first points to reach a voxel keep it.
-    from kentreg_ros.core.scan import prepare_scan
+    from kentreg_ros.core import prepare_scan
 
     first = prepare_scan(np.asarray(bag_scans[0].points, dtype=np.float64)).points
     near = np.linalg.norm(first - T_last[:3, 3], axis=1) < radius - 1.0

@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kentreg_ros.core.clustering import spherical_kmeans
-from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core import InvalidPointCloudError, exp_so3
 from kentreg_ros.core.kent import KentParams, sample_kent
-from kentreg_ros.core.normals import (
+from kentreg_ros.core.scan.clusters import spherical_kmeans
+from kentreg_ros.core.scan.normals import (
     estimate_normals,
     neighbourhood_covariances,
     normal_inlier_mask,
     orient_normals,
     smallest_eigenpairs_3x3,
 )
-from kentreg_ros.core.preprocess import (
+from kentreg_ros.core.scan.voxels import (
     as_points,
     choose_voxel_size,
     count_voxels,
@@ -23,7 +23,6 @@ from kentreg_ros.core.preprocess import (
     drop_nonfinite,
     voxel_downsample,
 )
-from kentreg_ros.core.rotations import exp_so3
 
 
 def test_voxel_downsample_returns_voxel_centroids() -> None:

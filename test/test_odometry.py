@@ -1,4 +1,4 @@
-"""Tests of kentreg_ros.core.odometry on a seeded synthetic room with a known trajectory."""
+"""Tests of kentreg_ros.core.odometry.loop on a seeded synthetic room with a known trajectory."""
 
 from __future__ import annotations
 
@@ -6,12 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import kentreg_ros.core.odometry as odometry_module
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.core.odometry import Odometry, OdometryStep
-from kentreg_ros.core.registration import PreparedScan
-from kentreg_ros.core.rotations import rotation_angle
+import kentreg_ros.core.odometry.stages as stages
+from kentreg_ros.core import (
+    KentRegConfig,
+    KentRegError,
+    Odometry,
+    OdometryStep,
+    PreparedScan,
+    rotation_angle,
+)
+from kentreg_ros.core.odometry.covariance import propagate_covariance
 from kentreg_ros.eval.metrics import rpe
 
 N_POINTS = 8000
@@ -119,7 +123,7 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
     prepared: list[float] = []
     registered: list[tuple[object, object]] = []
     hints: list[object] = []
-    real_prepare, real_register = odometry_module.prepare_scan, odometry_module.register
+    real_prepare, real_register = stages.prepare_scan, stages.register
 
     def counting_prepare(*args: object, **kwargs: object) -> PreparedScan:
         scan = real_prepare(*args, **kwargs)  # type: ignore[arg-type]
@@ -131,8 +135,8 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
         registered.append((source, target))
         return real_register(source, target, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(odometry_module, 'prepare_scan', counting_prepare)
-    monkeypatch.setattr(odometry_module, 'register', checking_register)
+    monkeypatch.setattr(stages, 'prepare_scan', counting_prepare)
+    monkeypatch.setattr(stages, 'register', checking_register)
     run(Odometry(KentRegConfig().with_updates({'preprocess.target_points': 5000})), clouds[:4])
     assert len(prepared) == 4
     assert hints == [0.0, *prepared[:-1]]  # each voxel search starts at the last scan's size
@@ -206,7 +210,7 @@ def test_odometry_falls_back_when_registration_raises(
     def broken_register(*args: object, **kwargs: object) -> object:
         raise KentRegError('No cluster pair had enough normals for the EM.')
 
-    monkeypatch.setattr(odometry_module, 'register', broken_register)
+    monkeypatch.setattr(stages, 'register', broken_register)
     step = odom.step(clouds[3], 3 * STEP_NS)
     assert step.health == 'fell_back' and step.result is None
     assert 'KentRegError' in step.message
@@ -318,7 +322,7 @@ def test_propagate_covariance_matches_monte_carlo() -> None:
     T_wc = T_wm @ T_mc
     w = Rotation.from_matrix(R_c @ T_wc[:3, :3].T).as_rotvec()
     errors = np.concatenate([p_c - T_wc[:3, 3], w], axis=1)
-    expected = odometry_module.propagate_covariance(cov_m, T_wm, T_mc, cov_s)
+    expected = propagate_covariance(cov_m, T_wm, T_mc, cov_s)
     np.testing.assert_allclose(np.cov(errors.T), expected, atol=0.05 * np.abs(expected).max())
 
 

@@ -21,11 +21,12 @@ from kentreg_ros.core import (
     InvalidPointCloudError,
     KentRegConfig,
     RegistrationResult,
+    exp_so3,
+    make_transform,
     prepare_scan,
     register,
 )
-from kentreg_ros.core import scan as scan_module
-from kentreg_ros.core.rotations import exp_so3, make_transform
+from kentreg_ros.core.scan import prepared as scan_module
 
 needs_pair = pytest.mark.skipif(
     not SMALL_GICP_PAIR.exists(),

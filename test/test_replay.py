@@ -21,7 +21,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.cli.replay import main
-from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core import KentRegConfig
 from kentreg_ros.eval.groundtruth import associate
 from kentreg_ros.io.params import dump_config, load_config
 
@@ -365,7 +365,7 @@ def test_replay_default_out_dir_and_latest_link(
 def test_replay_interrupted_writes_scans_so_far(
     sample_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from kentreg_ros.core.odometry import Odometry
+    from kentreg_ros.core import Odometry
 
     real_step = Odometry.step
 

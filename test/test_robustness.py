@@ -11,9 +11,16 @@ import pytest
 from scenes import add_outliers, box_room, corridor, pose_errors, random_transform
 from scenes import transform_points as move
 
-from kentreg_ros.core import InvalidPointCloudError, KentRegConfig, prepare_scan, register
-from kentreg_ros.core.odometry import Odometry
-from kentreg_ros.core.rotations import exp_so3, make_transform, rotation_angle
+from kentreg_ros.core import (
+    InvalidPointCloudError,
+    KentRegConfig,
+    Odometry,
+    exp_so3,
+    make_transform,
+    prepare_scan,
+    register,
+    rotation_angle,
+)
 from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG as FAIL_DEG
 from kentreg_ros.eval.metrics import FAIL_TRANSLATION_M as FAIL_M
 

@@ -18,8 +18,11 @@ pytest.importorskip(
 
 from geometry_msgs.msg import Pose, Transform  # noqa: E402
 
-from kentreg_ros.core.errors import InvalidInputError  # noqa: E402
-from kentreg_ros.core.rotations import exp_so3, make_transform  # noqa: E402
+from kentreg_ros.core import (  # noqa: E402
+    InvalidInputError,  # noqa: E402
+    exp_so3,
+    make_transform,
+)
 from kentreg_ros.ros import messages  # noqa: E402
 
 QUARTER_TURN_Z = np.array(

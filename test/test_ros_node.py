@@ -27,8 +27,12 @@ from scenes import box_room  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from kentreg_ros.core.errors import KentRegError  # noqa: E402
-from kentreg_ros.core.rotations import exp_so3, log_so3, make_transform  # noqa: E402
+from kentreg_ros.core import (  # noqa: E402
+    KentRegError,  # noqa: E402
+    exp_so3,
+    log_so3,
+    make_transform,
+)
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
 from kentreg_ros.ros.params import NodeSettings  # noqa: E402

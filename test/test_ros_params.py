@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.core import ConfigError, KentRegConfig
 from kentreg_ros.io.params import load_config, parameters_from_yaml
 from kentreg_ros.ros.params import NODE_PARAMETERS, NodeSettings, dump_parameter_file
 

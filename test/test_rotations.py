@@ -7,14 +7,11 @@ import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.rotations import (
+from kentreg_ros.core import exp_so3, log_so3, project_to_so3, rotation_angle
+from kentreg_ros.core.registration.rotations import (
     KentRotationProblem,
     average_rotations,
-    exp_so3,
-    log_so3,
     procrustes,
-    project_to_so3,
-    rotation_angle,
     solve_kent_rotation,
 )
 

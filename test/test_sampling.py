@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kentreg_ros.core.preprocess import argsort_keys
-from kentreg_ros.core.sampling import stratified_sample
+from kentreg_ros.core.scan.sampling import stratified_sample
+from kentreg_ros.core.scan.voxels import argsort_keys
 
 
 @pytest.mark.parametrize('seed', range(5))

@@ -20,8 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
 
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core import KentRegConfig, KentRegError
 from kentreg_ros.io.params import effective_config
 
 EXIT_OK = 0

@@ -33,8 +33,7 @@ from numpy.typing import NDArray
 
 from kentreg_ros import __version__
 from kentreg_ros.cli import common
-from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.core.preprocess import voxel_downsample
+from kentreg_ros.core import KentRegError, voxel_downsample
 from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC
 
 logger = logging.getLogger('kentreg_ros.cli.convert')

@@ -74,8 +74,7 @@ from typing import Any
 
 from kentreg_ros import __version__
 from kentreg_ros.cli import common
-from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.odometry import Odometry
+from kentreg_ros.core import KentRegConfig, Odometry
 from kentreg_ros.eval import GroundTruth, OdometryRun, evaluate_run, run_odometry, run_report
 from kentreg_ros.eval.report import Evaluation, format_summary, jsonable, stride_text
 from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC, ScanSource

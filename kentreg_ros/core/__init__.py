@@ -5,7 +5,7 @@ importable from here; the modules behind these names may move.
 """
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.config import KentRegConfig, Mode, Model
 from kentreg_ros.core.errors import (
     ConfigError,
     DegenerateSceneError,
@@ -13,22 +13,7 @@ from kentreg_ros.core.errors import (
     InvalidPointCloudError,
     KentRegError,
 )
-from kentreg_ros.core.localmap import LocalMap, VoxelMap
-from kentreg_ros.core.odometry import Odometry
-from kentreg_ros.core.preprocess import (
-    as_points,
-    choose_voxel_size,
-    count_voxels,
-    drop_nonfinite,
-    voxel_downsample,
-)
-from kentreg_ros.core.registration import (
-    PreparedScan,
-    RegistrationResult,
-    prepare_scan,
-    register,
-)
-from kentreg_ros.core.rotations import (
+from kentreg_ros.core.geometry import (
     exp_so3,
     invert_transform,
     log_so3,
@@ -36,11 +21,34 @@ from kentreg_ros.core.rotations import (
     project_to_so3,
     rotation_angle,
 )
-from kentreg_ros.core.step import ACCEPTED, HEALTHS, OdometryStep
+from kentreg_ros.core.odometry import (
+    ACCEPTED,
+    HEALTHS,
+    Health,
+    LocalMap,
+    Odometry,
+    OdometryStep,
+    PointTimes,
+    VoxelMap,
+)
+from kentreg_ros.core.registration import RegistrationResult, Status, register
+from kentreg_ros.core.scan import PreparedScan, prepare_scan
+from kentreg_ros.core.scan.voxels import (
+    as_points,
+    choose_voxel_size,
+    count_voxels,
+    drop_nonfinite,
+    voxel_downsample,
+)
 
 __all__ = [
     'ACCEPTED',
     'HEALTHS',
+    'Health',
+    'Mode',
+    'Model',
+    'PointTimes',
+    'Status',
     'ConfigError',
     'DegenerateSceneError',
     'InvalidInputError',

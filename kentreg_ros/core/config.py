@@ -15,9 +15,82 @@ import dataclasses
 import types
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
+from enum import StrEnum
 from typing import Any, ClassVar, get_type_hints
 
 from kentreg_ros.core.errors import ConfigError
+
+
+class Mode(StrEnum):
+    """Which registration runs: the improved pipeline or the paper's recipe as written."""
+
+    ROBUST = 'robust'
+    PAPER = 'paper'
+
+
+class EMRotation(StrEnum):
+    """The EM's M-step: one rotation for all clusters, or per-cluster EM then averaging."""
+
+    SHARED = 'shared'
+    AVERAGED = 'averaged'
+
+
+class TranslationMethod(StrEnum):
+    """Translation with the rotation fixed: robust point-to-plane, or the paper's centroids."""
+
+    POINT_TO_PLANE = 'point_to_plane'
+    CENTROID = 'centroid'
+
+
+class RefineMethod(StrEnum):
+    """Cost of the joint 6-DOF refinement."""
+
+    PLANE_TO_PLANE = 'plane_to_plane'
+    POINT_TO_PLANE = 'point_to_plane'
+    NONE = 'none'
+
+
+class SearchMode(StrEnum):
+    """When :func:`~kentreg_ros.core.registration.register` searches SO(3) without a start."""
+
+    AUTO = 'auto'
+    ALWAYS = 'always'
+    NEVER = 'never'
+
+
+class Model(StrEnum):
+    """What the odometry registers each scan against."""
+
+    PREVIOUS_SCAN = 'previous_scan'
+    LOCAL_MAP = 'local_map'
+
+
+class Deskew(StrEnum):
+    """Whether the odometry deskews the scans that carry per-point times."""
+
+    AUTO = 'auto'
+    ON = 'on'
+    OFF = 'off'
+
+
+class TimeUnit(StrEnum):
+    """Unit of a per-point time field (``auto``: from the field, then from the values)."""
+
+    AUTO = 'auto'
+    S = 's'
+    MS = 'ms'
+    US = 'us'
+    NS = 'ns'
+
+
+class TimeReference(StrEnum):
+    """What a per-point time is counted from: the scan's stamp (``relative``: the driver's zero,
+    usually the sweep start, which most drivers also stamp) or the stamp's own clock
+    (``absolute``); ``auto``: from the field, then from the values."""
+
+    AUTO = 'auto'
+    RELATIVE = 'relative'
+    ABSOLUTE = 'absolute'
 
 
 def _f(
@@ -27,9 +100,13 @@ def _f(
     range: tuple[float, float] | None = None,
     choices: tuple[str, ...] | None = None,
 ) -> Any:
+    """A field with its metadata: a description, and a numeric ``range`` (inclusive) or a tuple
+    of ``choices`` (the values of a :class:`~enum.StrEnum` default, when not given)."""
     meta: dict[str, Any] = {'description': description}
     if range is not None:
         meta['range'] = range
+    if choices is None and isinstance(default, StrEnum):
+        choices = tuple(m.value for m in type(default))
     if choices is not None:
         meta['choices'] = choices
     return field(default=default, metadata=meta)
@@ -176,10 +253,9 @@ class EMConfig(Section, prefix='em.'):
         "the cluster's major axis), which biased the rotation where a cluster's spread differs "
         'between views; beta is estimated and reported either way (paper mode always uses it).',
     )
-    rotation: str = _f(
-        'shared',
+    rotation: EMRotation = _f(
+        EMRotation.SHARED,
         'Robust mode: one rotation shared by all clusters, or per-cluster EM then averaging.',
-        choices=('shared', 'averaged'),
     )
     kappa_cap_start: float = _f(
         20.0,
@@ -218,10 +294,9 @@ class EMConfig(Section, prefix='em.'):
 class TranslationConfig(Section, prefix='translation.'):
     """Translation with the rotation fixed."""
 
-    method: str = _f(
-        'point_to_plane',
+    method: TranslationMethod = _f(
+        TranslationMethod.POINT_TO_PLANE,
         "Robust mode: 'point_to_plane' (robust 3-DOF least squares) or 'centroid' (paper).",
-        choices=('point_to_plane', 'centroid'),
     )
     cross_correlation: bool = _f(
         True, 'Start from a per-direction cross-correlation of plane offsets.'
@@ -260,10 +335,9 @@ class TranslationConfig(Section, prefix='translation.'):
 class RefineConfig(Section, prefix='refine.'):
     """Final joint 6-DOF refinement on positions and Kent-weighted normals."""
 
-    method: str = _f(
-        'point_to_plane',
+    method: RefineMethod = _f(
+        RefineMethod.POINT_TO_PLANE,
         "Joint refinement cost: 'point_to_plane', 'plane_to_plane' (GICP-like), or 'none'.",
-        choices=('plane_to_plane', 'point_to_plane', 'none'),
     )
     normal_weight: bool = _f(
         True, 'Weight correspondences by the Kent likelihood of their normals (hybrid).'
@@ -311,11 +385,10 @@ class RefineConfig(Section, prefix='refine.'):
 class SearchConfig(Section, prefix='search.'):
     """Start-free rotation search from the two clouds' normal-mixture summaries."""
 
-    mode: str = _f(
-        'auto',
+    mode: SearchMode = _f(
+        SearchMode.AUTO,
         "When register() searches SO(3) instead of starting only from init: 'auto' when no "
         "init is given (the odometry searches when a step is doubtful), 'always', 'never'.",
-        choices=('auto', 'always', 'never'),
     )
     twist_step_deg: float = _f(
         5.0,
@@ -350,14 +423,13 @@ class SearchConfig(Section, prefix='search.'):
 class OdometryConfig(Section, prefix='odometry.'):
     """Scan-to-model pose integration: the model is the previous scan or a local map."""
 
-    model: str = _f(
-        'previous_scan',
+    model: Model = _f(
+        Model.PREVIOUS_SCAN,
         'What each scan is registered against: the previous scan (previous_scan, the design '
         "card's model) or a voxel map of the recent accepted scans around the sensor "
         '(local_map). A map holds surfaces the previous scan saw at a grazing angle or not at '
         'all, and a pose error of one step is not handed on as the model of the next, so drift '
         'grows more slowly; it costs the map upkeep and a larger target per scan.',
-        choices=('previous_scan', 'local_map'),
     )
     map_voxel_size: float = _f(
         0.0,
@@ -388,29 +460,26 @@ class OdometryConfig(Section, prefix='odometry.'):
         'Start each registration from the last accepted motion (scaled to the time gap); a '
         'step that fell back never feeds it.',
     )
-    deskew: str = _f(
-        'auto',
+    deskew: Deskew = _f(
+        Deskew.AUTO,
         "Move every point to the scan stamp's time with the motion of the sweep (constant "
         'velocity, iterated with the registration) when the scans carry per-point times '
         '(auto), always (on: warns once when they do not), or never (off).',
-        choices=('auto', 'on', 'off'),
     )
-    point_time_unit: str = _f(
-        'auto',
+    point_time_unit: TimeUnit = _f(
+        TimeUnit.AUTO,
         'Unit of the per-point time field: auto reads it from the field (name and datatype of '
         'the common drivers: Ouster t and Livox offset_time uint32 ns, Velodyne time float32 s, '
         'Hesai/Robosense timestamp float64 absolute s), then from the values (the unit that '
         'makes them a sweep of at most 2 s around the stamp); s, ms, us or ns state it for a '
         'driver that does something else.',
-        choices=('auto', 's', 'ms', 'us', 'ns'),
     )
-    point_time_reference: str = _f(
-        'auto',
+    point_time_reference: TimeReference = _f(
+        TimeReference.AUTO,
         "What the per-point times count from: relative (the scan stamp, i.e. the driver's "
         'zero, usually the sweep start), absolute (the clock of the stamp), or auto (from the '
         'field, then from the values). Times that are no sweep around the stamp in the unit '
         'and reference used are not used: that scan is not deskewed, with one warning.',
-        choices=('auto', 'relative', 'absolute'),
     )
     max_angular_speed_deg: float = _f(
         360.0,
@@ -458,10 +527,9 @@ class KentRegConfig(Section):
     improved pipeline; each of its ideas has a switch so benchmarks can show ablations.
     """
 
-    mode: str = _f(
-        'robust',
+    mode: Mode = _f(
+        Mode.ROBUST,
         "'robust' (default) or 'paper' (the paper's recipe as written).",
-        choices=('robust', 'paper'),
     )
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     normals: NormalsConfig = field(default_factory=NormalsConfig)
@@ -485,12 +553,12 @@ class KentRegConfig(Section):
         return _from_mapping(cls, nest_keys(data), '')
 
     def to_dict(self) -> dict[str, Any]:
-        """Nested plain-dict form (YAML-ready)."""
-        return dataclasses.asdict(self)
+        """Nested plain-dict form (YAML-ready: enumerations as their strings)."""
+        return nest_keys(self.to_flat_dict())
 
     def to_flat_dict(self) -> dict[str, Any]:
-        """Flat ``{'em.max_iterations': 50, ...}`` form (ROS parameter names)."""
-        return {name: value for name, value, _ in iter_fields(self)}
+        """Flat ``{'em.max_iterations': 50, ...}`` form (ROS parameter names; plain values)."""
+        return {name: plain_value(value) for name, value, _ in iter_fields(self)}
 
     def with_updates(self, updates: Mapping[str, Any]) -> KentRegConfig:
         """A copy with dotted or nested overrides applied (validated)."""
@@ -507,7 +575,12 @@ class KentRegConfig(Section):
     @classmethod
     def paper(cls) -> KentRegConfig:
         """The paper's recipe."""
-        return replace(cls(), mode='paper')
+        return replace(cls(), mode=Mode.PAPER)
+
+
+def plain_value(value: Any) -> Any:
+    """``value`` as YAML and ROS parameters hold it (an enumeration as its string)."""
+    return value.value if isinstance(value, StrEnum) else value
 
 
 def iter_fields(config: Any, prefix: str = '') -> Iterator[tuple[str, Any, dataclasses.Field]]:
@@ -618,6 +691,12 @@ def coerce_value(name: str, value: Any, hint: Any) -> Any:
     """
     if isinstance(hint, types.UnionType):
         hint = hint.__args__[0]
+    if isinstance(hint, type) and issubclass(hint, StrEnum):
+        try:
+            return hint(value)
+        except ValueError:
+            valid = [m.value for m in hint]
+            raise ConfigError(f'Expected `{name}` to be one of {valid}, got {value!r}.') from None
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f'Expected `{name}` to be true or false, got {value!r}.')

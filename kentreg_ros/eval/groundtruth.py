@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.rotations import project_to_so3
+from kentreg_ros.core import project_to_so3
 from kentreg_ros.io.poses import Trajectory
 
 logger = logging.getLogger(__name__)

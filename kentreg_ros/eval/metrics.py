@@ -29,7 +29,7 @@ from typing import TypedDict
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.errors import DegenerateSceneError
+from kentreg_ros.core import DegenerateSceneError
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.odometry import HEALTHS, OdometryStep
+from kentreg_ros.core import HEALTHS, OdometryStep
 from kentreg_ros.eval import kitti, metrics
 from kentreg_ros.eval.groundtruth import GT_TOLERANCE_S, GroundTruth, associate
 from kentreg_ros.eval.run import OdometryRun
@@ -217,7 +217,7 @@ def run_report(run: OdometryRun, evaluation: Evaluation | None, note: str = '') 
     ``speed`` (:func:`speed_summary`), ``ground_truth`` (the evaluation's metrics, or None and
     ``ground_truth_note`` = ``note``) and ``steps`` (:func:`step_record` of each step).
     """
-    health = {k: sum(s.health == k for s in run.steps) for k in HEALTHS}
+    health = {str(k): sum(s.health == k for s in run.steps) for k in HEALTHS}
     report: dict[str, Any] = {
         'complete': not run.interrupted and run.error is None,
         'error': run.error,

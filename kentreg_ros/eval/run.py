@@ -2,7 +2,7 @@
 time and evaluate.
 
 :func:`run_odometry` feeds the scans of a recording, in order and at CPU speed (none is dropped),
-to the same :class:`~kentreg_ros.core.odometry.Odometry` the ROS node runs, and records every
+to the same :class:`~kentreg_ros.core.odometry.loop.Odometry` the ROS node runs, and records every
 step with the time spent reading. The loop itself stays in the core (``Odometry.step``); this is
 the harness around it that selects the scans, times them and keeps a partial run when the input
 breaks or the user interrupts.
@@ -20,10 +20,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.core.localmap import VoxelMap
-from kentreg_ros.core.odometry import Odometry, OdometryStep
-from kentreg_ros.core.step import ACCEPTED, HEALTH_FIRST
+from kentreg_ros.core import ACCEPTED, Health, KentRegError, Odometry, OdometryStep, VoxelMap
 from kentreg_ros.io.pointcloud2 import point_time_field
 
 logger = logging.getLogger(__name__)
@@ -182,7 +179,7 @@ def run_odometry(
             )
             run.steps.append(step)
             run.input_indices.append(index)
-            if run.map is not None and (step.health in ACCEPTED or step.health == HEALTH_FIRST):
+            if run.map is not None and (step.health in ACCEPTED or step.health == Health.FIRST):
                 R, t = step.T_world_lidar[:3, :3], step.T_world_lidar[:3, 3]
                 points = np.asarray(scan.points, dtype=np.float64)
                 run.map.insert(points[np.isfinite(points).all(axis=1)] @ R.T + t)

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import DTypeLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core import InvalidPointCloudError, KentRegError
 from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,

@@ -29,7 +29,7 @@ from kentreg_ros.io.pointcloud2 import (
 )
 
 if TYPE_CHECKING:
-    from kentreg_ros.core.odometry import OdometryStep
+    from kentreg_ros.core import OdometryStep
 
 #: Topics of :func:`write_odometry_mcap`.
 ODOMETRY_TOPIC = '/kentreg/odometry'

@@ -6,7 +6,7 @@ everything the library raises on purpose. Malformed point clouds (messages, arra
 :class:`ScanFileError`, which names the file.
 """
 
-from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core import InvalidPointCloudError, KentRegError
 
 
 class ScanFileError(InvalidPointCloudError):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from kentreg_ros.core.preprocess import as_points
+from kentreg_ros.core import as_points
 from kentreg_ros.io.errors import ScanFileError
 from kentreg_ros.io.scanfiles import write_pcd
 

@@ -16,8 +16,8 @@ from typing import Any
 
 import yaml
 
+from kentreg_ros.core import ConfigError
 from kentreg_ros.core.config import KentRegConfig, flatten_keys, nest_keys
-from kentreg_ros.core.errors import ConfigError
 
 #: The node's name: the top key of the parameter file.
 NODE_NAME = 'kentreg_node'

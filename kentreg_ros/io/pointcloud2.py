@@ -25,8 +25,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
-from kentreg_ros.core.deskew import PointTimes
-from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core import InvalidPointCloudError, PointTimes
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +64,8 @@ def point_time_field(extras: Mapping[str, Any] | None) -> PointTimes | None:
     :data:`POINT_TIME_FIELDS` present, one value per point) with the field's name, or None.
 
     The values keep the datatype the message gave them: with the name it tells the
-    odometry the unit and reference (:data:`kentreg_ros.core.deskew.DRIVER_TIME_FIELDS`)."""
+    odometry the unit and reference
+    (:data:`kentreg_ros.core.odometry.deskew.DRIVER_TIME_FIELDS`)."""
     for name in POINT_TIME_FIELDS:
         if extras and name in extras:
             values = np.asarray(extras[name])

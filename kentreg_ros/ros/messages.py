@@ -26,9 +26,9 @@ from numpy.typing import ArrayLike, NDArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.core.errors import InvalidInputError
-from kentreg_ros.core.rotations import check_transform, hat
+from kentreg_ros.core import InvalidInputError
+from kentreg_ros.core.config import KentRegConfig, iter_fields, plain_value
+from kentreg_ros.core.geometry import check_transform, hat
 from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec
 from kentreg_ros.ros.params import PREFIX, NodeSettings
 
@@ -175,6 +175,7 @@ def parameter_declarations() -> list[tuple[str, Any, ParameterDescriptor]]:
     """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
     out = []
     for name, value, f in iter_fields(KentRegConfig()):
+        value = plain_value(value)
         out.append((name, value, parameter_descriptor(name, value, f.metadata)))
     node_defaults = NodeSettings().to_parameters()
     for name, _, f in iter_fields(NodeSettings(), PREFIX):

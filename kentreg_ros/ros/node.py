@@ -24,7 +24,7 @@ still receives the latest map.
 
 Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
 points) and puts the scan into a bounded queue; one worker thread runs
-:class:`~kentreg_ros.core.odometry.Odometry` and publishes. When the queue is full the oldest
+:class:`~kentreg_ros.core.odometry.loop.Odometry` and publishes. When the queue is full the oldest
 scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
 is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
 worker and applied between scans.
@@ -79,13 +79,20 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from kentreg_ros.cli.common import interrupt_through_rclpy
+from kentreg_ros.core import (
+    ACCEPTED,
+    HEALTHS,
+    ConfigError,
+    Health,
+    KentRegError,
+    Odometry,
+    OdometryStep,
+    PointTimes,
+    VoxelMap,
+    invert_transform,
+    log_so3,
+)
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.core.deskew import PointTimes
-from kentreg_ros.core.errors import ConfigError, KentRegError
-from kentreg_ros.core.localmap import VoxelMap
-from kentreg_ros.core.odometry import HEALTHS, Odometry, OdometryStep
-from kentreg_ros.core.rotations import invert_transform, log_so3
-from kentreg_ros.core.step import ACCEPTED, HEALTH_FIRST
 from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import (
     POINT_TIME_FIELDS,
@@ -617,7 +624,7 @@ class KentRegNode(Node):
             return
         if self._map is None or self._map.voxel_size != settings.map_voxel_size:
             self._map = VoxelMap(settings.map_voxel_size)
-        if step.points is not None and (step.health in ACCEPTED or step.health == HEALTH_FIRST):
+        if step.points is not None and (step.health in ACCEPTED or step.health == Health.FIRST):
             assert self._T_base_lidar is not None  # set before any step
             # Sensor points -> odom frame: T_odom_lidar = T_base_lidar @ T_world_lidar.
             T = self._T_base_lidar @ step.T_world_lidar

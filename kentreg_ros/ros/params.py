@@ -20,8 +20,8 @@ from typing import Any, get_type_hints
 
 import yaml
 
+from kentreg_ros.core import ConfigError
 from kentreg_ros.core.config import KentRegConfig, coerce_value, iter_fields, validate_value
-from kentreg_ros.core.errors import ConfigError
 from kentreg_ros.io.params import NODE_NAME
 
 __all__ = [

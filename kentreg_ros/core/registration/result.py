@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.em import (
-    EMResult,
-)
-from kentreg_ros.core.scan import PreparedScan
+from kentreg_ros.core.registration.em import EMResult
+from kentreg_ros.core.scan.prepared import PreparedScan
 
 logger = logging.getLogger(__name__)
 
@@ -24,10 +23,18 @@ FloatArray = NDArray[np.float64]
 #: is left by a pose that matches a single surface by accident.
 MIN_INLIER_FRACTION = 0.05
 
-STATUS_CONVERGED = 'converged'
-STATUS_MAX_ITERATIONS = 'max_iterations'
-STATUS_DEGENERATE = 'degenerate'
-STATUS_FAILED = 'failed'
+
+class Status(StrEnum):
+    """Outcome of a registration: a status, never an exception, and never a silent identity."""
+
+    #: The estimate converged.
+    CONVERGED = 'converged'
+    #: The iteration limit stopped it (the estimate is used).
+    MAX_ITERATIONS = 'max_iterations'
+    #: Some direction is poorly constrained (the estimate is used, flagged).
+    DEGENERATE = 'degenerate'
+    #: No usable estimate: no overlap, or not finite.
+    FAILED = 'failed'
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,9 +73,10 @@ class RegistrationResult:
     n_source, n_target : int
         Points used after preprocessing.
     fit : float
-        Balanced fit of the pose in [0, 1] (:func:`kentreg_ros.core.verify.balanced_fit`):
-        the share of source points landing on a target surface of the same orientation,
-        averaged over the target's normal clusters. NaN in paper mode.
+        Balanced fit of the pose in [0, 1]
+        (:func:`kentreg_ros.core.registration.verify.balanced_fit`): the share of source
+        points landing on a target surface of the same orientation, averaged over the
+        target's normal clusters. NaN in paper mode.
     hypotheses : int
         Rotation hypotheses scored by the start-free search (0 when it did not run).
     ambiguous : bool
@@ -103,7 +111,7 @@ class RegistrationResult:
     @property
     def ok(self) -> bool:
         """True unless the status is ``'failed'``."""
-        return self.status != STATUS_FAILED
+        return self.status != Status.FAILED
 
 
 def rotation_degenerate(H: FloatArray, ratio: float) -> bool:
@@ -140,16 +148,16 @@ def finish_result(
     history: list[float],
 ) -> RegistrationResult:
     if not np.isfinite(T).all():
-        status, message = STATUS_FAILED, 'The estimate is not finite.'
+        status, message = Status.FAILED, 'The estimate is not finite.'
         T = np.full((4, 4), np.nan)
     elif inlier < MIN_INLIER_FRACTION:
-        status = STATUS_FAILED
+        status = Status.FAILED
         message = (
             f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
             'do not overlap at this pose.'
         )
     elif degenerate:
-        status = STATUS_DEGENERATE
+        status = Status.DEGENERATE
         parts = []
         if len(deg_dirs):
             dirs = ', '.join(np.array2string(d, precision=2) for d in deg_dirs)
@@ -158,13 +166,13 @@ def finish_result(
             parts.append('rotation about one axis is poorly constrained by the normals')
         message = 'Degenerate scene: ' + '; '.join(parts) + '.'
     elif converged:
-        status, message = STATUS_CONVERGED, 'Converged.'
+        status, message = Status.CONVERGED, 'Converged.'
     else:
-        status = STATUS_MAX_ITERATIONS
+        status = Status.MAX_ITERATIONS
         message = 'Stopped at the iteration limit before meeting the tolerance.'
     return RegistrationResult(
         T_target_source=T,
-        converged=bool(converged and status != STATUS_FAILED),
+        converged=bool(converged and status != Status.FAILED),
         iterations=int(iterations),
         status=status,
         message=message,

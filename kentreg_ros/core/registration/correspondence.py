@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.neighbors import NeighborIndex
+from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -84,18 +84,9 @@ class NearestNeighborCache:
         """
         gate = float(distance_upper_bound)
         self.n_calls += 1
-        if kernels.enabled():
-            dist, valid = kernels.certified_distances(
-                x, self._x0, self._radius, self._idx, self._target, gate
-            )
-        else:
-            moved = _row_norms(x - self._x0)
-            lower = self._radius - moved  # every other target point is at least this far
-            has = self._idx >= 0
-            # Distance to the current neighbour (index 0 as a placeholder where there is none).
-            dist = _row_norms(x - np.take(self._target, np.where(has, self._idx, 0), axis=0))
-            dist[~has] = np.inf
-            valid = np.where(has, dist <= lower, gate < lower)
+        dist, valid = kernels.certified_distances(
+            x, self._x0, self._radius, self._idx, self._target, gate
+        )
         redo = np.flatnonzero(~valid)
         if len(redo):
             d2, i2 = self._tree.query(np.take(x, redo, axis=0), k=2, distance_upper_bound=gate)

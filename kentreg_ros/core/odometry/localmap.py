@@ -17,7 +17,7 @@ point counts, and an insertion is one sort of the new keys and one ``searchsorte
 
 :class:`LocalMap` is the odometry's map (``odometry.model = 'local_map'``): a voxel map with
 normals in the world frame and :meth:`LocalMap.target`, the map expressed in a sensor frame as
-the target of :func:`~kentreg_ros.core.registration.register`. The normals travel with the
+the target of :func:`~kentreg_ros.core.registration.register.register`. The normals travel with the
 points (each was estimated once, in the scan it came from) and the clusters are warm-started
 from the previous step, so nothing is recomputed from scratch per scan but the neighbour index
 and the Kent moments of the clusters.
@@ -32,10 +32,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
-from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.preprocess import argsort_keys, as_points
-from kentreg_ros.core.rotations import check_transform
-from kentreg_ros.core.scan import MIN_POINTS, PreparedScan, cluster_normals, elapsed_ms
+from kentreg_ros.core.geometry import check_transform
+from kentreg_ros.core.scan.clusters import cluster_normals
+from kentreg_ros.core.scan.neighbors import NeighborIndex
+from kentreg_ros.core.scan.prepared import MIN_POINTS, PreparedScan, elapsed_ms
+from kentreg_ros.core.scan.voxels import argsort_keys, as_points
 
 FloatArray = NDArray[np.float64]
 

@@ -12,15 +12,18 @@ the same poses does not show it (it is small on whatever does match).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.neighbors import NeighborIndex
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
+from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
+P = TypeVar('P')
 
 #: Distance gate of a match in voxel edges. At the reference pose of real scan pairs 95 % of
 #: the nearest neighbours lie within 1.8 voxels (two independent voxel samplings of the same
@@ -148,3 +151,96 @@ def rms_displacement(points: FloatArray, T_a: FloatArray, T_b: FloatArray) -> fl
     second = points.T @ points / n
     value = float(np.trace(A @ second @ A.T) + 2.0 * b @ A @ mean + b @ b)
     return float(np.sqrt(max(value, 0.0)))
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate(Generic[P]):
+    """A pose under consideration and what produced it.
+
+    Attributes
+    ----------
+    T : ndarray, shape (4, 4)
+        The pose (``T_target_source``).
+    fit : float
+        Its balanced fit (NaN where nothing judged it, e.g. the paper's recipe).
+    origin : P
+        What produced it (a stage's record, a registration result), handed back with it.
+    searched : bool
+        It came from the start-free search.
+    """
+
+    T: FloatArray
+    fit: float
+    origin: P
+    searched: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class Choice(Generic[P]):
+    """What :func:`choose_pose` chose.
+
+    Attributes
+    ----------
+    chosen : Candidate
+    best_fit : float
+        The best fit among the candidates (non-finite fits count as 0).
+    distinct : list of Candidate
+        Every other candidate whose points land more than the gate away from the chosen's.
+    rivals : list of Candidate
+        Those of them that fit nearly as well as the best (``>= ratio x best_fit``): the
+        choice is ambiguous when there is one.
+    """
+
+    chosen: Candidate[P]
+    best_fit: float
+    distinct: list[Candidate[P]]
+    rivals: list[Candidate[P]]
+
+
+def choose_pose(
+    candidates: Sequence[Candidate[P]],
+    points: FloatArray,
+    *,
+    gate: float,
+    ratio: float,
+    prior: FloatArray | None = None,
+    preferred: Candidate[P] | None = None,
+) -> Choice[P]:
+    """The rule that chooses between poses, for the registration and the odometry alike.
+
+    The candidates fitting at least ``ratio`` times the best fit are *near*: the data cannot
+    tell them apart by fit. Among them the one whose ``points`` land nearest where the ``prior``
+    puts them wins (RMS displacement, :func:`rms_displacement`), or the first best-fitting one
+    without a prior. A ``preferred`` candidate (the registration from the prior) replaces the
+    winner when their points land within ``gate`` of each other: the search confirmed it.
+
+    Parameters
+    ----------
+    candidates : sequence of Candidate
+        At least one.
+    points : ndarray, shape (N, 3)
+        The source points the poses move (for the displacements).
+    gate : float
+        Displacement beyond which two poses are distinct (twice the fit's distance gate).
+    ratio : float
+        Share of the best fit a pose must reach to be near (``search.ambiguity_ratio``).
+    """
+    fits = np.array([c.fit if np.isfinite(c.fit) else 0.0 for c in candidates])
+    best_fit = float(fits.max())
+    near = [c for c, f in zip(candidates, fits, strict=True) if f >= ratio * best_fit]
+    if prior is None:
+        chosen = candidates[int(np.argmax(fits))]
+    else:
+        chosen = min(near, key=lambda c: rms_displacement(points, c.T, prior))
+    distinct = [
+        c for c in candidates if c is not chosen and rms_displacement(points, c.T, chosen.T) > gate
+    ]
+    near_ids = {id(c) for c in near}
+    rivals = [c for c in distinct if id(c) in near_ids]
+    if (
+        preferred is not None
+        and preferred is not chosen
+        and rms_displacement(points, preferred.T, chosen.T) <= gate
+    ):
+        chosen = preferred
+    return Choice(chosen, best_fit, distinct, rivals)

@@ -28,35 +28,15 @@ off, which is worse than none.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.rotations import log_so3
+from kentreg_ros.core.config import TimeReference, TimeUnit
+from kentreg_ros.core.geometry import log_so3
 
 FloatArray = NDArray[np.float64]
-
-
-class TimeUnit(StrEnum):
-    """Unit of a per-point time field (``auto``: from the field, then from the values)."""
-
-    AUTO = 'auto'
-    S = 's'
-    MS = 'ms'
-    US = 'us'
-    NS = 'ns'
-
-
-class TimeReference(StrEnum):
-    """What a per-point time is counted from: the scan's stamp (``relative``: the driver's zero,
-    usually the sweep start, which most drivers also stamp) or the stamp's own clock
-    (``absolute``); ``auto``: from the field, then from the values."""
-
-    AUTO = 'auto'
-    RELATIVE = 'relative'
-    ABSOLUTE = 'absolute'
 
 
 #: Seconds per unit.

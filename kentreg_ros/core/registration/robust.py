@@ -1,7 +1,8 @@
 """``mode='robust'``: the rotation from the Kent mixture EM (one rotation shared by all
 clusters), the translation from plane offsets and point-to-plane, the joint refinement, the
-balanced fit; without a start, the rotation hypotheses of :mod:`kentreg_ros.core.search` are
-verified the same way and the best-fitting pose wins."""
+balanced fit; without a start, the rotation hypotheses of
+:mod:`kentreg_ros.core.registration.search` are verified the same way and the best-fitting
+pose wins."""
 
 from __future__ import annotations
 
@@ -13,32 +14,32 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.em import (
-    EMResult,
-    shared_rotation_em,
-)
-from kentreg_ros.core.refine import refine_joint
-from kentreg_ros.core.result import (
+from kentreg_ros.core.geometry import make_transform, rotation_angle
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
+from kentreg_ros.core.registration.em import EMResult, shared_rotation_em
+from kentreg_ros.core.registration.refine import refine_joint
+from kentreg_ros.core.registration.result import (
     RegistrationResult,
     finish_result,
     information_to_covariance,
     rotation_degenerate,
 )
-from kentreg_ros.core.rotations import (
-    make_transform,
-    rotation_angle,
-)
-from kentreg_ros.core.sampling import stratified_sample
-from kentreg_ros.core.scan import PreparedScan, elapsed_ms
-from kentreg_ros.core.search import distinct_best, mixture_overlap, twist_hypotheses
-from kentreg_ros.core.translation import (
+from kentreg_ros.core.registration.search import distinct_best, mixture_overlap, twist_hypotheses
+from kentreg_ros.core.registration.translation import (
     centroid_translation,
     degenerate_directions,
     plane_offset_translation,
     point_to_plane_translation,
 )
-from kentreg_ros.core.verify import Fit, FitGates, balanced_fit, rms_displacement
+from kentreg_ros.core.registration.verify import (
+    Candidate,
+    Fit,
+    FitGates,
+    balanced_fit,
+    choose_pose,
+)
+from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
+from kentreg_ros.core.scan.sampling import stratified_sample
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +72,8 @@ def sampling_spacing(src: PreparedScan, tgt: PreparedScan) -> float:
 
 
 @dataclass
-class _Candidate:
-    """One pose under consideration, with what its stages found."""
+class _Local:
+    """A pose from the local stages (rotation EM, translation, refinement) and what they found."""
 
     T: FloatArray
     em: EMResult
@@ -147,7 +148,7 @@ def _local(
     em: EMResult | None = None,
     refine: bool = True,
     sample: PreparedScan | None = None,
-) -> _Candidate:
+) -> _Local:
     """Rotation EM from ``T0`` (unless ``em`` is given), translation, refinement, fit.
 
     The rotation stage uses every normal of ``src``; the position stages use its
@@ -259,9 +260,7 @@ def _local(
         T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
     )
     timings['fit'] = timings.get('fit', 0.0) + elapsed_ms(t0)
-    return _Candidate(
-        T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined
-    )
+    return _Local(T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined)
 
 
 def _search_candidates(
@@ -271,7 +270,7 @@ def _search_candidates(
     cfg: KentRegConfig,
     gates: _Gates,
     timings: dict[str, float],
-) -> tuple[list[_Candidate], int]:
+) -> tuple[list[_Local], int]:
     """Start-free search: twist hypotheses ranked by the mixture overlap, the distinct best
     refined by the EM and placed by the translation stage, then verified by their fit; every
     candidate that fits nearly as well as the best is refined in full."""
@@ -284,7 +283,7 @@ def _search_candidates(
     chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
     starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
     timings['search'] = elapsed_ms(t0)
-    cheap: list[_Candidate] = []
+    cheap: list[_Local] = []
     seen: list[FloatArray] = []
     for R0 in starts:
         t0 = time.perf_counter()
@@ -296,7 +295,7 @@ def _search_candidates(
         T0 = make_transform(em.R, T_init[:3, 3])
         cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False, sample=sample))
     best_cheap = max(c.fit.score for c in cheap)
-    out: list[_Candidate] = []
+    out: list[_Local] = []
     for cand in sorted(cheap, key=lambda c: -c.fit.score):
         if cand.fit.score >= scfg.ambiguity_ratio * best_cheap or not out:
             t0 = time.perf_counter()
@@ -334,13 +333,13 @@ def register_robust(
     else:
         candidates = [_local(src, tgt, T_init, cfg, gates, timings)]
     candidates.sort(key=lambda c: -c.fit.score)
-    best = candidates[0]
-    distinct = [
-        c
-        for c in candidates[1:]
-        if rms_displacement(src.points, c.T, best.T) > 2.0 * gates.fit.distance
-    ]
-    ambiguous = any(c.fit.score >= cfg.search.ambiguity_ratio * best.fit.score for c in distinct)
+    choice = choose_pose(
+        [Candidate(c.T, c.fit.score, c) for c in candidates],
+        src.points,
+        gate=2.0 * gates.fit.distance,
+        ratio=cfg.search.ambiguity_ratio,
+    )
+    best = choice.chosen.origin
     tr_cfg = cfg.translation
     deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
     rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
@@ -366,6 +365,6 @@ def register_robust(
         result,
         fit=best.fit.score,
         hypotheses=n_hypotheses,
-        ambiguous=ambiguous,
-        alternatives=tuple((c.T, c.fit.score) for c in distinct),
+        ambiguous=bool(choice.rivals),
+        alternatives=tuple((c.T, c.fit) for c in choice.distinct),
     )

@@ -1,4 +1,5 @@
-"""Compiled per-point loops, used when numba is installed (the ``fast`` extra).
+"""The per-point loops, compiled when numba is installed (the ``fast`` extra), numpy otherwise:
+the one place that chooses (callers call the functions here, whichever runs).
 
 Preparing a scan runs a few passes over every point and its 15 neighbours (the neighbourhood
 covariances of the normals, the normals' agreement with their neighbourhood) and the spherical
@@ -12,7 +13,7 @@ Gauss-Newton normal equations, summed in another order than BLAS's: poses agree 
 
 numba is imported, and every kernel compiled (cached on disk after the first run: ~3 s the first
 time, ~1 s after), at the first use, not when :mod:`kentreg_ros.core` is imported; :func:`warm_up`
-does it ahead of time (:class:`~kentreg_ros.core.odometry.Odometry` calls it). If numba is
+does it ahead of time (:class:`~kentreg_ros.core.odometry.loop.Odometry` calls it). If numba is
 installed but cannot compile or cache them (e.g. an unsupported platform, or no writable cache
 directory), one warning is logged and the numpy code runs.
 """
@@ -29,6 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from kentreg_ros.core.kernels import _numpy
+
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
@@ -38,6 +41,7 @@ DISABLE_ENV = 'KENTREG_NO_JIT'
 
 _module: ModuleType | None = None
 _loaded: bool | None = None  # None: not tried yet; then whether the kernels compiled
+_compiling = False  # True while _load runs every kernel once (numba compiles at the first call)
 _lock = threading.Lock()
 
 
@@ -55,7 +59,7 @@ def enabled() -> bool:
 
 
 def _load() -> None:
-    global _module, _loaded
+    global _module, _loaded, _compiling
     with _lock:
         if _loaded is not None:
             return
@@ -63,9 +67,10 @@ def _load() -> None:
             _loaded = False
             return
         try:
-            from kentreg_ros.core import _jit as module
+            from kentreg_ros.core.kernels import _jit as module
 
             _module = module
+            _compiling = True
             _compile_all()
         except Exception as exc:  # numba raises several types; any means: use numpy
             _module = None
@@ -77,18 +82,27 @@ def _load() -> None:
                 exc,
             )
             return
+        finally:
+            _compiling = False
         _loaded = True
 
 
-def _jit() -> ModuleType:
+def _use_compiled() -> bool:
+    return _compiling or enabled()
+
+
+def _compiled() -> ModuleType:
     if _module is None:
         raise RuntimeError('The compiled kernels are not loaded; check kernels.enabled() first.')
     return _module
 
 
 def _run(name: str, *args: Any) -> Any:
-    """Call kernel ``name`` with every array contiguous in the dtype the kernels are compiled
-    for (integer arrays as ``intp``, all others as float64); scalars pass as they are."""
+    """Kernel ``name``: compiled (every array contiguous in the dtype the kernels are compiled
+    for, integer arrays as ``intp``, all others as float64; scalars as they are) when
+    :func:`enabled`, else its numpy twin in :mod:`._numpy` on the arguments as given."""
+    if not _use_compiled():
+        return getattr(_numpy, name)(*args)
     converted = [
         (
             np.ascontiguousarray(a, dtype=np.intp if a.dtype.kind in 'iu' else np.float64)
@@ -97,7 +111,7 @@ def _run(name: str, *args: Any) -> Any:
         )
         for a in args
     ]
-    return getattr(_jit(), name)(*converted)
+    return getattr(_compiled(), name)(*converted)
 
 
 def neighbourhood_covariances(centred: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
@@ -166,9 +180,12 @@ def smallest_eigenpairs_3x3(
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Smallest eigenvalue, its unit eigenvector and the middle eigenvalue of each symmetric
     3x3 matrix ``(xx, xy, xz, yy, yz, zz)``, and the matrices whose eigenvector is not
-    resolved by the closed form (see :func:`~kentreg_ros.core.normals.smallest_eigenpairs_3x3`;
-    the power, arccos and cosines between the two loops are numpy's, so are the numbers)."""
-    jit = _jit()
+    resolved by the closed form (see
+    :func:`~kentreg_ros.core.scan.normals.smallest_eigenpairs_3x3`; compiled, the power, arccos
+    and cosines between the two loops are numpy's, so are the numbers)."""
+    if not _use_compiled():
+        return _numpy.smallest_eigenpairs_3x3(cov, gap_ratio)
+    jit = _compiled()
     c = np.ascontiguousarray(cov, dtype=np.float64)
     m, p, det = jit.eigen_cubic(c)
     safe_p = np.where(p > 0.0, p, 1.0)

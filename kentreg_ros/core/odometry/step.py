@@ -1,35 +1,46 @@
-"""What :meth:`kentreg_ros.core.odometry.Odometry.step` reports: the step and its health."""
+"""What :meth:`kentreg_ros.core.odometry.loop.Odometry.step` reports: the step and its health."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.result import RegistrationResult
+from kentreg_ros.core.registration.result import RegistrationResult
 
 FloatArray = NDArray[np.float64]
 
-HEALTH_FIRST = 'first'
-HEALTH_OK = 'ok'
-HEALTH_RECOVERED = 'recovered'
-HEALTH_DEGENERATE = 'degenerate'
-HEALTH_AMBIGUOUS = 'ambiguous'
-HEALTH_FELL_BACK = 'fell_back'
-HEALTH_REJECTED = 'rejected'
+
+class Health(StrEnum):
+    """What became of a scan, in order of severity."""
+
+    #: It became the first model.
+    FIRST = 'first'
+    #: The registration from the prediction was used.
+    OK = 'ok'
+    #: That one was doubtful; the search found a better-fitting pose, which was used.
+    RECOVERED = 'recovered'
+    #: The estimate was used, but some direction is poorly constrained.
+    DEGENERATE = 'degenerate'
+    #: Distinct poses fit about equally; the one nearest the prediction was used.
+    AMBIGUOUS = 'ambiguous'
+    #: Nothing plausible fitted: the pose is the prediction.
+    FELL_BACK = 'fell_back'
+    #: The cloud is unusable: the pose is the prediction and the model is kept.
+    REJECTED = 'rejected'
+
+    @property
+    def accepted(self) -> bool:
+        """The pose comes from a registration (it feeds the velocity and the fit window)."""
+        return self in ACCEPTED
+
+
 #: Every health value of an :class:`OdometryStep`, in order of severity.
-HEALTHS = (
-    HEALTH_FIRST,
-    HEALTH_OK,
-    HEALTH_RECOVERED,
-    HEALTH_DEGENERATE,
-    HEALTH_AMBIGUOUS,
-    HEALTH_FELL_BACK,
-    HEALTH_REJECTED,
-)
+HEALTHS = tuple(Health)
 #: Healths whose pose comes from a registration (they feed the velocity and the fit window).
-ACCEPTED = (HEALTH_OK, HEALTH_RECOVERED, HEALTH_DEGENERATE, HEALTH_AMBIGUOUS)
+ACCEPTED = (Health.OK, Health.RECOVERED, Health.DEGENERATE, Health.AMBIGUOUS)
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,14 +67,8 @@ class OdometryStep:
     result : RegistrationResult or None
         The registration result; None for the first scan, a rejected scan, or a registration
         that raised.
-    health : str
-        ``'first'`` (became the first model), ``'ok'`` (the registration from the prediction
-        was used), ``'recovered'`` (that one was doubtful; the search found a better-fitting
-        pose, which was used), ``'degenerate'`` (estimate used, but some direction is poorly
-        constrained), ``'ambiguous'`` (distinct poses fit about equally; the one nearest the
-        prediction was used), ``'fell_back'`` (nothing plausible fitted: the pose is the
-        prediction) or ``'rejected'`` (the cloud is unusable: the pose is the prediction and
-        the model is kept).
+    health : Health
+        What became of the scan (see :class:`Health`).
     fit : float
         Balanced fit of the pose used (NaN without a registration or in paper mode).
     searched : bool
@@ -100,7 +105,7 @@ class OdometryStep:
     T_model_pred: FloatArray
     model_index: int
     result: RegistrationResult | None
-    health: str
+    health: Health
     message: str
     timings: dict[str, float] = field(default_factory=dict)
     n_points: int = 0
@@ -114,7 +119,7 @@ class OdometryStep:
     @property
     def ok(self) -> bool:
         """True when the pose comes from a registration (or is the first pose)."""
-        return self.health == HEALTH_FIRST or self.health in ACCEPTED
+        return self.health == Health.FIRST or self.health in ACCEPTED
 
     @property
     def stamp(self) -> float:

@@ -12,26 +12,18 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.em import (
-    EMResult,
-    paper_cluster_em,
-)
 from kentreg_ros.core.errors import KentRegError
-from kentreg_ros.core.result import (
+from kentreg_ros.core.geometry import make_transform, rotation_angle
+from kentreg_ros.core.registration.em import EMResult, paper_cluster_em
+from kentreg_ros.core.registration.result import (
     RegistrationResult,
     finish_result,
     information_to_covariance,
     rotation_degenerate,
 )
-from kentreg_ros.core.rotations import (
-    average_rotations,
-    make_transform,
-    rotation_angle,
-)
-from kentreg_ros.core.scan import PreparedScan, elapsed_ms
-from kentreg_ros.core.translation import (
-    centroid_translation,
-)
+from kentreg_ros.core.registration.rotations import average_rotations
+from kentreg_ros.core.registration.translation import centroid_translation
+from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
 
 logger = logging.getLogger(__name__)
 

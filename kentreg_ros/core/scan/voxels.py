@@ -109,12 +109,7 @@ def _voxel_keys(
         s = span.astype(np.int64)
         wide: NDArray[np.int64] = (idx[:, 0] * s[1] + idx[:, 1]) * s[2] + idx[:, 2]
         return wide
-    if kernels.enabled():
-        return kernels.voxel_keys(points, voxel_size, corner, span)
-    f = np.floor(points / voxel_size)
-    f -= corner
-    keys: NDArray[np.int64] = ((f[:, 0] * span[1] + f[:, 1]) * span[2] + f[:, 2]).astype(np.int64)
-    return keys
+    return kernels.voxel_keys(points, voxel_size, corner, span)
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> FloatArray:
@@ -274,14 +269,8 @@ class _Grid:
     def centroids(self, points: FloatArray, min_points: int) -> tuple[FloatArray, int]:
         """Centroids of the voxels holding at least ``min_points`` points, and the number of
         points in the others."""
-        keep = self.counts >= min_points
-        if kernels.enabled():
-            out = kernels.voxel_centroids(points, self.order, self.starts, self.counts, min_points)
-            return out, int(self.counts[~keep].sum())
-        # np.take gathers rows several times faster than fancy indexing here.
-        sums = np.add.reduceat(np.take(points, self.order, axis=0), self.starts, axis=0)
-        out = np.ascontiguousarray(sums[keep] / self.counts[keep, None])
-        return out, int(self.counts[~keep].sum())
+        out = kernels.voxel_centroids(points, self.order, self.starts, self.counts, min_points)
+        return out, int(self.counts[self.counts < min_points].sum())
 
 
 class _VoxelProbe:

@@ -108,8 +108,8 @@ def assign_and_sum(xs, weighted, centers):  # type: ignore[no-untyped-def]
 
 @_jit
 def certified_distances(x, x0, radius, idx, target, gate):  # type: ignore[no-untyped-def]
-    """For :class:`~kentreg_ros.core.correspondence.NearestNeighborCache`: the distance from
-    each query point to its cached neighbour (inf without one) and whether the cache
+    """For :class:`~kentreg_ros.core.registration.correspondence.NearestNeighborCache`: the
+    distance from each query point to its cached neighbour (inf without one) and whether the cache
     certifies it (see the module's Notes): ``|x - q| <= radius - |x - x0|`` with a neighbour,
     ``gate < radius - |x - x0|`` without."""
     n = x.shape[0]
@@ -202,7 +202,7 @@ def voxel_centroids(points, order, starts, counts, min_points):  # type: ignore[
 
 @_jit
 def eigen_cubic(cov):  # type: ignore[no-untyped-def]
-    """First part of :func:`~kentreg_ros.core.normals.smallest_eigenpairs_3x3` per matrix:
+    """First part of :func:`~kentreg_ros.core.scan.normals.smallest_eigenpairs_3x3` per matrix:
     the mean eigenvalue ``m``, ``p`` and the determinant of ``A - m I`` (numpy takes the
     power and the arccos, whose numpy implementations round differently from libm's)."""
     n = cov.shape[0]

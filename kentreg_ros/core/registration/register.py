@@ -22,34 +22,20 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError
-from kentreg_ros.core.paper import register_paper
-from kentreg_ros.core.result import (
-    STATUS_CONVERGED,
-    STATUS_DEGENERATE,
-    STATUS_FAILED,
-    STATUS_MAX_ITERATIONS,
+from kentreg_ros.core.geometry import check_transform
+from kentreg_ros.core.registration.paper import register_paper
+from kentreg_ros.core.registration.result import (
     RegistrationResult,
 )
-from kentreg_ros.core.robust import register_robust
-from kentreg_ros.core.rotations import check_transform
-from kentreg_ros.core.scan import PreparedScan, as_prepared, elapsed_ms, prepare_scan
+from kentreg_ros.core.registration.robust import register_robust
+from kentreg_ros.core.scan.prepared import PreparedScan, as_prepared, elapsed_ms
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
 
-__all__ = [
-    'STATUS_CONVERGED',
-    'STATUS_DEGENERATE',
-    'STATUS_FAILED',
-    'STATUS_MAX_ITERATIONS',
-    'PreparedScan',
-    'RegistrationResult',
-    'elapsed_ms',
-    'prepare_scan',
-    'register',
-]
+__all__ = ['register']
 
 
 def register(
@@ -81,9 +67,10 @@ def register(
     viewpoint : array_like, shape (3,)
         Sensor origin in each cloud's own frame, used to orient normals.
     global_search : bool, optional
-        Search SO(3) from the two clouds' normal mixtures (:mod:`kentreg_ros.core.search`)
-        instead of starting only from ``init``. Default from ``search.mode``: with 'auto',
-        search when ``init`` is not given. Robust mode only.
+        Search SO(3) from the two clouds' normal mixtures
+        (:mod:`kentreg_ros.core.registration.search`) instead of starting only from
+        ``init``. Default from ``search.mode``: with 'auto', search when ``init`` is not
+        given. Robust mode only.
 
     Returns
     -------

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.rotations import hat, rotation_angle
+from kentreg_ros.core.geometry import hat, rotation_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +40,7 @@ def propagate_covariance(
     cov_step : array_like, shape (6, 6)
         Covariance of ``T_model_curr`` for the left perturbation ``T_true = exp(delta) T`` in
         the model frame, (x, y, z, rot_x, rot_y, rot_z): what
-        :attr:`~kentreg_ros.core.registration.RegistrationResult.covariance` gives.
+        :attr:`~kentreg_ros.core.registration.register.RegistrationResult.covariance` gives.
 
     Returns
     -------

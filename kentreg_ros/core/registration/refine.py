@@ -17,10 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.rotations import cross_rows, exp_so3, hat, project_to_so3
-from kentreg_ros.core.translation import geman_mcclure_weights, robust_scale
+from kentreg_ros.core.geometry import exp_so3, hat, project_to_so3
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
+from kentreg_ros.core.registration.translation import geman_mcclure_weights, robust_scale
+from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -163,83 +163,33 @@ def refine_joint(
     radius = float(np.sqrt(np.einsum('ij,ij->', centred, centred) / max(len(source), 1)))
     step_metric = np.array([radius] * 3 + [1.0] * 3)  # (omega, v) -> displacement
     it = 0
-    compiled = method == 'point_to_plane' and kernels.enabled()
     for it in range(1, max_iterations + 1):
         x = source @ R.T + t
-        dist, idx = nn.query(x, gate)
-        if compiled:
-            # The same quantities as the numpy branch below, in two passes over the rows.
-            ok, r_plane, cos = kernels.plane_residuals(
-                x, idx, target, target_normals, source_normals, R
+        _, idx = nn.query(x, gate)
+        ok, r_plane, cos = kernels.plane_residuals(
+            x, idx, target, target_normals, source_normals, R
+        )
+        if len(ok) < MIN_CORRESPONDENCES:
+            break
+        sigma = robust_scale(r_plane, noise_floor)
+        w = geman_mcclure_weights(r_plane, sigma)
+        if normal_weight:
+            resid = np.maximum(1.0 - cos, 0.0)
+            kappa_n = float(
+                np.clip(1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9), *kappa_range)
             )
-            if len(ok) < MIN_CORRESPONDENCES:
-                break
-            sigma = robust_scale(r_plane, noise_floor)
-            w = geman_mcclure_weights(r_plane, sigma)
-            if normal_weight:
-                resid = np.maximum(1.0 - cos, 0.0)
-                kappa_n = float(
-                    np.clip(
-                        1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9),
-                        *kappa_range,
-                    )
-                )
-                w = w * np.exp(kappa_n * (cos - 1.0))
+            w = w * np.exp(kappa_n * (cos - 1.0))
+        # J = d e / d delta = [hat(x), -I] for the left perturbation delta = (omega, v).
+        if method == 'plane_to_plane':
+            H, g, sigma2 = _plane_to_plane_equations(
+                x, idx, ok, target, target_normals, source_normals, R, w
+            )
+        else:
             H, g, wrr, wsum = kernels.plane_normal_equations(
                 x, idx, ok, target_normals, r_plane, w
             )
             sigma2 = wrr / max(wsum, 1e-12)
-            delta = -_solve_spd(H, g)
-        else:
-            ok = np.flatnonzero(np.isfinite(dist))
-            if len(ok) < MIN_CORRESPONDENCES:
-                break
-            j = idx[ok]
-            xo = np.take(x, ok, axis=0)  # np.take: several times faster than fancy indexing
-            e = np.take(target, j, axis=0) - xo  # residual vector, (n, 3)
-            nq = np.take(target_normals, j, axis=0)
-            np_rot = np.take(source_normals, ok, axis=0) @ R.T
-            r_plane = np.einsum('ij,ij->i', nq, e)
-            sigma = robust_scale(r_plane, noise_floor)
-            w = geman_mcclure_weights(r_plane, sigma)
-            if normal_weight:
-                cos = np.einsum('ij,ij->i', nq, np_rot)
-                resid = np.maximum(1.0 - cos, 0.0)
-                kappa_n = float(
-                    np.clip(
-                        1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9), *kappa_range
-                    )
-                )
-                w = w * np.exp(kappa_n * (cos - 1.0))
-            # J = d e / d delta = [hat(x), -I] for the left perturbation delta = (omega, v).
-            if method == 'plane_to_plane':
-                # GICP combined covariance C_q + R C_p R^T with planar C = I - (1 - eps) n n^T.
-                cov = 2.0 * np.eye(3)[None] - (1.0 - PLANE_EPSILON) * (
-                    nq[:, :, None] * nq[:, None, :] + np_rot[:, :, None] * np_rot[:, None, :]
-                )
-                W = inverse_3x3_symmetric(cov) * w[:, None, None]
-                We = np.einsum('nab,nb->na', W, e)
-                # J^T W J and J^T W e in closed form: hat(x)^T W hat(x) = -hat(x) W hat(x).
-                hx = hat(xo)
-                WJw = np.matmul(W, hx)  # W hat(x), (n, 3, 3)
-                H = np.empty((6, 6))
-                H[:3, :3] = -np.tensordot(hx, WJw, axes=([0, 2], [0, 1]))
-                # J_w^T W J_v = hat(x)^T W (-I) = hat(x) W; tensordot gives hat(x)^T W.
-                H[:3, 3:] = -np.tensordot(hx, W, axes=([0, 1], [0, 1]))
-                H[3:, :3] = H[:3, 3:].T
-                H[3:, 3:] = W.sum(axis=0)
-                g = np.concatenate([-np.einsum('nab,nb->a', hx, We), -We.sum(axis=0)])
-                sigma2 = float(np.einsum('na,na->', e, We) / max(float(w.sum()), 1e-12))
-            else:
-                Jn = np.empty((len(ok), 6))  # n^T [hat(x), -I]
-                Jn[:, :3] = cross_rows(nq, xo)
-                np.negative(nq, out=Jn[:, 3:])
-                Jw = Jn * w[:, None]
-                H = Jw.T @ Jn
-                g = Jw.T @ r_plane
-                sigma2 = float(np.sum(w * r_plane**2) / max(float(w.sum()), 1e-12))
-            delta = -_solve_spd(H, g)
-        # Step control (see Notes): halve on reversal, lengthen while creeping.
+        delta = -_solve_spd(H, g)
         # Step control (see Notes): halve on reversal, lengthen while creeping.
         if prev_delta is not None:
             if float(delta @ prev_delta) < 0.0:
@@ -274,3 +224,40 @@ def refine_joint(
         inlier_fraction=inlier,
         kappa_normal=kappa_n,
     )
+
+
+def _plane_to_plane_equations(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target: FloatArray,
+    target_normals: FloatArray,
+    source_normals: FloatArray,
+    R: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float]:
+    """GICP-like normal equations ``H`` (6, 6), ``g`` (6,) and the weighted residual variance
+    over the rows ``ok``: the residual vector weighted by the inverse of the combined covariance
+    ``C_q + R C_p R^T`` with planar ``C = I - (1 - eps) n n^T``."""
+    j = idx[ok]
+    xo = np.take(x, ok, axis=0)  # np.take: several times faster than fancy indexing
+    e = np.take(target, j, axis=0) - xo  # residual vector, (n, 3)
+    nq = np.take(target_normals, j, axis=0)
+    np_rot = np.take(source_normals, ok, axis=0) @ R.T
+    cov = 2.0 * np.eye(3)[None] - (1.0 - PLANE_EPSILON) * (
+        nq[:, :, None] * nq[:, None, :] + np_rot[:, :, None] * np_rot[:, None, :]
+    )
+    W = inverse_3x3_symmetric(cov) * w[:, None, None]
+    We = np.einsum('nab,nb->na', W, e)
+    # J^T W J and J^T W e in closed form: hat(x)^T W hat(x) = -hat(x) W hat(x).
+    hx = hat(xo)
+    WJw = np.matmul(W, hx)  # W hat(x), (n, 3, 3)
+    H = np.empty((6, 6))
+    H[:3, :3] = -np.tensordot(hx, WJw, axes=([0, 2], [0, 1]))
+    # J_w^T W J_v = hat(x)^T W (-I) = hat(x) W; tensordot gives hat(x)^T W.
+    H[:3, 3:] = -np.tensordot(hx, W, axes=([0, 1], [0, 1]))
+    H[3:, :3] = H[:3, 3:].T
+    H[3:, 3:] = W.sum(axis=0)
+    g = np.concatenate([-np.einsum('nab,nb->a', hx, We), -We.sum(axis=0)])
+    sigma2 = float(np.einsum('na,na->', e, We) / max(float(w.sum()), 1e-12))
+    return H, g, sigma2

@@ -11,12 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse import csr_matrix
 
 from kentreg_ros.core import kernels
 from kentreg_ros.core.errors import InvalidPointCloudError
-from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.rotations import cross_rows
+from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 
@@ -95,15 +93,6 @@ def estimate_normals(
     )
 
 
-def _neighbour_average_operator(neighbors: NDArray[np.intp], n_columns: int) -> csr_matrix:
-    """Sparse (N, n_columns) matrix whose product with an array averages over neighbourhoods."""
-    n, k = neighbors.shape
-    return csr_matrix(
-        (np.full(n * k, 1.0 / k), neighbors.ravel(), np.arange(0, n * k + 1, k)),
-        shape=(n, n_columns),
-    )
-
-
 def neighbourhood_covariances(points: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """Covariance of every neighbourhood, as its 6 distinct entries.
 
@@ -125,17 +114,7 @@ def neighbourhood_covariances(points: FloatArray, neighbors: NDArray[np.intp]) -
     gathering an (M, k, 3) array and contracting it. Coordinates are centred on the cloud's
     mean first, as before, so the cancellation in ``E[p p^T] - E[p] E[p]^T`` is unchanged.
     """
-    c = points - points.mean(axis=0)
-    if kernels.enabled():
-        return kernels.neighbourhood_covariances(c, neighbors)
-    x, y, z = c[:, 0], c[:, 1], c[:, 2]
-    monomials = np.column_stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z])
-    moments = np.asarray(_neighbour_average_operator(neighbors, len(points)) @ monomials)
-    mx, my, mz = moments[:, 0], moments[:, 1], moments[:, 2]
-    out: FloatArray = moments[:, 3:] - np.column_stack(
-        [mx * mx, mx * my, mx * mz, my * my, my * mz, mz * mz]
-    )
-    return out
+    return kernels.neighbourhood_covariances(points - points.mean(axis=0), neighbors)
 
 
 def smallest_eigenpairs_3x3(
@@ -165,33 +144,8 @@ def smallest_eigenpairs_3x3(
     mid : ndarray, shape (N,)
         Middle eigenvalues.
     """
-    if kernels.enabled():
-        evals, evecs, mid, hard = kernels.smallest_eigenpairs_3x3(cov, gap_ratio)
-        return _eigh_where_hard(cov, hard, evals, evecs, mid)
-    a, b, c, d, e, f = (cov[:, i] for i in range(6))
-    m = (a + d + f) / 3.0
-    a1, d1, f1 = a - m, d - m, f - m
-    p2 = (a1 * a1 + d1 * d1 + f1 * f1 + 2.0 * (b * b + c * c + e * e)) / 6.0
-    p = np.sqrt(p2)
-    det = a1 * (d1 * f1 - e * e) - b * (b * f1 - e * c) + c * (b * e - d1 * c)
-    safe_p = np.where(p > 0.0, p, 1.0)
-    phi = np.arccos(np.clip(0.5 * det / safe_p**3, -1.0, 1.0)) / 3.0
-    l_max = m + 2.0 * p * np.cos(phi)
-    l_min = m + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    l_mid = 3.0 * m - l_max - l_min
-    r0 = np.column_stack([a - l_min, b, c])
-    r1 = np.column_stack([b, d - l_min, e])
-    r2 = np.column_stack([c, e, f - l_min])
-    crosses = np.stack([cross_rows(r0, r1), cross_rows(r0, r2), cross_rows(r1, r2)])  # (3, N, 3)
-    norms2 = np.einsum('cni,cni->cn', crosses, crosses)
-    best = np.argmax(norms2, axis=0)
-    rows = np.arange(len(cov))
-    vec = crosses[best, rows]
-    vec_norm = np.sqrt(norms2[best, rows])
-    scale = np.maximum(np.abs(l_max), np.abs(l_min))
-    hard = (p <= 0.0) | (l_mid - l_min <= gap_ratio * scale) | ~(vec_norm > 0.0)
-    evecs = vec / np.where(hard, 1.0, vec_norm)[:, None]
-    return _eigh_where_hard(cov, hard, l_min, evecs, l_mid)
+    evals, evecs, mid, hard = kernels.smallest_eigenpairs_3x3(cov, gap_ratio)
+    return _eigh_where_hard(cov, hard, evals, evecs, mid)
 
 
 def _eigh_where_hard(
@@ -246,11 +200,7 @@ def orient_normals(
 
 def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
     """Cosine between each normal and the mean normal of its neighbourhood, shape (N,)."""
-    if kernels.enabled():
-        return kernels.normal_consistency(normals, neighbors)
-    mean = np.asarray(_neighbour_average_operator(neighbors, len(normals)) @ normals)
-    norm = np.linalg.norm(mean, axis=1)
-    return np.einsum('ij,ij->i', normals, mean) / np.maximum(norm, 1e-12)
+    return kernels.normal_consistency(normals, neighbors)
 
 
 def normal_inlier_mask(

@@ -33,28 +33,24 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import logsumexp
 
+from kentreg_ros.core.geometry import rotation_angle
 from kentreg_ros.core.kent import (
     MAX_BETA_RATIO,
     fit_kent_moments,
-    kent_from_moments,
     kent_log_normalizer,
 )
-from kentreg_ros.core.preprocess import argsort_keys
-from kentreg_ros.core.rotations import (
+from kentreg_ros.core.registration.rotations import (
     KentRotationProblem,
     average_rotations,
     procrustes,
-    rotation_angle,
     solve_kent_rotation,
 )
+from kentreg_ros.core.scan.clusters import ModelClusters, NormalBins, kent_moments_of_bins
 
 FloatArray = NDArray[np.float64]
 
+
 LOG_UNIFORM_SPHERE = -np.log(4.0 * np.pi)
-#: Bin edge bounds (in unit-vector coordinates; 0.01 ~ 0.6 deg, 0.1 ~ 5.7 deg), see
-#: :func:`bin_cell_for`.
-MIN_BIN_CELL = 0.01
-MAX_BIN_CELL = 0.1
 
 
 @dataclass(frozen=True)
@@ -87,189 +83,6 @@ class EMResult:
     converged: bool
     inlier_fraction: float
     hessian: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
-
-
-@dataclass(frozen=True)
-class NormalBins:
-    """Unit normals summarised per occupied cell: direction, count and exact moments.
-
-    Attributes
-    ----------
-    directions : ndarray, shape (B, 3)
-        Unit mean direction of the normals in each cell.
-    weights : ndarray, shape (B,)
-        Number of normals in each cell.
-    resultants : ndarray, shape (B, 3)
-        Sum of the normals in each cell.
-    scatters : ndarray, shape (B, 3, 3)
-        Sum of ``x x^T`` over the normals in each cell.
-    cell : float
-        Smallest cell edge used, in unit-vector coordinates (about the cell's angular width
-        in radians).
-    """
-
-    directions: FloatArray
-    weights: FloatArray
-    resultants: FloatArray
-    scatters: FloatArray
-    cell: float
-
-    @classmethod
-    def from_normals(
-        cls,
-        normals: FloatArray,
-        cell: float | FloatArray,
-        groups: NDArray[np.intp] | None = None,
-    ) -> NormalBins:
-        """Bin unit normals on a cubic grid of edge ``cell`` in R^3.
-
-        ``cell`` may be given per normal together with ``groups`` (e.g. the normal clusters,
-        each binned at the width its own kernel needs, :func:`bin_cell_for`); normals of
-        different groups never share a bin.
-
-        The E-step evaluates a cell's posteriors at its mean direction; the M-step uses the
-        cell's exact first and second moments (``resultants``, ``scatters``), so binning only
-        approximates how the posteriors vary across a cell, which is small for cells narrower
-        than the Kent kernels.
-        """
-        cells = np.broadcast_to(np.asarray(cell, dtype=np.float64), (len(normals),))
-        keys = np.floor(normals / cells[:, None]).astype(np.int64)
-        span = int(np.floor(1.0 / float(cells.min()))) + 2 if len(cells) else 2
-        width = 2 * span + 1
-        flat = ((keys[:, 0] + span) * width + keys[:, 1] + span) * width + (keys[:, 2] + span)
-        if groups is not None:
-            flat = flat + np.asarray(groups, dtype=np.int64) * width**3
-        order = argsort_keys(flat)
-        ordered = flat[order]
-        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-        counts = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
-        sorted_normals = normals[order]
-        sums = np.add.reduceat(sorted_normals, starts, axis=0)
-        outer = (sorted_normals[:, :, None] * sorted_normals[:, None, :]).reshape(-1, 9)
-        scatters = np.add.reduceat(outer, starts, axis=0).reshape(-1, 3, 3)
-        norms = np.linalg.norm(sums, axis=1)
-        keep = norms > 1e-12 * counts  # opposite normals in one cell cancel: drop them
-        return cls(
-            directions=np.ascontiguousarray(sums[keep] / norms[keep, None]),
-            weights=counts[keep],
-            resultants=np.ascontiguousarray(sums[keep]),
-            scatters=np.ascontiguousarray(scatters[keep]),
-            cell=float(cells.min()) if len(cells) else 0.0,
-        )
-
-    def take(self, index: NDArray[np.intp]) -> NormalBins:
-        """The bins ``index``, in that order."""
-        return NormalBins(
-            self.directions[index],
-            self.weights[index],
-            self.resultants[index],
-            self.scatters[index],
-            self.cell,
-        )
-
-    def __len__(self) -> int:
-        return len(self.weights)
-
-
-def kent_moments_of_bins(
-    bins: NormalBins, weights: FloatArray, *, rotation: FloatArray | None = None
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Kent's moment estimates (kappa, beta, gamma) of K weighted groups of bins.
-
-    ``weights`` (K, B) weighs each bin's normals (1 = all of them); the moments are exact
-    (:func:`~kentreg_ros.core.kent.kent_from_moments`). With ``rotation`` R they are those of
-    the rotated normals ``R x`` (the K group moments are rotated, not the B bins). A group with
-    no weight gets ``kappa = beta = 0`` and ``gamma = I``.
-    """
-    mass = weights @ bins.weights
-    safe = np.where(mass > 0.0, mass, 1.0)
-    xbar = (weights @ bins.resultants) / safe[:, None]
-    scatter = (weights @ bins.scatters.reshape(-1, 9)).reshape(-1, 3, 3) / safe[:, None, None]
-    if rotation is not None:
-        xbar = xbar @ rotation.T
-        scatter = rotation @ scatter @ rotation.T
-    kappa, beta, gamma = kent_from_moments(xbar, scatter)
-    empty = ~(mass > 0.0)
-    kappa[empty], beta[empty], gamma[empty] = 0.0, 0.0, np.eye(3)
-    return kappa, beta, gamma
-
-
-def bin_cell_for(kappa: FloatArray | float) -> FloatArray:
-    """Cell edges for :class:`NormalBins`, each no wider than its Kent kernel.
-
-    A Kent kernel of concentration ``kappa`` has an angular standard deviation of about
-    ``1 / sqrt(kappa)`` per axis; a cluster's cell edge is its own, so a cell's normals lie
-    within half a standard deviation of its mean, clipped to [:data:`MIN_BIN_CELL`,
-    :data:`MAX_BIN_CELL`] (below 0.6 deg the normals' own estimation noise dominates; above
-    5.7 deg the bins no longer resolve the planes within a cluster). On the 49 BALM pairs the
-    rotation error was the same (0.27-0.29 deg median) for edges from 0.035 to 0.15, while the
-    cost grows with the square of the number of bins.
-    """
-    k = np.asarray(kappa, dtype=np.float64)
-    safe = np.where(k > 0.0, k, 1.0)
-    out: FloatArray = np.where(
-        k > 0.0, np.clip(1.0 / np.sqrt(safe), MIN_BIN_CELL, MAX_BIN_CELL), MAX_BIN_CELL
-    )
-    return out
-
-
-@dataclass(frozen=True)
-class ModelClusters:
-    """The model's partition of its normals and the Kent parameters of each cluster.
-
-    Attributes
-    ----------
-    centers : ndarray, shape (K, 3)
-        Cluster mean directions (spherical k-means).
-    gamma : ndarray, shape (K, 3, 3)
-        Per cluster, columns (mean direction, major axis, minor axis) by Kent's moments.
-    kappa, beta : ndarray, shape (K,)
-        Kent concentration and ovalness of each cluster by Kent's moments.
-    weights : ndarray, shape (K,)
-        Share of the normals in each cluster (sums to 1).
-    bins : NormalBins
-        The model normals, binned, sorted by cluster.
-    offsets : ndarray of int, shape (K + 1,)
-        ``bins`` of cluster ``k`` are ``offsets[k]:offsets[k + 1]``.
-    """
-
-    centers: FloatArray
-    gamma: FloatArray
-    kappa: FloatArray
-    beta: FloatArray
-    weights: FloatArray
-    bins: NormalBins
-    offsets: NDArray[np.intp]
-
-    @classmethod
-    def from_bins(cls, bins: NormalBins, centers: FloatArray) -> ModelClusters:
-        """Assign each bin to its nearest centre; Kent moments per cluster (empty ones go)."""
-        labels = np.argmax(bins.directions @ centers.T, axis=1)
-        k = len(centers)
-        mass = np.bincount(labels, weights=bins.weights, minlength=k)
-        keep = np.flatnonzero(mass > 0.0)
-        remap = np.full(k, -1)
-        remap[keep] = np.arange(len(keep))
-        labels = remap[labels]
-        order = np.argsort(labels, kind='stable')
-        sorted_bins = bins.take(order)
-        counts = np.bincount(labels, minlength=len(keep))
-        offsets = np.r_[0, np.cumsum(counts)].astype(np.intp)
-        member = np.zeros((len(keep), len(bins)))
-        member[labels[order], np.arange(len(bins))] = 1.0
-        kappa, beta, gamma = kent_moments_of_bins(sorted_bins, member)
-        return cls(
-            centers=np.ascontiguousarray(centers[keep]),
-            gamma=gamma,
-            kappa=kappa,
-            beta=beta,
-            weights=mass[keep] / mass.sum(),
-            bins=sorted_bins,
-            offsets=offsets,
-        )
-
-    def __len__(self) -> int:
-        return len(self.centers)
 
 
 #: A singular value of the M-step's ``C`` below this share of the largest counts as zero: the

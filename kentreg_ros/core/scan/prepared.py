@@ -12,30 +12,23 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core import kernels
-from kentreg_ros.core.clustering import refine_spherical_kmeans, spherical_kmeans
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.em import (
-    ModelClusters,
-    NormalBins,
-    bin_cell_for,
-)
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
-from kentreg_ros.core.kent import kent_from_moments
-from kentreg_ros.core.neighbors import NeighborIndex
-from kentreg_ros.core.normals import estimate_normals, normal_inlier_mask, planar_mask
-from kentreg_ros.core.preprocess import as_points, crop_range, downsample
+from kentreg_ros.core.scan.clusters import (
+    ModelClusters,
+    cluster_normals,
+)
+from kentreg_ros.core.scan.neighbors import NeighborIndex
+from kentreg_ros.core.scan.normals import estimate_normals, normal_inlier_mask, planar_mask
+from kentreg_ros.core.scan.voxels import as_points, crop_range, downsample
 
 logger = logging.getLogger(__name__)
+
 
 FloatArray = NDArray[np.float64]
 
 
 MIN_POINTS = 20
-#: Lloyd iterations of a warm-started clustering (:func:`cluster_normals` with ``centers``): the
-#: normals changed little since the centres were found (one scan added to a local map), so a few
-#: iterations move them to the new optimum, and what is left is carried on at the next call.
-WARM_START_ITERATIONS = 5
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,67 +207,6 @@ def prepare_scan(
         n_normal_outliers=n_out,
         timings=timings,
     )
-
-
-def _cluster_kappa(normals: FloatArray, labels: NDArray[np.intp], k: int) -> FloatArray:
-    """Kent's moment estimate of each cluster's concentration (0 for an empty cluster), from
-    per-cluster sums (bincounts: no (K, N) weight matrix)."""
-    if kernels.enabled():
-        mass, xbar, scatter = kernels.cluster_moments(normals, labels, k)
-    else:
-        mass = np.bincount(labels, minlength=k).astype(np.float64)
-        xbar = np.column_stack(
-            [np.bincount(labels, weights=normals[:, a], minlength=k) for a in range(3)]
-        )
-        scatter = np.empty((k, 3, 3))
-        for a in range(3):
-            for b in range(a, 3):
-                col = np.bincount(labels, weights=normals[:, a] * normals[:, b], minlength=k)
-                scatter[:, a, b] = scatter[:, b, a] = col
-    safe = np.where(mass > 0.0, mass, 1.0)
-    kappa, _, _ = kent_from_moments(xbar / safe[:, None], scatter / safe[:, None, None])
-    kappa[mass == 0.0] = 0.0
-    return kappa
-
-
-def cluster_normals(
-    normals: FloatArray, config: KentRegConfig, *, centers: FloatArray | None = None
-) -> tuple[NDArray[np.intp], FloatArray, ModelClusters]:
-    """Spherical k-means of unit normals and the Kent frames of the clusters.
-
-    Parameters
-    ----------
-    normals : ndarray, shape (N, 3)
-        Unit normals.
-    config : KentRegConfig
-        ``clustering`` settings.
-    centers : ndarray, shape (K, 3), optional
-        Start Lloyd's iterations from these centres instead of seeded k-means++ restarts (a
-        warm start, e.g. from the clustering of a map before a few points were added).
-
-    Returns
-    -------
-    labels : ndarray of int, shape (N,)
-    centers : ndarray, shape (K, 3)
-    clusters : ModelClusters
-    """
-    c = config.clustering
-    if centers is None:
-        labels, centers = spherical_kmeans(
-            normals,
-            c.n_clusters,
-            max_iterations=c.max_iterations,
-            rng=c.seed,
-            restarts=c.restarts,
-            sample_size=c.restart_sample,
-        )
-    else:
-        labels, centers = refine_spherical_kmeans(
-            normals, centers, max_iterations=min(c.max_iterations, WARM_START_ITERATIONS)
-        )
-    kappa_clusters = _cluster_kappa(normals, labels, len(centers))
-    bins = NormalBins.from_normals(normals, bin_cell_for(kappa_clusters)[labels], labels)
-    return labels, centers, ModelClusters.from_bins(bins, centers)
 
 
 def as_prepared(

@@ -13,7 +13,7 @@ form for von Mises-Fisher components::
 with the concentrations capped so that a peak is not narrower than the grid step. The score
 ranks hypotheses cheaply; it does not decide (symmetric scenes give twins equal scores): the
 distinct best are refined by the EM and verified on the points
-(:func:`kentreg_ros.core.verify.balanced_fit`).
+(:func:`kentreg_ros.core.registration.verify.balanced_fit`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.em import ModelClusters
+from kentreg_ros.core.scan.clusters import ModelClusters
 
 FloatArray = NDArray[np.float64]
 

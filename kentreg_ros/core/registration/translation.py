@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.correspondence import NearestNeighborCache
-from kentreg_ros.core.neighbors import NeighborIndex
+from kentreg_ros.core.registration.correspondence import NearestNeighborCache
+from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 #: Fewest correspondences for the 3-DOF solve (a few times the unknowns).
 MIN_CORRESPONDENCES = 10
@@ -224,33 +224,16 @@ def point_to_plane_translation(
     sigma2 = 0.0
     inlier = 0.0
     it = 0
-    compiled = kernels.enabled()
     for it in range(1, max_iterations + 1):
         moved = src + t
-        dist, idx = nn.query(moved, gate)
-        if compiled:
-            # The same quantities as the numpy branch, in two passes over the rows.
-            rows, r = kernels.offset_residuals(moved, idx, target, target_normals)
-            if len(rows) < MIN_CORRESPONDENCES:
-                break
-            w = geman_mcclure_weights(r, robust_scale(r, noise_floor))
-            H, g, wrr, wsum = kernels.offset_normal_equations(idx, rows, target_normals, r, w)
-            sigma2 = wrr / max(wsum, 1e-12)
-            inlier = len(rows) / len(moved)
-        else:
-            ok = np.isfinite(dist)
-            if ok.sum() < MIN_CORRESPONDENCES:
-                break
-            j = idx[ok]
-            q = np.take(target, j, axis=0)
-            nq = np.take(target_normals, j, axis=0)
-            r = np.einsum('ij,ij->i', nq, moved[ok] - q)
-            w = geman_mcclure_weights(r, robust_scale(r, noise_floor))
-            nw = nq * w[:, None]
-            H = nw.T @ nq
-            g = nw.T @ r
-            sigma2 = float(np.sum(w * r * r) / max(np.sum(w), 1e-12))
-            inlier = float(ok.mean())
+        _, idx = nn.query(moved, gate)
+        rows, r = kernels.offset_residuals(moved, idx, target, target_normals)
+        if len(rows) < MIN_CORRESPONDENCES:
+            break
+        w = geman_mcclure_weights(r, robust_scale(r, noise_floor))
+        H, g, wrr, wsum = kernels.offset_normal_equations(idx, rows, target_normals, r, w)
+        sigma2 = wrr / max(wsum, 1e-12)
+        inlier = len(rows) / len(moved)
         reg = 1e-9 * max(float(np.trace(H)), 1e-12)
         dt = -np.linalg.solve(H + reg * np.eye(3), g)
         t = t + dt

@@ -1,0 +1,202 @@
+"""The per-point loops in numpy: what runs without numba, and the reference the compiled
+kernels of :mod:`._jit` repeat operation by operation (``test/test_kernels.py``).
+
+Each function has the signature and the results of the kernel of the same name.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+
+from kentreg_ros.core.geometry import cross_rows
+
+FloatArray = NDArray[np.float64]
+
+
+def _neighbour_average_operator(neighbors: NDArray[np.intp], n_columns: int) -> csr_matrix:
+    """Sparse (N, n_columns) matrix whose product with an array averages over neighbourhoods."""
+    n, k = neighbors.shape
+    return csr_matrix(
+        (np.full(n * k, 1.0 / k), neighbors.ravel(), np.arange(0, n * k + 1, k)),
+        shape=(n, n_columns),
+    )
+
+
+def _row_norms(v: FloatArray) -> FloatArray:
+    out: FloatArray = np.sqrt(np.einsum('ij,ij->i', v, v))
+    return out
+
+
+def neighbourhood_covariances(centred: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
+    x, y, z = centred[:, 0], centred[:, 1], centred[:, 2]
+    monomials = np.column_stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z])
+    moments = np.asarray(_neighbour_average_operator(neighbors, len(centred)) @ monomials)
+    mx, my, mz = moments[:, 0], moments[:, 1], moments[:, 2]
+    out: FloatArray = moments[:, 3:] - np.column_stack(
+        [mx * mx, mx * my, mx * mz, my * my, my * mz, mz * mz]
+    )
+    return out
+
+
+def smallest_eigenpairs_3x3(
+    cov: FloatArray, gap_ratio: float
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    a, b, c, d, e, f = (cov[:, i] for i in range(6))
+    m = (a + d + f) / 3.0
+    a1, d1, f1 = a - m, d - m, f - m
+    p2 = (a1 * a1 + d1 * d1 + f1 * f1 + 2.0 * (b * b + c * c + e * e)) / 6.0
+    p = np.sqrt(p2)
+    det = a1 * (d1 * f1 - e * e) - b * (b * f1 - e * c) + c * (b * e - d1 * c)
+    safe_p = np.where(p > 0.0, p, 1.0)
+    phi = np.arccos(np.clip(0.5 * det / safe_p**3, -1.0, 1.0)) / 3.0
+    l_max = m + 2.0 * p * np.cos(phi)
+    l_min = m + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    l_mid = 3.0 * m - l_max - l_min
+    r0 = np.column_stack([a - l_min, b, c])
+    r1 = np.column_stack([b, d - l_min, e])
+    r2 = np.column_stack([c, e, f - l_min])
+    crosses = np.stack([cross_rows(r0, r1), cross_rows(r0, r2), cross_rows(r1, r2)])  # (3, N, 3)
+    norms2 = np.einsum('cni,cni->cn', crosses, crosses)
+    best = np.argmax(norms2, axis=0)
+    rows = np.arange(len(cov))
+    vec = crosses[best, rows]
+    vec_norm = np.sqrt(norms2[best, rows])
+    scale = np.maximum(np.abs(l_max), np.abs(l_min))
+    hard = (p <= 0.0) | (l_mid - l_min <= gap_ratio * scale) | ~(vec_norm > 0.0)
+    evecs = vec / np.where(hard, 1.0, vec_norm)[:, None]
+    return l_min, evecs, l_mid, hard
+
+
+def normal_consistency(normals: FloatArray, neighbors: NDArray[np.intp]) -> FloatArray:
+    mean = np.asarray(_neighbour_average_operator(neighbors, len(normals)) @ normals)
+    norm = np.linalg.norm(mean, axis=1)
+    out: FloatArray = np.einsum('ij,ij->i', normals, mean) / np.maximum(norm, 1e-12)
+    return out
+
+
+def assign_and_sum(
+    xs: FloatArray, weighted: FloatArray, centers: FloatArray
+) -> tuple[NDArray[np.intp], FloatArray]:
+    k = len(centers)
+    labels = np.argmax(xs @ centers.T, axis=1)
+    sums = np.zeros((k, 3))
+    for axis in range(3):
+        sums[:, axis] = np.bincount(labels, weights=weighted[axis], minlength=k)
+    return labels, sums
+
+
+def certified_distances(
+    x: FloatArray,
+    x0: FloatArray,
+    radius: FloatArray,
+    idx: NDArray[np.intp],
+    target: FloatArray,
+    gate: float,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    lower = radius - _row_norms(x - x0)  # every other target point is at least this far
+    has = idx >= 0
+    # Distance to the current neighbour (index 0 as a placeholder where there is none).
+    dist = _row_norms(x - np.take(target, np.where(has, idx, 0), axis=0))
+    dist[~has] = np.inf
+    valid = np.where(has, dist <= lower, gate < lower)
+    return dist, valid
+
+
+def cluster_moments(
+    normals: FloatArray, labels: NDArray[np.intp], k: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    mass: FloatArray = np.bincount(labels, minlength=k).astype(np.float64)
+    xsum: FloatArray = np.column_stack(
+        [np.bincount(labels, weights=normals[:, a], minlength=k) for a in range(3)]
+    )
+    scatter = np.empty((k, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            col = np.bincount(labels, weights=normals[:, a] * normals[:, b], minlength=k)
+            scatter[:, a, b] = scatter[:, b, a] = col
+    return mass, xsum, scatter
+
+
+def voxel_keys(
+    points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
+) -> NDArray[np.int64]:
+    f = np.floor(points / voxel_size)
+    f -= corner
+    keys: NDArray[np.int64] = ((f[:, 0] * span[1] + f[:, 1]) * span[2] + f[:, 2]).astype(np.int64)
+    return keys
+
+
+def voxel_centroids(
+    points: FloatArray,
+    order: NDArray[np.intp],
+    starts: NDArray[np.intp],
+    counts: NDArray[np.intp],
+    min_points: int,
+) -> FloatArray:
+    keep = counts >= min_points
+    # np.take gathers rows several times faster than fancy indexing here.
+    sums = np.add.reduceat(np.take(points, order, axis=0), starts, axis=0)
+    out: FloatArray = np.ascontiguousarray(sums[keep] / counts[keep, None])
+    return out
+
+
+def plane_residuals(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    n_target: int,
+    target: FloatArray,
+    target_normals: FloatArray,
+    source_normals: FloatArray,
+    R: FloatArray,
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+    ok = np.flatnonzero(idx < n_target)
+    j = idx[ok]
+    e = np.take(target, j, axis=0) - np.take(x, ok, axis=0)
+    nq = np.take(target_normals, j, axis=0)
+    r = np.einsum('ij,ij->i', nq, e)
+    cos = np.einsum('ij,ij->i', nq, np.take(source_normals, ok, axis=0) @ R.T)
+    return ok, r, cos
+
+
+def plane_normal_equations(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target_normals: FloatArray,
+    r: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float, float]:
+    nq = np.take(target_normals, idx[ok], axis=0)
+    Jn = np.empty((len(ok), 6))  # n^T [hat(x), -I]: the left perturbation (omega, v)
+    Jn[:, :3] = cross_rows(nq, np.take(x, ok, axis=0))
+    np.negative(nq, out=Jn[:, 3:])
+    Jw = Jn * w[:, None]
+    return Jw.T @ Jn, Jw.T @ r, float(np.sum(w * r**2)), float(w.sum())
+
+
+def offset_residuals(
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    n_target: int,
+    target: FloatArray,
+    target_normals: FloatArray,
+) -> tuple[NDArray[np.intp], FloatArray]:
+    ok = np.flatnonzero(idx < n_target)
+    j = idx[ok]
+    q = np.take(target, j, axis=0)
+    nq = np.take(target_normals, j, axis=0)
+    return ok, np.einsum('ij,ij->i', nq, np.take(x, ok, axis=0) - q)
+
+
+def offset_normal_equations(
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target_normals: FloatArray,
+    r: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float, float]:
+    nq = np.take(target_normals, idx[ok], axis=0)
+    nw = nq * w[:, None]
+    return nw.T @ nq, nw.T @ r, float(np.sum(w * r * r)), float(np.sum(w))

@@ -1,0 +1,18 @@
+"""The odometry: the loop over stages (:mod:`.loop`, :mod:`.stages`), its report (:mod:`.step`),
+the local map, deskewing and the chained covariance."""
+
+from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.localmap import LocalMap, VoxelMap
+from kentreg_ros.core.odometry.loop import Odometry
+from kentreg_ros.core.odometry.step import ACCEPTED, HEALTHS, Health, OdometryStep
+
+__all__ = [
+    'ACCEPTED',
+    'HEALTHS',
+    'Health',
+    'LocalMap',
+    'Odometry',
+    'OdometryStep',
+    'PointTimes',
+    'VoxelMap',
+]
