@@ -290,3 +290,38 @@ def test_tf_lookup_failures_wait_then_fall_back_and_other_errors_propagate(
     node._tf_buffer = _Buffer(TypeError('a bug'))
     with pytest.raises(TypeError, match='a bug'):
         node._sensor_in_base('lidar', expired)
+
+
+@pytest.mark.parametrize('flag', ['--help', '-h'])
+def test_node_help_prints_its_usage_and_exits_0_without_starting_ros(
+    flag: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``kentreg_node --help`` answers like any command line: its own options, where the ROS
+    arguments go and where the parameters are documented; it never initialises rclpy (before,
+    it ignored the flag and started the node)."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError('rclpy.init was called for --help')
+
+    monkeypatch.setattr(node_module.rclpy, 'init', no_init)
+    with pytest.raises(SystemExit) as exit_info:
+        node_module.main(['kentreg_node', flag])
+    assert exit_info.value.code == 0
+    out, err = capsys.readouterr()
+    assert out.startswith('usage: kentreg_node') and err == ''
+    for text in ('--ros-args', '-p name:=value', '--params-file FILE', 'README', '--version'):
+        assert text in out, text
+
+
+def test_node_refuses_an_argument_of_its_own_it_does_not_know(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ROS argument written without ``--ros-args`` (a common slip) was silently ignored, so the
+    node ran without the user's parameter file: now it is an error naming ``--ros-args``."""
+    monkeypatch.setattr(node_module.rclpy, 'init', lambda *a, **k: pytest.fail('rclpy.init'))
+    code = node_module.main(['kentreg_node', '--params-file', 'config/kentreg.yaml'])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ''
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('kentreg_node: error: '), err
+    assert '--params-file' in lines[0] and '--ros-args' in lines[0]

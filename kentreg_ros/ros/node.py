@@ -36,6 +36,7 @@ with a warning instead of corrupting it; a repeated stamp is dropped and counted
 
 from __future__ import annotations
 
+import argparse
 import collections
 import logging
 import sys
@@ -74,11 +75,18 @@ from rclpy.qos import (
 )
 from rclpy.time_source import USE_SIM_TIME_NAME
 from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
+from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from kentreg_ros.cli.common import interrupt_through_rclpy
+from kentreg_ros import __version__
+from kentreg_ros.cli.common import (
+    EXIT_BAD_INPUT,
+    ArgumentParser,
+    CliError,
+    interrupt_through_rclpy,
+)
 from kentreg_ros.core.config import KentRegConfig, iter_fields
 from kentreg_ros.core.errors import ConfigError, KentRegError
 from kentreg_ros.core.localmap import VoxelMap
@@ -720,15 +728,62 @@ class KentRegNode(Node):
         super().destroy_node()
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The console script's own options (``--help``, ``--version``); ROS arguments are not
+    its business: rclpy reads them after ``--ros-args``."""
+    parser = ArgumentParser(
+        prog=NODE_NAME,
+        usage=f'{NODE_NAME} [-h] [--version] [--ros-args ...]',
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=(
+            'LiDAR odometry by Kent mixture registration: subscribes to sensor_msgs/PointCloud2\n'
+            'on `points`; publishes nav_msgs/Odometry on `odom`, PoseStamped on `pose`, Path on\n'
+            '`path`, /tf, diagnostics and the map on ~/map.'
+        ),
+        epilog=(
+            'ROS arguments follow --ros-args, e.g.\n'
+            f'  {NODE_NAME} --ros-args -p name:=value --params-file FILE '
+            '-r points:=/velodyne_points\n'
+            '  ros2 run kentreg_ros kentreg_node --ros-args --params-file config/kentreg.yaml\n'
+            '\n'
+            'Parameters: every one, with its type, default, range and reason, in the README\n'
+            '(section Configuration: the parameter tables); the file with every default:\n'
+            '  python3 -m kentreg_ros.ros.params > kentreg.yaml\n'
+            'At run time: ros2 param describe /kentreg_node <name>.'
+        ),
+    )
+    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
+    return parser
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
 
-    Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid
-    (the reason is logged, in one line).
+    Parameters
+    ----------
+    args : list of str, optional
+        The whole command line, program name first, as ``rclpy.init`` takes it (default
+        ``sys.argv``).
+
+    Returns 0 on a clean shutdown, 1 when the ROS arguments or the parameters are invalid (the
+    reason is logged, in one line) and 2 on an argument before ``--ros-args`` that is not the
+    node's own (one line naming it). ``--help`` and ``--version`` print and exit 0 without
+    initialising ROS.
     """
+    argv = list(sys.argv if args is None else args)
+    try:
+        unknown = build_parser().parse_known_args(remove_ros_args(argv)[1:])[1]
+        if unknown:
+            raise CliError(
+                f'unrecognized arguments: {" ".join(unknown)} (ROS arguments go after '
+                f'--ros-args: {NODE_NAME} --ros-args -p name:=value --params-file FILE)'
+            )
+    except CliError as exc:
+        print(f'{NODE_NAME}: error: {exc}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     interrupt_through_rclpy()
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=argv)
     except RuntimeError as exc:  # rcl's RCLError: bad --ros-args, unreadable --params-file
         print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
         return 1
