@@ -524,3 +524,26 @@ def test_replay_writes_the_map_as_ply_and_into_the_mcap(sample_bag: Path, tmp_pa
 def test_replay_refuses_a_map_file_of_unknown_kind(sample_bag: Path, tmp_path: Path) -> None:
     code, _, stderr = run_cli([str(sample_bag), '--map', str(tmp_path / 'map.las')])
     assert code == 2 and '--map' in stderr and '.ply or .pcd' in stderr
+
+
+def test_replay_prints_only_its_own_lines(
+    repo_root: Path, sample_bag: Path, tmp_path: Path
+) -> None:
+    """A user sees the program's lines and nothing of its libraries: run as a user runs it (a
+    process of its own, so a library's log record reaches the terminal as it would, not
+    pytest's capture), with the plot. Before, matplotlib's "Ignoring fixed x limits to
+    fulfill fixed data aspect ..." came twice on every run."""
+    pytest.importorskip('matplotlib', reason='the plot is what logged')
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
+    out = tmp_path / 'run'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'kentreg_ros.cli.replay', str(sample_bag), '--max-scans', '4',
+         '--out', str(out), '--no-progress'],
+        capture_output=True, text=True, env=env, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert (out / 'trajectory.png').is_file()
+    lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
+    foreign = [line for line in lines if not line.startswith(('kentreg_replay', '  '))]
+    assert foreign == [], foreign
+    assert proc.stderr == ''
