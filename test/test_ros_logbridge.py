@@ -112,15 +112,15 @@ def test_a_kind_of_message_is_held_back_within_the_throttle_period_and_counted(
 def test_the_package_logger_takes_the_rclpy_level_while_attached_and_gets_its_own_back() -> None:
     package = logging.getLogger(PACKAGE_LOGGER)
     before = package.level
-    assert before == logging.NOTSET  # nobody chose one in the tests
-    handler = RclpyLogHandler(Recorder(level=10), throttle_s=1.0).attach()
     try:
-        assert package.level == logging.DEBUG and handler in package.handlers
-    finally:
-        handler.detach()
-    assert package.level == before and handler not in package.handlers
-    package.setLevel(logging.ERROR)  # a level someone chose stands
-    try:
+        package.setLevel(logging.NOTSET)  # nobody chose one
+        handler = RclpyLogHandler(Recorder(level=10), throttle_s=1.0).attach()
+        try:
+            assert package.level == logging.DEBUG and handler in package.handlers
+        finally:
+            handler.detach()
+        assert package.level == logging.NOTSET and handler not in package.handlers
+        package.setLevel(logging.ERROR)  # a level someone chose stands
         handler = RclpyLogHandler(Recorder(level=10), throttle_s=1.0).attach()
         assert package.level == logging.ERROR
         handler.detach()

@@ -353,13 +353,16 @@ def test_a_scan_the_core_rejects_leaves_a_warn_on_rosout(
     make_node: Any, rclpy_context: Any
 ) -> None:
     """The core logs through Python logging; the node forwards it to its rclpy logger, so a
-    rejected scan is a WARN on /rosout (rqt_console, launch logs), not only a line on stderr."""
+    rejected scan is a WARN on /rosout (rqt_console, launch logs), not only a line on stderr;
+    so is deskewing asked for on scans without per-point times."""
     from rcl_interfaces.msg import Log
 
     listener, executor, received = _rosout_listener(rclpy_context)
     try:
         name = f'kentreg_test_{uuid.uuid4().hex[:8]}'  # other processes may run a kentreg_node
-        node = make_node(node_name=name)
+        node = make_node(
+            node_name=name, parameter_overrides=[Parameter('odometry.deskew', value='on')]
+        )
         feed(node, 0)
         assert wait_until(lambda: total(node, 'processed') == 1)  # a queue of 1: one at a time
         node._on_points(
@@ -368,20 +371,19 @@ def test_a_scan_the_core_rejects_leaves_a_warn_on_rosout(
         assert wait_until(lambda: total(node, 'processed') == 2)
         assert total(node, 'rejected') == 1
 
-        def warned() -> list[Any]:
+        def warned(text: str) -> list[Any]:
             return [
                 m
                 for m in received
-                if m.name == node.get_logger().name
-                and m.level == Log.WARN
-                and 'Rejected the scan' in m.msg
+                if m.name == node.get_logger().name and m.level == Log.WARN and text in m.msg
             ]
 
         deadline = time.monotonic() + TIMEOUT_S
-        while not warned() and time.monotonic() < deadline:
+        while not warned('Rejected the scan') and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
-        (msg,) = warned()
+        (msg,) = warned('Rejected the scan')
         assert msg.msg.startswith('Scan 1: Rejected the scan') and 'prediction' in msg.msg
+        assert len(warned('odometry.deskew is on but the scans carry no per-point times')) == 1
         node.destroy_node()
         assert not [
             h for h in logging.getLogger('kentreg_ros').handlers if h is node._log_handler
