@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from recordings import bag_with_malformed_clouds
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.cli.replay import main
@@ -549,39 +550,6 @@ def test_replay_prints_only_its_own_lines(
     assert proc.stderr == ''
 
 
-def _bag_with_malformed_clouds(sample_bag: Path, path: Path, n: int, bad: set[int]) -> list[int]:
-    """Write, with rosbags' own Writer, the first ``n`` scans of the sample bag (its raw CDR
-    messages) and its ground truth; the scans at ``bad`` with 7 bytes cut off their data (a
-    PointCloud2 that cannot be decoded). Returns the header stamps of the ``n`` scans."""
-    import dataclasses
-
-    from rosbags.highlevel import AnyReader
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    stamps: list[int] = []
-    with (
-        AnyReader([sample_bag]) as reader,
-        Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer,
-    ):
-        out = {
-            c.topic: writer.add_connection(c.topic, c.msgtype, typestore=store)
-            for c in reader.connections
-        }
-        for connection, log_time, raw in reader.messages():
-            if connection.topic == '/points':
-                if len(stamps) == n:
-                    continue
-                msg = reader.deserialize(raw, connection.msgtype)
-                stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
-                if len(stamps) - 1 in bad:
-                    msg = dataclasses.replace(msg, data=msg.data[:-7])
-                    raw = store.serialize_cdr(msg, connection.msgtype)
-            writer.write(out[connection.topic], log_time, raw)
-    return stamps
-
-
 def test_replay_skips_a_malformed_cloud_counts_it_and_names_it(
     sample_bag: Path, tmp_path: Path
 ) -> None:
@@ -589,7 +557,7 @@ def test_replay_skips_a_malformed_cloud_counts_it_and_names_it(
     counted and named (input index, stamp, reason) in the summary and metrics.json; the other
     scans are processed and evaluated and the run exits 0. It stopped the run with exit 2."""
     bag = tmp_path / 'one_bad'
-    stamps = _bag_with_malformed_clouds(sample_bag, bag, 6, {2})
+    stamps = bag_with_malformed_clouds(sample_bag, bag, 6, {2})
     out = tmp_path / 'out'
     code, stdout, stderr = run_cli([str(bag), '--out', str(out), '--no-progress', '--no-plot'])
     assert code == 0, stderr
@@ -613,7 +581,7 @@ def test_replay_of_nothing_but_malformed_clouds_exits_2_with_one_line(
     sample_bag: Path, tmp_path: Path
 ) -> None:
     bag = tmp_path / 'all_bad'
-    _bag_with_malformed_clouds(sample_bag, bag, 3, {0, 1, 2})
+    bag_with_malformed_clouds(sample_bag, bag, 3, {0, 1, 2})
     out = tmp_path / 'out'
     code, stdout, stderr = run_cli([str(bag), '--out', str(out), '--no-progress', '--no-plot'])
     assert code == 2 and stdout == ''
