@@ -463,3 +463,27 @@ def test_errors_in_a_row_restart_the_trajectory_after_three_and_say_why(
     err = capfd.readouterr().err
     assert err.count('Traceback (most recent call last)') == 1
     assert '3 unexpected errors in a row' in err and 'the trajectory restarts' in err
+
+
+def test_a_publish_that_fails_because_ros_shut_down_is_no_error(
+    make_node: Any, rclpy_context: Any, monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """Ctrl-C shuts the context down from rclpy's signal handler while the worker may still be
+    publishing a scan: rclpy then raises "publisher's context is invalid". That is the node
+    ending, not an unexpected error: not counted, no traceback, the worker stops (seen as a
+    traceback in test_node's repeated Ctrl-C test once tracebacks were logged)."""
+    node = make_node()
+    publish = node._pub_pose.publish
+
+    def shut_down_then_publish(msg: Any) -> None:
+        rclpy.shutdown(context=rclpy_context)
+        publish(msg)  # raises: the context is gone
+
+    monkeypatch.setattr(node._pub_pose, 'publish', shut_down_then_publish)
+    feed(node, 0)
+    node._worker.join(TIMEOUT_S)
+    assert not node._worker.is_alive()
+    assert total(node, 'errors') == 0
+    err = capfd.readouterr().err
+    assert 'Traceback' not in err and 'Unexpected error' not in err

@@ -490,6 +490,11 @@ class KentRegNode(Node):
                     self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
             except Exception as exc:
+                if not self.context.ok():
+                    # Ctrl-C (or an external shutdown) took the ROS context down under the scan
+                    # in hand, so its outputs could not go out: the end of the node, not an
+                    # error of the scan. Nothing more can be published; the worker stops.
+                    return
                 # Broad on purpose: an exception would end this thread silently, leaving a node
                 # that still subscribes and reports but never publishes odometry again.
                 self._on_worker_error(exc, scan)
