@@ -432,6 +432,9 @@ def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
     # The sensor moves 5 cm along x per scan: scan 3 is registered against scan 1.
     assert [stamp_ns(m.header.stamp) for m in odoms] == [10**9, 2 * 10**9, 4 * 10**9, 5 * 10**9]
     np.testing.assert_allclose([_x(m) for m in odoms], [0.0, 0.05, 0.15, 0.20], atol=0.01)
+    # The twist of scan 3 is its motion since scan 1 over the 2 s between them: 5 cm/s.
+    velocities = [m.twist.twist.linear.x for m in odoms[1:]]
+    np.testing.assert_allclose(velocities, [0.05, 0.05, 0.05], atol=0.005)
     node._publish_diagnostics()
     status = diags[-1].status[0]
     assert status.level == DiagnosticStatus.ERROR

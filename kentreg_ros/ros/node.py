@@ -250,7 +250,8 @@ class KentRegNode(Node):
         self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
         self._T_base_lidar: FloatArray | None = None
         self._frame_id: str | None = None
-        self._last_stamp_ns: int | None = None
+        self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
+        self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped with
         self._tf_wait_start: float | None = None
         self._last_health = ''
         self._last_message = ''
@@ -541,6 +542,7 @@ class KentRegNode(Node):
         self._T_base_lidar = None
         self._tf_wait_start = None
         self._last_stamp_ns = None
+        self._last_stepped_ns = None
         self._counters.add('resets')
         self.get_logger().info(f'Trajectory restarted ({why}).')
 
@@ -596,12 +598,14 @@ class KentRegNode(Node):
             self._T_base_lidar = T_base_lidar
         with self._lock:
             self._frame_id = scan.frame_id
-        prev_stamp = self._last_stamp_ns
         self._last_stamp_ns = scan.stamp_ns
 
         step = self._odometry.step(
             scan.points, scan.stamp_ns, frame_id=scan.frame_id, point_times=scan.point_times
         )
+        # The twist spans the odometry's own last step: after a scan skipped by an error the
+        # scan before it, not the skipped one.
+        prev_stamp, self._last_stepped_ns = self._last_stepped_ns, scan.stamp_ns
         self._counters.add('processed')
         self._counters.add(step.health)
         if step.searched:
