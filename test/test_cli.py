@@ -199,3 +199,26 @@ def test_python_m_kentreg_ros_cli_runs_the_dispatcher(repo_root: Path, tmp_path:
     assert proc.stderr.strip().splitlines() == [
         f'kentreg_replay: error: {tmp_path / "nothing_here"}: no such file or folder'
     ]
+
+
+@pytest.mark.parametrize('script', ['kentreg_node', 'kentreg_play'])
+def test_ros_console_scripts_answer_help_at_once_with_status_0(
+    script: str, repo_root: Path
+) -> None:
+    """``--help`` prints the usage (with where the ROS arguments go) and exits 0 without
+    starting ROS: before, ``kentreg_node --help`` started the node and never returned. Run as
+    the console script when it is installed, else as ``python -m`` of its module."""
+    pytest.importorskip('rclpy', reason='rclpy is not installed (pip install -e .[ros])')
+    path = shutil.which(script)
+    module = {'kentreg_node': 'kentreg_ros.ros.node', 'kentreg_play': 'kentreg_ros.ros.play'}
+    cmd = [path] if path is not None else [sys.executable, '-m', module[script]]
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
+    try:
+        proc = subprocess.run(
+            [*cmd, '--help'], capture_output=True, text=True, env=env, timeout=60, check=False
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail(f'{script} --help did not return within 60 s (it started the node?)')
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f'usage: {script}') and '--ros-args' in proc.stdout
+    assert proc.stderr == ''

@@ -330,3 +330,48 @@ def test_open_recording_finds_the_reference_poses(
 def test_rosbags_factory_messages_serialize() -> None:
     msg = array_to_pointcloud2(np.zeros((3, 3)), factory=rosbags_factory(JAZZY))
     assert JAZZY.deserialize_cdr(JAZZY.serialize_cdr(msg, PC2), PC2).width == 3
+
+
+def test_entries_put_a_skipped_scan_in_place_of_a_malformed_cloud(tmp_path: Path) -> None:
+    """entries() keeps going past a PointCloud2 that cannot be decoded, naming it (index,
+    stamp, reason) in its place; plain iteration still raises there, naming the message."""
+    scans = _scans(4, points=100, seed=9)
+    path = tmp_path / 'one_bad'
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection('/points', PC2, typestore=JAZZY)
+        for i, (pts, _) in enumerate(scans):
+            stamp = T0 + i * 100_000_000
+            msg = array_to_pointcloud2(pts, frame_id='velodyne', stamp_ns=stamp)
+            if i == 1:
+                msg.fields = [f for f in msg.fields if f.name != 'z']
+            writer.write(conn, stamp + 5, JAZZY.serialize_cdr(msg, PC2))
+    from kentreg_ros.io.bags import Scan, SkippedScan
+
+    source = open_scan_source(path)
+    entries = list(source.entries())
+    assert [type(e) for e in entries] == [Scan, SkippedScan, Scan, Scan]
+    skipped = entries[1]
+    assert isinstance(skipped, SkippedScan)
+    assert (skipped.index, skipped.stamp_ns) == (1, T0 + 100_000_000)
+    assert skipped.reason == "PointCloud2 has no z field; its fields are ['x', 'y']."
+    np.testing.assert_array_equal(entries[2].points, scans[2][0])  # type: ignore[union-attr]
+    with pytest.raises(Exception, match=r'message 1 of /points: PointCloud2 has no z field'):
+        list(source)
+
+
+def test_entries_of_a_scan_folder_skip_an_unreadable_file(tmp_path: Path) -> None:
+    from kentreg_ros.io.bags import SkippedScan
+
+    scans = _scans(3, points=50, seed=10)
+    for i, (pts, intensity) in enumerate(scans):
+        write_pcd(tmp_path / f'scan{i}.pcd', pts, {'intensity': intensity})
+    (tmp_path / 'scan1.pcd').write_bytes(b'# .PCD v0.7\nFIELDS x y z\n')  # cut in its header
+    source = open_scan_source(tmp_path, rate=10.0, start_ns=T0)
+    entries = list(source.entries())
+    skipped = entries[1]
+    assert isinstance(skipped, SkippedScan)
+    assert (skipped.index, skipped.stamp_ns) == (1, T0 + 100_000_000)
+    assert 'scan1.pcd' in skipped.reason and 'DATA' in skipped.reason
+    np.testing.assert_array_equal(entries[2].points, scans[2][0])  # type: ignore[union-attr]
+    with pytest.raises(ScanFileError, match='scan1.pcd'):
+        list(source)

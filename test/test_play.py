@@ -387,3 +387,28 @@ def test_timing_gaps_follow_rate_hz_or_nothing() -> None:
     assert Timing.from_options(None, 20.0).gap_s(0, 5 * second) == pytest.approx(0.05)
     # Stamps that go backwards never make the player wait.
     assert Timing.from_options(1.0, None).gap_s(second, 0) == 0.0
+
+
+def test_play_skips_a_malformed_cloud_counts_it_and_publishes_the_rest(
+    repo_root: Path, sample_bag: Path, bag_scans: list[Any], make_receiver: Any, tmp_path: Path
+) -> None:
+    """The policy of the node and the replay: a PointCloud2 of the bag that cannot be decoded
+    is skipped, said (input index, stamp, reason) and counted in the summary, and the rest of
+    the bag is published; exit 0. It ended playback there with exit 2."""
+    pytest.importorskip('rosbags', reason='the bag is written with rosbags')
+    from recordings import bag_with_malformed_clouds
+
+    bag = tmp_path / 'one_bad'
+    stamps = bag_with_malformed_clouds(sample_bag, bag, 5, {1})
+    topic = unique_topic('points')
+    receiver = make_receiver(topic)
+    proc = _start_play(
+        repo_root, str(bag), '--rate', '0', '--topic', topic, '--wait-subscribers', '30'
+    )
+    code, stdout, stderr = _play_and_receive(receiver, proc, 4)
+    assert code == 0, stderr
+    assert [_ns(m.header.stamp) for m in receiver.messages] == [stamps[i] for i in (0, 2, 3, 4)]
+    assert f'published 4 scan(s) on {topic}' in stdout and '1 skipped' in stdout
+    (warning,) = [line for line in stderr.splitlines() if 'WARNING' in line]
+    assert f'scan 1 (stamp {stamps[1] * 1e-9:.3f} s)' in warning
+    assert 'expected row_step * height' in warning

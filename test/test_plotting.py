@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -105,3 +106,52 @@ def test_plot_trajectory_draws_the_map_behind_the_paths(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r'Expected `map_points` to have shape \(P, 3\)'):
         plot_trajectory(tmp_path / 'bad.png', T, map_points=np.zeros((5, 2)))
     assert not (tmp_path / 'bad.png').exists()
+
+
+def test_plot_trajectory_with_a_map_and_equal_axes_logs_nothing(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The view framing the paths and the bulk of the map keeps x and y at one scale without
+    matplotlib overriding it: before, fixed limits with ``adjustable='datalim'`` made it log
+    "Ignoring fixed x limits to fulfill fixed data aspect..." at every draw (twice per
+    ``kentreg_replay`` run). The framing still holds: every path point and most of the map are
+    in view, a stray far return is not, and the view has the panel's aspect at equal scales."""
+    T_gt = circle_trajectory(40, 10.0)
+    T_est = circle_trajectory(40, 10.0, noise=0.2)
+    rng = np.random.default_rng(3)
+    wall = np.column_stack(
+        [rng.uniform(-14.0, 14.0, 5000), rng.uniform(-3.0, 3.0, 5000), rng.uniform(0, 3, 5000)]
+    )
+    stray = np.array([[500.0, 0.0, 1.0]])
+    errors = rpe(T_est, T_gt)
+    captured = {}
+    import matplotlib.figure
+
+    savefig = matplotlib.figure.Figure.savefig
+
+    def keep_axes(fig: matplotlib.figure.Figure, *args: object, **kwargs: object) -> None:
+        savefig(fig, *args, **kwargs)
+        captured['ax'] = fig.axes[0]
+
+    with caplog.at_level(logging.DEBUG, logger='matplotlib'), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(matplotlib.figure.Figure, 'savefig', keep_axes)
+        plot_trajectory(
+            tmp_path / 'map.png',
+            T_est,
+            T_gt,
+            e_R_deg=errors['e_R_deg'],
+            e_t=errors['e_t'],
+            map_points=np.vstack([wall, stray]),
+        )
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert warnings == [], [r.getMessage() for r in warnings]
+    assert capfd.readouterr().err == ''
+    ax = captured['ax']
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    paths = np.vstack([T_est[:, :2, 3], T_gt[:, :2, 3]])
+    assert (paths[:, 0] > x0).all() and (paths[:, 0] < x1).all()
+    assert (paths[:, 1] > y0).all() and (paths[:, 1] < y1).all()
+    assert x1 < 100.0  # the stray return at x = 500 m is out of view
+    assert x0 < -14.0 * 0.9 and x1 > 14.0 * 0.9  # the wall's extent is in view
+    bbox = ax.get_window_extent()
+    np.testing.assert_allclose((y1 - y0) / (x1 - x0), bbox.height / bbox.width, rtol=0.02)

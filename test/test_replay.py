@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from recordings import bag_with_malformed_clouds
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.cli.replay import main
@@ -524,3 +525,67 @@ def test_replay_writes_the_map_as_ply_and_into_the_mcap(sample_bag: Path, tmp_pa
 def test_replay_refuses_a_map_file_of_unknown_kind(sample_bag: Path, tmp_path: Path) -> None:
     code, _, stderr = run_cli([str(sample_bag), '--map', str(tmp_path / 'map.las')])
     assert code == 2 and '--map' in stderr and '.ply or .pcd' in stderr
+
+
+def test_replay_prints_only_its_own_lines(
+    repo_root: Path, sample_bag: Path, tmp_path: Path
+) -> None:
+    """A user sees the program's lines and nothing of its libraries: run as a user runs it (a
+    process of its own, so a library's log record reaches the terminal as it would, not
+    pytest's capture), with the plot. Before, matplotlib's "Ignoring fixed x limits to
+    fulfill fixed data aspect ..." came twice on every run."""
+    pytest.importorskip('matplotlib', reason='the plot is what logged')
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
+    out = tmp_path / 'run'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'kentreg_ros.cli.replay', str(sample_bag), '--max-scans', '4',
+         '--out', str(out), '--no-progress'],
+        capture_output=True, text=True, env=env, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert (out / 'trajectory.png').is_file()
+    lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
+    foreign = [line for line in lines if not line.startswith(('kentreg_replay', '  '))]
+    assert foreign == [], foreign
+    assert proc.stderr == ''
+
+
+def test_replay_skips_a_malformed_cloud_counts_it_and_names_it(
+    sample_bag: Path, tmp_path: Path
+) -> None:
+    """One PointCloud2 that cannot be decoded among good ones: skipped (the node does the same),
+    counted and named (input index, stamp, reason) in the summary and metrics.json; the other
+    scans are processed and evaluated and the run exits 0. It stopped the run with exit 2."""
+    bag = tmp_path / 'one_bad'
+    stamps = bag_with_malformed_clouds(sample_bag, bag, 6, {2})
+    out = tmp_path / 'out'
+    code, stdout, stderr = run_cli([str(bag), '--out', str(out), '--no-progress', '--no-plot'])
+    assert code == 0, stderr
+    assert stderr == ''
+    report = json.loads((out / 'metrics.json').read_text())
+    assert [s['input_index'] for s in report['steps']] == [0, 1, 3, 4, 5]
+    assert report['complete'] is True and report['speed']['n_scans'] == 5
+    (skipped,) = report['skipped']['first']
+    assert report['skipped']['count'] == 1
+    assert skipped['input_index'] == 2 and skipped['stamp_ns'] == stamps[2]
+    assert 'expected row_step * height' in skipped['reason']
+    assert report['ground_truth']['n_matched'] == 5
+    assert len(np.loadtxt(out / 'poses_tum.txt', ndmin=2)) == 5
+    line = next(line for line in stdout.splitlines() if line.strip().startswith('skipped'))
+    assert '1 scan' in line
+    assert f'input 2 (stamp {stamps[2] * 1e-9:.3f} s)' in stdout
+    assert 'expected row_step * height' in stdout
+
+
+def test_replay_of_nothing_but_malformed_clouds_exits_2_with_one_line(
+    sample_bag: Path, tmp_path: Path
+) -> None:
+    bag = tmp_path / 'all_bad'
+    bag_with_malformed_clouds(sample_bag, bag, 3, {0, 1, 2})
+    out = tmp_path / 'out'
+    code, stdout, stderr = run_cli([str(bag), '--out', str(out), '--no-progress', '--no-plot'])
+    assert code == 2 and stdout == ''
+    (line,) = stderr.strip().splitlines()
+    assert line.startswith('kentreg_replay: error: ') and 'none of the 3 scans' in line
+    assert 'input 0' in line and 'expected row_step * height' in line
+    assert not out.exists()

@@ -9,8 +9,10 @@ testable without depending on how fast this machine registers scans.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from types import SimpleNamespace
 from typing import Any
@@ -294,3 +296,201 @@ def test_tf_lookup_failures_wait_then_fall_back_and_other_errors_propagate(
     node._tf_buffer = _Buffer(TypeError('a bug'))
     with pytest.raises(TypeError, match='a bug'):
         node._sensor_in_base('lidar', expired)
+
+
+@pytest.mark.parametrize('flag', ['--help', '-h'])
+def test_node_help_prints_its_usage_and_exits_0_without_starting_ros(
+    flag: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``kentreg_node --help`` answers like any command line: its own options, where the ROS
+    arguments go and where the parameters are documented; it never initialises rclpy (before,
+    it ignored the flag and started the node)."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError('rclpy.init was called for --help')
+
+    monkeypatch.setattr(node_module.rclpy, 'init', no_init)
+    with pytest.raises(SystemExit) as exit_info:
+        node_module.main(['kentreg_node', flag])
+    assert exit_info.value.code == 0
+    out, err = capsys.readouterr()
+    assert out.startswith('usage: kentreg_node') and err == ''
+    for text in ('--ros-args', '-p name:=value', '--params-file FILE', 'README', '--version'):
+        assert text in out, text
+
+
+def test_node_refuses_an_argument_of_its_own_it_does_not_know(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ROS argument written without ``--ros-args`` (a common slip) was silently ignored, so the
+    node ran without the user's parameter file: now it is an error naming ``--ros-args``."""
+    monkeypatch.setattr(node_module.rclpy, 'init', lambda *a, **k: pytest.fail('rclpy.init'))
+    code = node_module.main(['kentreg_node', '--params-file', 'config/kentreg.yaml'])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ''
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('kentreg_node: error: '), err
+    assert '--params-file' in lines[0] and '--ros-args' in lines[0]
+
+
+def _rosout_listener(context: Any) -> tuple[Any, Any, list[Any]]:
+    """A node in ``context`` subscribed to /rosout (reliable, transient-local like rclpy's
+    publisher), with its executor and the list of the messages it receives."""
+    from rcl_interfaces.msg import Log
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    listener = rclpy.create_node(f'kentreg_rosout_{uuid.uuid4().hex[:8]}', context=context)
+    received: list[Any] = []
+    qos = QoSProfile(
+        depth=1000,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    listener.create_subscription(Log, '/rosout', received.append, qos)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+    return listener, executor, received
+
+
+def test_a_scan_the_core_rejects_leaves_a_warn_on_rosout(
+    make_node: Any, rclpy_context: Any
+) -> None:
+    """The core logs through Python logging; the node forwards it to its rclpy logger, so a
+    rejected scan is a WARN on /rosout (rqt_console, launch logs), not only a line on stderr;
+    so is deskewing asked for on scans without per-point times."""
+    from rcl_interfaces.msg import Log
+
+    listener, executor, received = _rosout_listener(rclpy_context)
+    try:
+        name = f'kentreg_test_{uuid.uuid4().hex[:8]}'  # other processes may run a kentreg_node
+        node = make_node(
+            node_name=name, parameter_overrides=[Parameter('odometry.deskew', value='on')]
+        )
+        feed(node, 0)
+        assert wait_until(lambda: total(node, 'processed') == 1)  # a queue of 1: one at a time
+        node._on_points(
+            array_to_pointcloud2(ROOM[:3], stamp_ns=2 * 10**9, frame_id='lidar', factory=FACTORY)
+        )
+        assert wait_until(lambda: total(node, 'processed') == 2)
+        assert total(node, 'rejected') == 1
+
+        def warned(text: str) -> list[Any]:
+            return [
+                m
+                for m in received
+                if m.name == node.get_logger().name and m.level == Log.WARN and text in m.msg
+            ]
+
+        deadline = time.monotonic() + TIMEOUT_S
+        while not warned('Rejected the scan') and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        (msg,) = warned('Rejected the scan')
+        assert msg.msg.startswith('Scan 1: Rejected the scan') and 'prediction' in msg.msg
+        assert len(warned('odometry.deskew is on but the scans carry no per-point times')) == 1
+        node.destroy_node()
+        assert not [
+            h for h in logging.getLogger('kentreg_ros').handlers if h is node._log_handler
+        ], 'the handler outlived its node'
+    finally:
+        executor.shutdown()
+        listener.destroy_node()
+
+
+class _Failing:
+    """Wraps Odometry.step: raises a RuntimeError on the given calls (0-based), else steps."""
+
+    def __init__(self, step: Callable[..., Any], failing: set[int]) -> None:
+        self.step, self.failing, self.calls = step, failing, 0
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        call, self.calls = self.calls, self.calls + 1
+        if call in self.failing:
+            raise RuntimeError(f'injected failure on call {call}')
+        return self.step(*args, **kwargs)
+
+
+def _x(msg: Any) -> float:
+    return float(msg.pose.pose.position.x)
+
+
+def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """One failing step: the scan is skipped and counted, odom goes on from the scans before
+    (it jumped back to the identity, which REP-105 forbids), the traceback is logged, and the
+    diagnostics tell the error apart from fell-back or rejected scans (they said "0 scans fell
+    back or were rejected")."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    node = make_node()
+    odoms: list[Any] = []
+    diags: list[Any] = []
+    monkeypatch.setattr(node._pub_odom, 'publish', odoms.append)
+    monkeypatch.setattr(node._pub_diag, 'publish', diags.append)
+    monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2}))
+    for k in range(5):
+        feed(node, k)
+        assert wait_until(lambda k=k: total(node, 'processed') + total(node, 'errors') == k + 1)
+    assert (total(node, 'errors'), total(node, 'resets'), total(node, 'processed')) == (1, 0, 4)
+    # The sensor moves 5 cm along x per scan: scan 3 is registered against scan 1.
+    assert [stamp_ns(m.header.stamp) for m in odoms] == [10**9, 2 * 10**9, 4 * 10**9, 5 * 10**9]
+    np.testing.assert_allclose([_x(m) for m in odoms], [0.0, 0.05, 0.15, 0.20], atol=0.01)
+    # The twist of scan 3 is its motion since scan 1 over the 2 s between them: 5 cm/s.
+    velocities = [m.twist.twist.linear.x for m in odoms[1:]]
+    np.testing.assert_allclose(velocities, [0.05, 0.05, 0.05], atol=0.005)
+    node._publish_diagnostics()
+    status = diags[-1].status[0]
+    assert status.level == DiagnosticStatus.ERROR
+    assert '1 scans skipped after an unexpected error' in status.message
+    assert 'fell back or were rejected' not in status.message
+    err = capfd.readouterr().err
+    assert 'injected failure on call 2' in err and 'the scan is skipped' in err
+    assert err.count('Traceback (most recent call last)') == 1 and 'restart' not in err
+
+
+def test_errors_in_a_row_restart_the_trajectory_after_three_and_say_why(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Two errors, a good scan, three errors: only the third in a row restarts (the odometry's
+    state is then taken to be broken), saying so; the traceback of the one kind of error is
+    logged once, not per scan."""
+    node = make_node()
+    odoms: list[Any] = []
+    monkeypatch.setattr(node._pub_odom, 'publish', odoms.append)
+    monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2, 3, 5, 6, 7}))
+    for k in range(9):
+        feed(node, k)
+        assert wait_until(lambda k=k: total(node, 'processed') + total(node, 'errors') == k + 1)
+    assert (total(node, 'errors'), total(node, 'resets')) == (5, 1)
+    assert [stamp_ns(m.header.stamp) // 10**9 for m in odoms] == [1, 2, 5, 9]
+    np.testing.assert_allclose([_x(m) for m in odoms[:3]], [0.0, 0.05, 0.20], atol=0.01)
+    # After the restart the next scan starts a new trajectory at the identity.
+    np.testing.assert_allclose(_x(odoms[3]), 0.0, atol=1e-12)
+    err = capfd.readouterr().err
+    assert err.count('Traceback (most recent call last)') == 1
+    assert '3 unexpected errors in a row' in err and 'the trajectory restarts' in err
+
+
+def test_a_publish_that_fails_because_ros_shut_down_is_no_error(
+    make_node: Any, rclpy_context: Any, monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """Ctrl-C shuts the context down from rclpy's signal handler while the worker may still be
+    publishing a scan: rclpy then raises "publisher's context is invalid". That is the node
+    ending, not an unexpected error: not counted, no traceback, the worker stops (seen as a
+    traceback in test_node's repeated Ctrl-C test once tracebacks were logged)."""
+    node = make_node()
+    publish = node._pub_pose.publish
+
+    def shut_down_then_publish(msg: Any) -> None:
+        rclpy.shutdown(context=rclpy_context)
+        publish(msg)  # raises: the context is gone
+
+    monkeypatch.setattr(node._pub_pose, 'publish', shut_down_then_publish)
+    feed(node, 0)
+    node._worker.join(TIMEOUT_S)
+    assert not node._worker.is_alive()
+    assert total(node, 'errors') == 0
+    err = capfd.readouterr().err
+    assert 'Traceback' not in err and 'Unexpected error' not in err

@@ -44,7 +44,8 @@ Outputs in ``--out`` (default ``results/<timestamp>/``, with ``results/latest`` 
 ``config.yaml``
     The effective configuration (loadable by ``--config`` and by the node).
 ``metrics.json``
-    Health counts, timings, per-scan steps and, with ground truth, the metrics below.
+    Health counts, the skipped scans, timings, per-scan steps and, with ground truth, the
+    metrics below.
 ``trajectory.png``
     Top view of the estimate (aligned onto the ground truth when known) and per-pair errors.
 
@@ -56,8 +57,12 @@ RPE per frame and per metre travelled; ATE after SE(3) (Umeyama) alignment; and 
 segment metric when the run is long enough to fill its 100 m segments. See
 :mod:`kentreg_ros.eval`.
 
-Exit status: 0 on success, 2 on bad input (one line on stderr), 130 when interrupted (the scans
-processed so far are still written out).
+A scan that cannot be decoded (a malformed PointCloud2, an unreadable scan file) is skipped and
+counted, as the ROS node does; the summary and ``metrics.json`` (``skipped``) name the first few
+by input index, stamp and reason.
+
+Exit status: 0 on success, 2 on bad input (one line on stderr; also when no scan could be
+decoded), 130 when interrupted (the scans processed so far are still written out).
 """
 
 from __future__ import annotations
@@ -76,7 +81,14 @@ from kentreg_ros import __version__
 from kentreg_ros.cli import common
 from kentreg_ros.core import KentRegConfig, Odometry
 from kentreg_ros.eval import GroundTruth, OdometryRun, evaluate_run, run_odometry, run_report
-from kentreg_ros.eval.report import Evaluation, format_summary, jsonable, stride_text
+from kentreg_ros.eval.report import (
+    Evaluation,
+    format_summary,
+    jsonable,
+    skipped_record,
+    skipped_text,
+    stride_text,
+)
 from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC, ScanSource
 from kentreg_ros.io.mapfile import MAP_SUFFIXES
 
@@ -235,6 +247,12 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
             map_voxel_size=args.map_voxel,
         )
     if not run.steps:
+        if run.error is None and run.skipped:
+            first = run.skipped[0]
+            raise common.CliError(
+                f'{args.input}: none of the {run.n_skipped} scans read could be decoded; the '
+                f'first: {skipped_text(skipped_record(first))}'
+            )
         raise common.CliError(run.error or f'{args.input}: no scan was read')
     evaluation, note = evaluate_run(run, gt)
     report: dict[str, Any] = {

@@ -164,13 +164,17 @@ def plot_trajectory(
     ax_top.plot([], [], marker='s', color='black', linestyle='none', label='end')
     if cloud is not None and len(cloud):
         # The view: the paths and the bulk of the map; a few stray far returns must not shrink
-        # the paths to a dot.
+        # the paths to a dot. The scatter put every map point into the data limits: they are
+        # replaced by that box, and the view limits stay automatic (with the axes' margins),
+        # so the equal aspect below can widen one of them to the panel's shape. Fixed limits
+        # would leave it nothing to adjust: matplotlib then overrides them and logs "Ignoring
+        # fixed x limits ..." at every draw.
         paths = est[:, :2, 3] if gt is None else np.vstack([est[:, :2, 3], gt[:, :2, 3]])
         lo = np.minimum(paths.min(axis=0), np.percentile(cloud[:, :2], 1.0, axis=0))
         hi = np.maximum(paths.max(axis=0), np.percentile(cloud[:, :2], 99.0, axis=0))
-        pad = 0.05 * max(float((hi - lo).max()), 1.0)
-        ax_top.set_xlim(lo[0] - pad, hi[0] + pad)
-        ax_top.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax_top.ignore_existing_data_limits = True
+        ax_top.update_datalim(np.array([lo, hi]))
+        ax_top.autoscale_view()
     ax_top.set_aspect('equal', adjustable='datalim')
     ax_top.set_xlabel('x [m]')
     ax_top.set_ylabel('y [m]')

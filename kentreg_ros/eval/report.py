@@ -22,6 +22,7 @@ from kentreg_ros.core import HEALTHS, OdometryStep
 from kentreg_ros.eval import kitti, metrics
 from kentreg_ros.eval.groundtruth import GT_TOLERANCE_S, GroundTruth, associate
 from kentreg_ros.eval.run import OdometryRun
+from kentreg_ros.io.bags import SkippedScan
 
 logger = logging.getLogger(__name__)
 
@@ -213,14 +214,20 @@ def step_record(step: OdometryStep, input_index: int) -> dict[str, Any]:
 def run_report(run: OdometryRun, evaluation: Evaluation | None, note: str = '') -> dict[str, Any]:
     """What ``metrics.json`` holds of a run, after the description of its input.
 
-    ``complete``, ``error``, ``health`` (count per health), ``n_failed_steps``, ``n_searched``,
-    ``speed`` (:func:`speed_summary`), ``ground_truth`` (the evaluation's metrics, or None and
+    ``complete``, ``error``, ``skipped`` (the input scans that could not be decoded:
+    ``count`` and the ``first`` few, each ``input_index``, ``stamp_ns``, ``reason``),
+    ``health`` (count per health), ``n_failed_steps``, ``n_searched``, ``speed``
+    (:func:`speed_summary`), ``ground_truth`` (the evaluation's metrics, or None and
     ``ground_truth_note`` = ``note``) and ``steps`` (:func:`step_record` of each step).
     """
     health = {str(k): sum(s.health == k for s in run.steps) for k in HEALTHS}
     report: dict[str, Any] = {
         'complete': not run.interrupted and run.error is None,
         'error': run.error,
+        'skipped': {
+            'count': run.n_skipped,
+            'first': [skipped_record(k) for k in run.skipped],
+        },
         'health': health,
         'n_failed_steps': health['fell_back'] + health['rejected'],
         'n_searched': sum(s.searched for s in run.steps),
@@ -262,6 +269,7 @@ def format_summary(report: dict[str, Any], out: Path | None, *, prog: str) -> st
         f'{_fmt(speed["ms_per_scan"]["p95"], ".1f")} ms p95, '
         f'{_fmt(speed["scans_per_s"], ".2f")} scans/s (wall, with reading)',
     ]
+    lines += skipped_lines(report.get('skipped'))
     gt = report.get('ground_truth')
     if gt is None:
         lines.append(f'  metrics    {report.get("ground_truth_note", "no ground truth")}')
@@ -270,6 +278,33 @@ def format_summary(report: dict[str, Any], out: Path | None, *, prog: str) -> st
     if out is not None:
         lines.append(f'  output     {out}/')
     return '\n'.join(lines)
+
+
+def skipped_record(skipped: SkippedScan) -> dict[str, Any]:
+    """The JSON record of a skipped scan: ``input_index``, ``stamp_ns`` (or None), ``reason``."""
+    return {'input_index': skipped.index, 'stamp_ns': skipped.stamp_ns, 'reason': skipped.reason}
+
+
+def skipped_text(entry: dict[str, Any]) -> str:
+    """'input 2 (stamp 1634.250 s): <reason>' for one skipped scan of a report."""
+    stamp = entry.get('stamp_ns')
+    when = f' (stamp {stamp * 1e-9:.3f} s)' if stamp is not None else ''
+    return f'input {entry["input_index"]}{when}: {entry["reason"]}'
+
+
+def skipped_lines(skipped: dict[str, Any] | None) -> list[str]:
+    """The summary's lines on the scans that could not be decoded (none when there were none)."""
+    if not skipped or not skipped['count']:
+        return []
+    count, first = skipped['count'], skipped['first']
+    lines = [
+        f'  skipped    {count} scan{"s" if count != 1 else ""} that could not be decoded, not '
+        'processed (metrics.json: skipped)'
+    ]
+    lines += [f'               {skipped_text(entry)}' for entry in first]
+    if count > len(first):
+        lines.append(f'               and {count - len(first)} more')
+    return lines
 
 
 def _ground_truth_lines(gt: dict[str, Any]) -> list[str]:

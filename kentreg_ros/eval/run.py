@@ -21,11 +21,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import ACCEPTED, Health, KentRegError, Odometry, OdometryStep, VoxelMap
+from kentreg_ros.io.bags import ScanSource, SkippedScan
 from kentreg_ros.io.pointcloud2 import point_time_field
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+#: Skipped (undecodable) scans a run names; beyond these it only counts them. Enough to show
+#: whether the bad ones cluster (one stretch of a recording, every n-th message), few enough
+#: for a summary to list.
+MAX_SKIPPED_NAMED = 5
 
 
 class ScanLike(Protocol):
@@ -67,6 +72,11 @@ class OdometryRun:
         Ctrl-C ended the run early; ``steps`` holds the scans processed before it.
     error : str or None
         The first line of the read error that ended the run early (a damaged bag), or None.
+    n_skipped : int
+        Input scans that were selected but could not be decoded (a malformed PointCloud2, an
+        unreadable scan file): skipped, as the ROS node skips them, and counted here.
+    skipped : list of SkippedScan
+        The first :data:`MAX_SKIPPED_NAMED` of them (input index, stamp, reason).
     map : VoxelMap or None
         With ``map_voxel_size``: the points of every accepted scan (and the first) at its pose
         in the odometry frame, one per voxel.
@@ -78,6 +88,8 @@ class OdometryRun:
     elapsed_s: float = 0.0
     interrupted: bool = False
     error: str | None = None
+    n_skipped: int = 0
+    skipped: list[SkippedScan] = field(default_factory=list)
     map: VoxelMap | None = None
 
     @property
@@ -109,10 +121,13 @@ def run_odometry(
     their own stamps, so the odometry sees ``stride`` times the gaps. ``max_scans`` counts
     processed scans, and :attr:`OdometryRun.input_indices` records which input scans they were.
 
-    A read error in the middle of the input (a damaged bag) ends the run early; the scans read
-    before it are kept and the error is recorded in :attr:`OdometryRun.error`. Ctrl-C does the
-    same with :attr:`OdometryRun.interrupted`. A generator source is closed at the end (a bag
-    is closed now, not at garbage collection).
+    A selected scan that cannot be decoded (a malformed PointCloud2 in a bag, an unreadable scan
+    file; :meth:`~kentreg_ros.io.bags.ScanSource.entries`) is skipped and counted in
+    :attr:`OdometryRun.n_skipped`, the first few named in :attr:`OdometryRun.skipped`; the run
+    goes on, as the ROS node does. A read error of the container itself (a damaged bag) ends
+    the run early; the scans read before it are kept and the error is recorded in
+    :attr:`OdometryRun.error`. Ctrl-C does the same with :attr:`OdometryRun.interrupted`. A
+    generator source is closed at the end (a bag is closed now, not at garbage collection).
 
     Parameters
     ----------
@@ -124,7 +139,8 @@ def run_odometry(
     start : int
         Index of the first scan processed, ``0 <= start < len(source)``.
     max_scans : int, optional
-        Most scans processed.
+        Most scans processed: the first ``max_scans`` selected input scans (skipped ones among
+        them are not replaced).
     stride : int
         Process every ``stride``-th scan, ``>= 1``.
     on_step : callable, optional
@@ -156,7 +172,9 @@ def run_odometry(
     indices = range(start, n_total, stride)
     if max_scans is not None:
         indices = indices[:max_scans]
-    reader = iter(source)
+    reader: Iterator[ScanLike | SkippedScan] = (
+        source.entries() if isinstance(source, ScanSource) else iter(source)
+    )
     scans = itertools.islice(reader, indices.start, indices.stop, indices.step)
     t_run = time.perf_counter()
     try:
@@ -170,6 +188,12 @@ def run_odometry(
                 text = str(exc).strip()
                 run.error = text.splitlines()[0] if text else type(exc).__name__
                 break
+            if isinstance(scan, SkippedScan):
+                run.n_skipped += 1
+                if len(run.skipped) < MAX_SKIPPED_NAMED:
+                    run.skipped.append(scan)
+                logger.info('Scan %d skipped: %s', index, scan.reason)
+                continue
             run.read_ms.append((time.perf_counter() - t0) * 1e3)
             step = odometry.step(
                 scan.points,

@@ -82,6 +82,26 @@ class Scan(NamedTuple):
 
 
 @dataclass(frozen=True)
+class SkippedScan:
+    """An input message or scan file that holds no usable scan (see :meth:`ScanSource.entries`).
+
+    Attributes
+    ----------
+    index : int
+        Its position in the input: the message index on the topic, or the file's index.
+    stamp_ns : int or None
+        Its stamp when it could be read (a bag message's header stamp, or its log time when the
+        header stamp is zero; a scan file's stamp), else None.
+    reason : str
+        Why it was skipped, one line (the decoder's message).
+    """
+
+    index: int
+    stamp_ns: int | None
+    reason: str
+
+
+@dataclass(frozen=True)
 class BagTopic:
     """A topic of a bag: name, message type and message count."""
 
@@ -304,13 +324,31 @@ class ScanSource(abc.ABC):
 
     Iterating opens the underlying files and closes them when done; a source can be
     iterated more than once. ``n_dropped`` counts the non-finite points dropped so far.
+
+    Iterating a source raises at the first message (or file) that cannot be decoded as a scan
+    (:class:`~kentreg_ros.core.errors.InvalidPointCloudError`,
+    :class:`~kentreg_ros.io.errors.ScanFileError`). :meth:`entries` instead yields a
+    :class:`SkippedScan` in its place and goes on, as the ROS node and ``kentreg_replay`` do
+    with a malformed scan: skip it, count it, say which.
     """
 
     path: Path
     n_dropped: int = 0
 
     @abc.abstractmethod
-    def __iter__(self) -> Iterator[Scan]: ...
+    def entries(self) -> Iterator[Scan | SkippedScan]:
+        """One entry per input message or file, in order: its :class:`Scan`, or a
+        :class:`SkippedScan` when it cannot be decoded as one. A fault of the container itself
+        (a corrupt bag, an unreadable folder) still raises: nothing after it can be read."""
+
+    def __iter__(self) -> Iterator[Scan]:
+        for entry in self.entries():
+            if isinstance(entry, SkippedScan):
+                raise self._skip_error(entry)
+            yield entry
+
+    def _skip_error(self, entry: SkippedScan) -> KentRegError:
+        return InvalidPointCloudError(f'{self.path}: scan {entry.index}: {entry.reason}')
 
     @abc.abstractmethod
     def __len__(self) -> int: ...
@@ -387,17 +425,29 @@ class BagScanSource(ScanSource):
         kind = 'damaged MCAP' if self._bag.salvage is not None else 'bag'
         return f'{kind} {self.path} topic {self.topic} ({len(self)} messages)'
 
-    def __iter__(self) -> Iterator[Scan]:
+    def entries(self) -> Iterator[Scan | SkippedScan]:
         for index, (log_time, msg) in enumerate(self._bag.messages(self.topic)):
             try:
                 cloud = pointcloud2_to_array(msg, fields=self.fields, dtype=self.dtype)
             except InvalidPointCloudError as exc:
-                raise InvalidPointCloudError(
-                    f'{self.path}: message {index} of {self.topic}: {exc}'
-                ) from exc
+                yield SkippedScan(index, _header_stamp(msg) or int(log_time), _describe(exc))
+                continue
             self.n_dropped += cloud.n_dropped
             stamp = cloud.stamp_ns or log_time
             yield Scan(int(stamp), cloud.frame_id, cloud.points, cloud.extras)
+
+    def _skip_error(self, entry: SkippedScan) -> KentRegError:
+        return InvalidPointCloudError(
+            f'{self.path}: message {entry.index} of {self.topic}: {entry.reason}'
+        )
+
+
+def _header_stamp(msg: Any) -> int:
+    """A message's header stamp in ns (0 when it has none or it cannot be read)."""
+    try:
+        return stamp_to_ns(msg.header.stamp)
+    except (AttributeError, TypeError, ValueError):
+        return 0
 
 
 class FilesScanSource(ScanSource):
@@ -471,11 +521,18 @@ class FilesScanSource(ScanSource):
     def description(self) -> str:
         return f'{len(self.files)} scan files in {self.path} ({self.timing})'
 
-    def __iter__(self) -> Iterator[Scan]:
-        for path, stamp in zip(self.files, self.stamps_ns, strict=True):
-            cloud = read_scan(path, fields=self.fields, dtype=self.dtype)
+    def entries(self) -> Iterator[Scan | SkippedScan]:
+        for index, (path, stamp) in enumerate(zip(self.files, self.stamps_ns, strict=True)):
+            try:
+                cloud = read_scan(path, fields=self.fields, dtype=self.dtype)
+            except InvalidPointCloudError as exc:  # ScanFileError among them
+                yield SkippedScan(index, int(stamp), _describe(exc))
+                continue
             self.n_dropped += cloud.n_dropped
             yield Scan(int(stamp), self.frame_id, cloud.points, cloud.extras)
+
+    def _skip_error(self, entry: SkippedScan) -> KentRegError:
+        return ScanFileError(entry.reason)  # read_scan's message names the file
 
 
 def open_scan_source(

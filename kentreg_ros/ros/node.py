@@ -27,7 +27,14 @@ points) and puts the scan into a bounded queue; one worker thread runs
 :class:`~kentreg_ros.core.odometry.loop.Odometry` and publishes. When the queue is full the oldest
 scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
 is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
-worker and applied between scans.
+worker and applied between scans. An unexpected error while the worker handles a scan (a bug)
+skips that scan, counts it and logs its traceback once per kind of error; the trajectory goes
+on, and restarts only after :data:`MAX_ERRORS_IN_A_ROW` errors in a row.
+
+Logging: from start-up to :meth:`KentRegNode.destroy_node` the records of the package's Python
+loggers (the core's rejected scans, deskewing without per-point times, frame changes) go to the
+node's rclpy logger, so to ``/rosout``, throttled per kind of message
+(:class:`~kentreg_ros.ros.logbridge.RclpyLogHandler`).
 
 Every output carries the stamp of the scan it was computed from. A stamp that goes backwards
 (a bag played again, a sensor restart) or a change of the sensor frame restarts the trajectory
@@ -36,11 +43,12 @@ with a warning instead of corrupting it; a repeated stamp is dropped and counted
 
 from __future__ import annotations
 
+import argparse
 import collections
-import logging
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from typing import Any
 
@@ -74,11 +82,18 @@ from rclpy.qos import (
 )
 from rclpy.time_source import USE_SIM_TIME_NAME
 from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
+from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from kentreg_ros.cli.common import interrupt_through_rclpy
+from kentreg_ros import __version__
+from kentreg_ros.cli.common import (
+    EXIT_BAD_INPUT,
+    ArgumentParser,
+    CliError,
+    interrupt_through_rclpy,
+)
 from kentreg_ros.core import (
     ACCEPTED,
     HEALTHS,
@@ -101,6 +116,7 @@ from kentreg_ros.io.pointcloud2 import (
     pointcloud2_to_array,
     rclpy_factory,
 )
+from kentreg_ros.ros.logbridge import RclpyLogHandler
 from kentreg_ros.ros.messages import (
     covariance_to_msg,
     parameter_declarations,
@@ -123,8 +139,17 @@ __all__ = ['KentRegNode', 'StartupError', 'main']
 FloatArray = np.ndarray
 #: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
 ODOMETRY_HISTORY = 4
-#: Seconds between repeated warnings of the same kind (malformed input, drops).
+#: Seconds between repeated warnings of the same kind (malformed input, drops, the core's).
 THROTTLE_S = 5.0
+#: Unexpected worker errors in a row after which the trajectory restarts. One error costs one
+#: scan (skipped; the pose goes on from the scans before, and odom must not jump, REP-105). But
+#: errors that keep coming on scan after scan point at the odometry's own state (a model or a
+#: velocity left broken), which only a restart clears; three in a row tells that apart from
+#: two unrelated odd scans, and costs a 10 Hz sensor 0.3 s of odometry.
+MAX_ERRORS_IN_A_ROW = 3
+#: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
+#: one-line message only, so a node failing in ever new ways cannot fill its log.
+MAX_ERROR_KINDS = 32
 #: Variance reported for unknown twist components (no motion measured yet).
 UNKNOWN_VARIANCE = 1e6
 #: Diagnostics turn WARN when no scan arrived for this many seconds.
@@ -206,10 +231,14 @@ class KentRegNode(Node):
         # before __init__ returns, so the node can see what it was given through the public
         # parameter API and refuse names it does not know (_declare_and_read).
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True, **kwargs)
+        # The core's warnings (rejected scans, deskew without times, frame changes) reach this
+        # node's logger, and so /rosout, from now until destroy_node.
+        self._log_handler = RclpyLogHandler(self.get_logger(), throttle_s=THROTTLE_S).attach()
         self._counters = _Counters()
         try:
             self._config, self._settings = self._declare_and_read()
         except StartupError:
+            self._log_handler.detach()
             super().destroy_node()
             raise
 
@@ -229,7 +258,8 @@ class KentRegNode(Node):
         self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
         self._T_base_lidar: FloatArray | None = None
         self._frame_id: str | None = None
-        self._last_stamp_ns: int | None = None
+        self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
+        self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped with
         self._tf_wait_start: float | None = None
         self._last_health = ''
         self._last_message = ''
@@ -239,6 +269,9 @@ class KentRegNode(Node):
         self._window_start = time.monotonic()
         self._map: VoxelMap | None = None
         self._map_published: float | None = None  # time.monotonic() of the last ~/map
+        self._errors_in_a_row = 0
+        #: Kinds of unexpected error (type, file, line) whose traceback was logged.
+        self._error_kinds: set[tuple[str, str, int]] = set()
 
         self._tf_broadcaster = None
         self._tf_buffer = None
@@ -292,6 +325,7 @@ class KentRegNode(Node):
         self._worker = threading.Thread(target=self._run_worker, name='kentreg_worker')
         self._worker.daemon = True
         self._worker.start()
+        self._log_handler.own_thread(self._worker.ident)
         self.get_logger().info(
             f'kentreg_node ready: mode={self._config.mode}, listening on '
             f'{self._sub.topic_name} ({self._settings.qos_reliability}, depth '
@@ -465,16 +499,47 @@ class KentRegNode(Node):
                     self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
             except Exception as exc:
+                if not self.context.ok():
+                    # Ctrl-C (or an external shutdown) took the ROS context down under the scan
+                    # in hand, so its outputs could not go out: the end of the node, not an
+                    # error of the scan. Nothing more can be published; the worker stops.
+                    return
                 # Broad on purpose: an exception would end this thread silently, leaving a node
-                # that still subscribes and reports but never publishes odometry again. Counted,
-                # logged (with the traceback at debug level) and followed by a clean restart.
-                self._counters.add('errors')
-                self.get_logger().error(
-                    f'Unexpected error while processing a scan ({type(exc).__name__}: {exc}); '
-                    'the trajectory restarts.'
-                )
-                logging.getLogger(__name__).debug('Worker error', exc_info=True)
-                self._reset('after an error')
+                # that still subscribes and reports but never publishes odometry again.
+                self._on_worker_error(exc, scan)
+            else:
+                self._errors_in_a_row = 0
+
+    def _on_worker_error(self, exc: Exception, scan: _Scan) -> None:
+        """Count an unexpected error, skip its scan and keep the trajectory (REP-105: ``odom``
+        must not jump); log the traceback once per kind of error; restart the trajectory only
+        after :data:`MAX_ERRORS_IN_A_ROW` in a row."""
+        self._counters.add('errors')
+        self._errors_in_a_row += 1
+        log = self.get_logger()
+        text = f'{type(exc).__name__}: {exc}'
+        # The kind of an error: its type and the line that raised it.
+        frames = traceback.extract_tb(exc.__traceback__)
+        where = (frames[-1].filename, frames[-1].lineno or 0) if frames else ('', 0)
+        kind = (type(exc).__qualname__, *where)
+        skipped = (
+            f'Unexpected error on the scan stamped {scan.stamp_ns * 1e-9:.3f} s ({text}): the '
+            'scan is skipped (diagnostics count it in errors), the trajectory goes on.'
+        )
+        if kind not in self._error_kinds and len(self._error_kinds) < MAX_ERROR_KINDS:
+            self._error_kinds.add(kind)
+            trace = ''.join(traceback.format_exception(exc)).rstrip()
+            log.error(f'{skipped} Its traceback (shown once for this kind of error):\n{trace}')
+        else:
+            log.error(skipped, throttle_duration_sec=THROTTLE_S)
+        if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:
+            log.error(
+                f'{self._errors_in_a_row} unexpected errors in a row: the odometry state is '
+                'taken to be broken, so the trajectory restarts (odom starts again at the '
+                'identity).'
+            )
+            self._errors_in_a_row = 0
+            self._reset(f'{MAX_ERRORS_IN_A_ROW} unexpected errors in a row')
 
     def _reset(self, why: str) -> None:
         self._odometry.reset()
@@ -485,6 +550,7 @@ class KentRegNode(Node):
         self._T_base_lidar = None
         self._tf_wait_start = None
         self._last_stamp_ns = None
+        self._last_stepped_ns = None
         self._counters.add('resets')
         self.get_logger().info(f'Trajectory restarted ({why}).')
 
@@ -540,12 +606,14 @@ class KentRegNode(Node):
             self._T_base_lidar = T_base_lidar
         with self._lock:
             self._frame_id = scan.frame_id
-        prev_stamp = self._last_stamp_ns
         self._last_stamp_ns = scan.stamp_ns
 
         step = self._odometry.step(
             scan.points, scan.stamp_ns, frame_id=scan.frame_id, point_times=scan.point_times
         )
+        # The twist spans the odometry's own last step: after a scan skipped by an error the
+        # scan before it, not the skipped one.
+        prev_stamp, self._last_stepped_ns = self._last_stepped_ns, scan.stamp_ns
         self._counters.add('processed')
         self._counters.add(step.health)
         if step.searched:
@@ -663,9 +731,13 @@ class KentRegNode(Node):
         status.hardware_id = frame_id or ''
         level, message = DiagnosticStatus.OK, 'tracking'
         problems = []
-        if window['fell_back'] or window['rejected'] or window['errors']:
+        if window['fell_back'] or window['rejected']:
             problems.append(
                 f'{window["fell_back"] + window["rejected"]} scans fell back or were rejected'
+            )
+        if window['errors']:
+            problems.append(
+                f'{window["errors"]} scans skipped after an unexpected error (see the log)'
             )
         if window['malformed']:
             problems.append(f'{window["malformed"]} malformed messages')
@@ -674,9 +746,11 @@ class KentRegNode(Node):
         if window['degenerate']:
             problems.append(f'{window["degenerate"]} degenerate scans')
         if problems:
-            level, message = DiagnosticStatus.WARN, '; '.join(problems)
+            # An unexpected error is a fault of the node, not of its input: ERROR.
+            level = DiagnosticStatus.ERROR if window['errors'] else DiagnosticStatus.WARN
+            message = '; '.join(problems)
         if total['received'] == 0 or now - self._last_received > STALE_INPUT_S:
-            level = DiagnosticStatus.WARN
+            level = max(level, DiagnosticStatus.WARN)
             message = f'no scans on {self._sub.topic_name} for {now - self._last_received:.0f} s'
         status.level = level
         status.message = message
@@ -716,6 +790,7 @@ class KentRegNode(Node):
             self._stop = True
             self._lock.notify_all()
         self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
+        self._log_handler.detach()
         if self._worker.is_alive():
             self.get_logger().error(
                 f'The worker did not stop within {self.WORKER_STOP_TIMEOUT_S:g} s (a scan still '
@@ -728,15 +803,67 @@ class KentRegNode(Node):
         super().destroy_node()
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The console script's own options (``--help``, ``--version``); ROS arguments are not
+    its business: rclpy reads them after ``--ros-args``."""
+    parser = ArgumentParser(
+        prog=NODE_NAME,
+        usage=f'{NODE_NAME} [-h] [--version] [--ros-args ...]',
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=(
+            'LiDAR odometry by Kent mixture registration: subscribes to sensor_msgs/PointCloud2\n'
+            'on `points`; publishes nav_msgs/Odometry on `odom`, PoseStamped on `pose`, Path on\n'
+            '`path`, /tf, diagnostics and the map on ~/map.'
+        ),
+        epilog=(
+            'ROS arguments follow --ros-args, e.g.\n'
+            f'  {NODE_NAME} --ros-args -p name:=value --params-file FILE '
+            '-r points:=/velodyne_points\n'
+            '  ros2 run kentreg_ros kentreg_node --ros-args --params-file config/kentreg.yaml\n'
+            '\n'
+            'Parameters: every one, with its type, default, range and reason, in the README\n'
+            '(section Configuration: the parameter tables); the file with every default:\n'
+            '  python3 -m kentreg_ros.ros.params > kentreg.yaml\n'
+            'At run time: ros2 param describe /kentreg_node <name>.'
+        ),
+    )
+    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
+    return parser
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``kentreg_node`` / ``ros2 run kentreg_ros kentreg_node``.
 
-    Returns 0 on a clean shutdown and 1 when the ROS arguments or the parameters are invalid
-    (the reason is logged, in one line).
+    Parameters
+    ----------
+    args : list of str, optional
+        The whole command line, program name first, as ``rclpy.init`` takes it (default
+        ``sys.argv``).
+
+    Returns 0 on a clean shutdown, 1 when the ROS arguments or the parameters are invalid (the
+    reason is logged, in one line) and 2 on an argument before ``--ros-args`` that is not the
+    node's own (one line naming it). ``--help`` and ``--version`` print and exit 0 without
+    initialising ROS.
     """
+    argv = list(sys.argv if args is None else args)
+    try:
+        own = remove_ros_args(argv)[1:]
+    except RuntimeError as exc:  # rcl's RCLInvalidROSArgsError: bad --ros-args, --params-file
+        print(f'{NODE_NAME}: cannot start: {exc}', file=sys.stderr)
+        return 1
+    try:
+        unknown = build_parser().parse_known_args(own)[1]
+        if unknown:
+            raise CliError(
+                f'unrecognized arguments: {" ".join(unknown)} (ROS arguments go after '
+                f'--ros-args: {NODE_NAME} --ros-args -p name:=value --params-file FILE)'
+            )
+    except CliError as exc:
+        print(f'{NODE_NAME}: error: {exc}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     interrupt_through_rclpy()
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=argv)
     except RuntimeError as exc:  # rcl's RCLError: bad --ros-args, unreadable --params-file
         print(f'kentreg_node: cannot start: {exc}', file=sys.stderr)
         return 1

@@ -32,9 +32,14 @@ repeats; with ``--restamp bag`` (default) every pass is shifted by the span of t
 plus one scan period, so the stamps keep increasing. ``--restamp now`` stamps each message with
 the current time instead.
 
-Exit status: 0 when every scan was published, 2 on bad input (one line on stderr, including a
-bag that turns out to be damaged after some scans were published), 130 when interrupted (Ctrl-C,
-SIGTERM, or an external ROS shutdown).
+A scan that cannot be decoded (a malformed PointCloud2) is skipped, said on stderr (the first
+few) and counted in the summary, as ``kentreg_node`` and ``kentreg_replay`` do; the rest of
+the input is published.
+
+Exit status: 0 when every scan that could be decoded was published, 2 on bad input (one line on
+stderr, including a bag that turns out to be damaged after some scans were published, and an
+input of which no scan could be decoded), 130 when interrupted (Ctrl-C, SIGTERM, or an
+external ROS shutdown).
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kentreg_ros.cli.common import (
     EXIT_INTERRUPTED,
@@ -63,6 +68,9 @@ from kentreg_ros.cli.common import (
     run_main,
 )
 
+if TYPE_CHECKING:
+    from kentreg_ros.io.bags import SkippedScan
+
 logger = logging.getLogger('kentreg_ros.ros.play')  # also when run as __main__
 
 PROG = 'kentreg_play'
@@ -75,6 +83,9 @@ SINGLE_SCAN_PERIOD_S = 0.1
 MAX_SLEEP_S = 0.05
 #: How long the end of a reliable run waits for subscribers to acknowledge the last messages.
 ACK_TIMEOUT_S = 5.0
+#: Scans that cannot be decoded that are each said on stderr; the rest are only counted (as
+#: many as the replay names: enough to see a pattern, few enough not to flood the terminal).
+MAX_SKIPPED_SAID = 5
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -225,6 +236,8 @@ class PlaySummary:
     first_stamp_ns: int | None = None
     last_stamp_ns: int | None = None
     subscribers_at_start: int = 0
+    #: Scans that could not be decoded (a malformed PointCloud2): skipped, said and counted.
+    skipped: int = 0
 
     @property
     def duration_s(self) -> float:
@@ -245,9 +258,10 @@ class PlaySummary:
         hz = self.rate_hz
         rate = f'{hz:.2f} Hz' if hz is not None else 'one message'
         mean = self.points / self.published if self.published else 0.0
+        skipped = f'; {self.skipped} skipped (could not be decoded)' if self.skipped else ''
         return (
             f'{PROG}: published {self.published} scan(s) on {topic} in {self.duration_s:.2f} s '
-            f'({rate}; {mean:.0f} points per scan; {self.passes} pass(es))'
+            f'({rate}; {mean:.0f} points per scan; {self.passes} pass(es){skipped})'
         )
 
 
@@ -379,6 +393,8 @@ class Player:
 
     def _scans(self) -> Iterator[tuple[int, Any]]:
         """Yield ``(output_stamp_ns, scan)`` over every pass, stamps shifted per pass."""
+        from kentreg_ros.io.bags import ScanSource, SkippedScan
+
         offset_ns = 0
         n_pass = 0
         while True:
@@ -391,7 +407,18 @@ class Player:
                 else (self.options.start + self.options.max_scans)
             )
             n_in_pass = 0
-            for scan in itertools.islice(self.source, self.options.start, stop):
+            first_skipped: SkippedScan | None = None
+            # A ScanSource says which scans it cannot decode; any other iterable of scans is
+            # taken as it is.
+            source = self.source
+            entries = source.entries() if isinstance(source, ScanSource) else iter(source)
+            for index, scan in enumerate(
+                itertools.islice(entries, self.options.start, stop), start=self.options.start
+            ):
+                if isinstance(scan, SkippedScan):
+                    first_skipped = first_skipped or scan
+                    self._skip(index, scan)
+                    continue
                 if first_ns is None:
                     first_ns = scan.stamp_ns
                 out_ns = int(scan.stamp_ns) + offset_ns
@@ -401,9 +428,13 @@ class Player:
                 n_in_pass += 1
                 yield out_ns, scan
             if n_in_pass == 0:
-                raise CliError(
-                    f'{self.options.input}: no scan to publish after --start {self.options.start}'
-                )
+                why = f'after --start {self.options.start}'
+                if first_skipped is not None:
+                    why = (
+                        f'{why}: none could be decoded; the first: scan {first_skipped.index}: '
+                        f'{first_skipped.reason}'
+                    )
+                raise CliError(f'{self.options.input}: no scan to publish {why}')
             n_pass += 1
             self.summary.passes = n_pass
             if not self.options.loop or first_ns is None or last_out_ns is None:
@@ -412,6 +443,15 @@ class Player:
                 period_ns = int(SINGLE_SCAN_PERIOD_S * 1e9)
             # The next pass starts one period after this one ended, in the same timeline.
             offset_ns = last_out_ns + period_ns - first_ns
+
+    def _skip(self, index: int, skipped: SkippedScan) -> None:
+        """Count a scan that cannot be decoded; say so for the first few of them."""
+        self.summary.skipped += 1
+        if self.summary.skipped <= MAX_SKIPPED_SAID:
+            stamp = f' (stamp {skipped.stamp_ns * 1e-9:.3f} s)' if skipped.stamp_ns else ''
+            logger.warning('Skipped scan %d%s: %s', index, stamp, skipped.reason)
+        if self.summary.skipped == MAX_SKIPPED_SAID:
+            logger.warning('Further scans that cannot be decoded are only counted.')
 
     def run(self) -> PlaySummary:
         """Publish every scan on schedule; return what was published.
