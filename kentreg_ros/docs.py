@@ -1,16 +1,19 @@
-"""The parameter reference of ``kentreg_node``, generated from the code that defines it.
+"""The parameter reference, generated from the code that defines it.
 
-Every :class:`~kentreg_ros.core.config.KentRegConfig` field (dotted names such as
-``em.max_iterations``, read by the node and by ``kentreg_replay --config``) and every ``node.*``
-parameter of the node (:data:`kentreg_ros.ros.params.NODE_PARAMETERS`) becomes one row of a
-markdown table: name, ROS type, default, allowed values, description. The README holds the table
-between the markers :data:`BEGIN` and :data:`END`; a test keeps it equal to the rendering.
+Two tables: the parameters an operator sets (:data:`kentreg_ros.io.params.PARAMETERS`, what
+``kentreg_node`` declares and ``config/kentreg.yaml`` holds) between :data:`BEGIN` and
+:data:`END` of the README, and the research configuration (every
+:class:`~kentreg_ros.core.config.KentRegConfig` field, dotted names such as ``em.tolerance``,
+reached from Python and the command lines' ``--set``) between :data:`RESEARCH_BEGIN` and
+:data:`RESEARCH_END`. Tests keep the README equal to the rendering and the shipped parameter
+file equal to :func:`~kentreg_ros.io.params.dump_parameter_file`.
 
 Command line::
 
     python3 -m kentreg_ros.docs                    # print the tables
     python3 -m kentreg_ros.docs --check README.md  # exit 1 when the README is out of date
-    python3 -m kentreg_ros.docs --write README.md  # regenerate the README block
+    python3 -m kentreg_ros.docs --write README.md  # regenerate the README blocks
+    python3 -m kentreg_ros.docs --parameter-file > config/kentreg.yaml
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ from pathlib import Path
 from typing import Any
 
 from kentreg_ros.core.config import KentRegConfig, iter_fields, plain_value
-from kentreg_ros.ros.params import NODE_PARAMETERS
+from kentreg_ros.io.params import PARAMETERS, Parameter, dump_parameter_file
 
 PROG = 'python3 -m kentreg_ros.docs'
 BEGIN = '<!-- BEGIN parameters -->'
 END = '<!-- END parameters -->'
+RESEARCH_BEGIN = '<!-- BEGIN research -->'
+RESEARCH_END = '<!-- END research -->'
 
 _ROS_TYPES = {bool: 'bool', int: 'integer', float: 'double', str: 'string'}
 
@@ -82,8 +87,8 @@ def _cell(text: str) -> str:
     return ' '.join(str(text).split()).replace('|', '\\|')
 
 
-def config_parameters(config: KentRegConfig | None = None) -> list[ParameterDoc]:
-    """Rows for every configuration field (defaults from ``config``, else the built-in ones)."""
+def research_parameters(config: KentRegConfig | None = None) -> list[ParameterDoc]:
+    """Rows for every research field (defaults from ``config``, else the built-in ones)."""
     cfg = KentRegConfig() if config is None else config
     rows = []
     for name, value, f in iter_fields(cfg):
@@ -101,35 +106,22 @@ def config_parameters(config: KentRegConfig | None = None) -> list[ParameterDoc]
     return rows
 
 
-def node_parameters(parameters: Sequence[Any] | None = None) -> list[ParameterDoc]:
-    """Rows for the node's own ``node.*`` parameters.
-
-    Parameters
-    ----------
-    parameters : sequence, optional
-        :class:`~kentreg_ros.ros.params.NodeParameter` objects or ``(name, default,
-        description)`` tuples; default: the node's ``NODE_PARAMETERS`` (rclpy-free).
-    """
-    params = NODE_PARAMETERS if parameters is None else parameters
+def product_parameters(parameters: Sequence[Parameter] = PARAMETERS) -> list[ParameterDoc]:
+    """Rows for the parameters an operator sets."""
     rows = []
-    for p in params or ():
-        if isinstance(p, tuple):
-            name, default, description = p[:3]
-            range_, choices, read_only = None, None, False
-        else:
-            name, default, description = p.name, p.default, p.description
-            range_ = getattr(p, 'range', None)
-            choices = getattr(p, 'choices', None)
-            read_only = bool(getattr(p, 'read_only', False))
-        if read_only:
+    for p in parameters:
+        description = p.description
+        if p.field:
+            description = f'{description} (`{p.field}`)'
+        if p.read_only:
             description = f'{description} Read-only: set at start-up.'
         rows.append(
             ParameterDoc(
-                name=str(name),
-                ros_type=_ros_type(default),
-                default=_format_value(default),
-                allowed=_allowed(range_, choices, default),
-                description=str(description),
+                name=p.name,
+                ros_type=_ros_type(p.default),
+                default=_format_value(p.default),
+                allowed=_allowed(p.range, p.choices, p.default),
+                description=description,
             )
         )
     return rows
@@ -150,34 +142,36 @@ def render_table(rows: Sequence[ParameterDoc]) -> str:
     return '\n'.join(lines)
 
 
-def render_parameters(
-    config_rows: Sequence[ParameterDoc] | None = None,
-    node_rows: Sequence[ParameterDoc] | None = None,
-) -> str:
+def render_parameters(rows: Sequence[ParameterDoc] | None = None) -> str:
     """The markdown block that goes between :data:`BEGIN` and :data:`END`."""
-    config_rows = config_parameters() if config_rows is None else config_rows
-    node_rows = node_parameters() if node_rows is None else node_rows
-    parts = [
-        f'<!-- Generated by `{PROG} --write README.md` from kentreg_ros/core/config.py and '
-        'the node parameters; edit those, not this table. -->',
-        '',
-        '**Registration and odometry** (`KentRegConfig`; read by `kentreg_node` and by '
-        '`kentreg_replay --config`):',
-        '',
-        render_table(config_rows),
-    ]
-    if node_rows:
-        parts += [
+    rows = product_parameters() if rows is None else rows
+    return '\n'.join(
+        [
+            f'<!-- Generated by `{PROG} --write README.md` from kentreg_ros/io/params.py (and the '
+            'core fields behind its core parameters); edit those, not this table. -->',
             '',
-            '**Node** (`node.*`; read by `kentreg_node` only, ignored by `kentreg_replay`):',
-            '',
-            render_table(node_rows),
+            render_table(rows),
         ]
-    return '\n'.join(parts)
+    )
 
 
-def replace_block(text: str, block: str, *, source: str = 'text') -> str:
-    """``text`` with the part between the :data:`BEGIN` and :data:`END` lines set to ``block``.
+def render_research(rows: Sequence[ParameterDoc] | None = None) -> str:
+    """The markdown block that goes between :data:`RESEARCH_BEGIN` and :data:`RESEARCH_END`."""
+    rows = research_parameters() if rows is None else rows
+    return '\n'.join(
+        [
+            f'<!-- Generated by `{PROG} --write README.md` from kentreg_ros/core/config.py; edit '
+            'it, not this table. -->',
+            '',
+            render_table(rows),
+        ]
+    )
+
+
+def replace_block(
+    text: str, block: str, *, source: str = 'text', begin: str = BEGIN, end: str = END
+) -> str:
+    """``text`` with the part between the ``begin`` and ``end`` lines set to ``block``.
 
     Raises
     ------
@@ -185,11 +179,11 @@ def replace_block(text: str, block: str, *, source: str = 'text') -> str:
         The markers are missing, repeated, or out of order.
     """
     lines = text.splitlines(keepends=True)
-    begins = [i for i, line in enumerate(lines) if line.strip() == BEGIN]
-    ends = [i for i, line in enumerate(lines) if line.strip() == END]
+    begins = [i for i, line in enumerate(lines) if line.strip() == begin]
+    ends = [i for i, line in enumerate(lines) if line.strip() == end]
     if len(begins) != 1 or len(ends) != 1 or ends[0] < begins[0]:
         raise ValueError(
-            f'{source}: expected one line {BEGIN!r} followed by one line {END!r}; found '
+            f'{source}: expected one line {begin!r} followed by one line {end!r}; found '
             f'{len(begins)} and {len(ends)}.'
         )
     head = ''.join(lines[: begins[0] + 1])
@@ -197,37 +191,51 @@ def replace_block(text: str, block: str, *, source: str = 'text') -> str:
     return f'{head}{block}\n{tail}'
 
 
+def render_readme(text: str, *, source: str = 'text') -> str:
+    """``text`` (the README) with both generated blocks up to date."""
+    text = replace_block(text, render_parameters(), source=source)
+    return replace_block(
+        text, render_research(), source=source, begin=RESEARCH_BEGIN, end=RESEARCH_END
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Print, check or write the parameter tables; exit 0 (up to date), 1 (stale), 2 (error)."""
+    """Print, check or write the tables (or print the parameter file); exit 0 (up to date), 1
+    (stale), 2 (error)."""
     parser = argparse.ArgumentParser(
-        prog=PROG, description='Render the kentreg_node parameter reference as markdown.'
+        prog=PROG, description='Render the kentreg parameter reference as markdown.'
     )
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--check', type=Path, metavar='FILE', help='exit 1 if FILE is stale')
-    group.add_argument('--write', type=Path, metavar='FILE', help='update the block in FILE')
+    group.add_argument('--write', type=Path, metavar='FILE', help='update the blocks in FILE')
+    group.add_argument(
+        '--parameter-file', action='store_true', help='print the shipped parameter file'
+    )
     args = parser.parse_args(argv)
-    block = render_parameters()
+    if args.parameter_file:
+        print(dump_parameter_file(), end='')
+        return 0
     path = args.check or args.write
     if path is None:
-        print(block)
+        print(render_parameters() + '\n\n' + render_research())
         return 0
     try:
         text = path.read_text(encoding='utf-8')
-        updated = replace_block(text, block, source=str(path))
+        updated = render_readme(text, source=str(path))
     except (OSError, ValueError) as exc:
         print(f'{PROG}: error: {exc}', file=sys.stderr)
         return 2
     if args.check is not None:
         if updated != text:
             print(
-                f'{path}: the parameter table is out of date; run `{PROG} --write {path}`.',
+                f'{path}: the parameter tables are out of date; run `{PROG} --write {path}`.',
                 file=sys.stderr,
             )
             return 1
         return 0
     if updated != text:
         path.write_text(updated, encoding='utf-8')
-        print(f'{path}: parameter table updated.')
+        print(f'{path}: parameter tables updated.')
     return 0
 
 

@@ -11,7 +11,7 @@ Arguments
 topic
     PointCloud2 topic the node subscribes to (its ``points`` input is remapped to it).
 config_file
-    Parameter file in the ``kentreg_node: ros__parameters:`` form (default: the installed
+    Parameter file in the ``/**: ros__parameters:`` form (default: the installed
     ``share/kentreg_ros/config/kentreg.yaml``, which holds every default).
 use_sim_time
     ``true`` to follow ``/clock`` (a bag played with ``kentreg_play --clock`` or
@@ -46,7 +46,7 @@ def generate_launch_description() -> LaunchDescription:
             DeclareLaunchArgument(
                 'config_file',
                 default_value=default_config,
-                description='Parameter file (kentreg_node: ros__parameters: ...).',
+                description='Parameter file (/**: ros__parameters: ...).',
             ),
             DeclareLaunchArgument(
                 'use_sim_time',

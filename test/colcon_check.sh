@@ -82,9 +82,9 @@ run_installed() {
     "$@"
   )
 }
-out="$(run_installed "$INSTALL/lib/$PKG/kentreg_node" --ros-args -p node.queue_policy:=bogus 2>&1)" &&
+out="$(run_installed "$INSTALL/lib/$PKG/kentreg_node" --ros-args -p qos_reliability:=bogus 2>&1)" &&
   fail "installed kentreg_node accepted an invalid parameter: $out"
-[[ "$out" == *node.queue_policy* && "$out" != *Traceback* ]] ||
+[[ "$out" == *qos_reliability* && "$out" != *Traceback* ]] ||
   fail "installed kentreg_node did not report the invalid parameter: $out"
 status=0
 out="$(run_installed "$INSTALL/lib/$PKG/kentreg_play" "$WS/no_such_bag" 2>&1)" || status=$?
@@ -102,7 +102,7 @@ if [[ "$ALL" == 1 ]]; then
   PYTEST_ARGS=()
 else
   PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py test/test_ros_node.py
-    test/test_ros_params.py test/test_ros_messages.py)
+    test/test_parameters.py test/test_ros_messages.py)
 fi
 if [[ -n "${COLCON_PYTEST_ARGS:-}" ]]; then
   read -r -a PYTEST_ARGS <<< "$COLCON_PYTEST_ARGS"

@@ -154,7 +154,7 @@ def test_register_reads_config_set_and_mode_and_reports_the_error(
 @pytest.mark.parametrize(
     ('extra', 'match'),
     [
-        (['--set', 'em.nope=1'], 'Unknown configuration key'),
+        (['--set', 'em.nope=1'], 'Unknown parameter'),
         (['--set', 'nope'], "argument --set: expected KEY=VALUE, got 'nope'"),
         (['--init', '{missing}'], 'Cannot read initial transform'),
         (['--mode', 'fast'], "argument --mode: invalid choice: 'fast'"),

@@ -11,8 +11,7 @@ import yaml
 
 from kentreg_ros import docs
 from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.io.params import NODE_NAME
-from kentreg_ros.ros.params import NODE_PARAMETERS
+from kentreg_ros.io.params import PARAMETERS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 README = REPO_ROOT / 'README.md'
@@ -30,9 +29,9 @@ def test_readme_parameter_tables_equal_the_rendering() -> None:
     assert docs.main(['--check', str(README)]) == 0
 
 
-def test_rendering_has_one_row_per_config_field_with_default_and_range() -> None:
-    block = docs.render_parameters()
-    for name, value, f in iter_fields(KentRegConfig()):
+def test_research_table_has_one_row_per_config_field_with_default_and_range() -> None:
+    block = docs.render_research()
+    for name, _, f in iter_fields(KentRegConfig()):
         rows = [line for line in block.splitlines() if line.startswith(f'| `{name}` |')]
         assert len(rows) == 1, name
         assert f.metadata['description'].split()[0] in rows[0]
@@ -42,56 +41,40 @@ def test_rendering_has_one_row_per_config_field_with_default_and_range() -> None
     assert '`plane_to_plane`, `point_to_plane`, `none`' in row
 
 
-def test_rendering_has_one_row_per_node_parameter() -> None:
+def test_parameter_table_has_one_row_per_parameter() -> None:
     block = docs.render_parameters()
-    assert NODE_PARAMETERS  # the loop below must not pass on nothing
-    for p in NODE_PARAMETERS:
-        assert p.name.startswith('node.')
+    assert PARAMETERS  # the loop below must not pass on nothing
+    for p in PARAMETERS:
         rows = [line for line in block.splitlines() if line.startswith(f'| `{p.name}` |')]
         assert len(rows) == 1, p.name
         assert rows[0].endswith('Read-only: set at start-up. |') == p.read_only, rows[0]
+    row = next(r for r in block.splitlines() if r.startswith('| `max_range` |'))
+    assert row.startswith('| `max_range` | double | `0.0` | 0.0 … 10000.0 | ')
+    assert '(`preprocess.max_range`)' in row  # the research field behind it
 
 
 def test_every_key_of_the_shipped_parameter_file_is_documented() -> None:
     data = yaml.safe_load((REPO_ROOT / 'config' / 'kentreg.yaml').read_text(encoding='utf-8'))
-    params = data[NODE_NAME]['ros__parameters']
-
-    def flatten(d: dict[str, object], prefix: str = '') -> list[str]:
-        out: list[str] = []
-        for key, value in d.items():
-            if isinstance(value, dict):
-                out += flatten(value, f'{prefix}{key}.')
-            else:
-                out.append(f'{prefix}{key}')
-        return out
-
-    documented = {r.name for r in docs.config_parameters() + docs.node_parameters()}
-    missing = sorted(set(flatten(params)) - documented - {'use_sim_time'})
-    assert missing == []
-
-
-def test_tuple_node_parameters_render_with_ros_types() -> None:
-    rows = docs.node_parameters(
-        [('node.a', 3, 'An integer.'), ('node.b', 'odom', 'A | frame.'), ('node.c', 0.5, 'x')]
-    )
-    table = docs.render_table(rows)
-    assert '| `node.a` | integer | `3` | any | An integer. |' in table
-    assert '| `node.b` | string | `odom` | any | A \\| frame. |' in table
-    assert '| `node.c` | double | `0.5` |' in table
+    params = data['/**']['ros__parameters']
+    documented = {r.name for r in docs.product_parameters()}
+    assert sorted(set(params) - documented) == []
 
 
 def test_write_then_check_round_trip_and_stale_file_is_reported(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     readme = tmp_path / 'README.md'
-    readme.write_text(f'# x\n\nbefore\n{docs.BEGIN}\nold table\n{docs.END}\nafter\n')
+    readme.write_text(
+        f'# x\n\nbefore\n{docs.BEGIN}\nold table\n{docs.END}\nafter\n'
+        f'{docs.RESEARCH_BEGIN}\n{docs.RESEARCH_END}\n'
+    )
     assert docs.main(['--check', str(readme)]) == 1
     assert 'out of date' in capsys.readouterr().err
     assert docs.main(['--write', str(readme)]) == 0
     text = readme.read_text()
     assert text.startswith(f'# x\n\nbefore\n{docs.BEGIN}\n')
-    assert text.endswith(f'{docs.END}\nafter\n')
-    assert 'old table' not in text and '| `mode` |' in text
+    assert f'{docs.END}\nafter\n' in text
+    assert 'old table' not in text and '| `max_range` |' in text and '| `mode` |' in text
     assert docs.main(['--check', str(readme)]) == 0
 
 

@@ -80,7 +80,7 @@ def test_effective_config_applies_overrides_on_top_of_the_file(tmp_path: Path) -
     assert cfg.mode == 'paper' and cfg.em.max_iterations == 7
     assert effective_config() == KentRegConfig()
     assert effective_config(None, {'normals.k_neighbors': 20}).normals.k_neighbors == 20
-    with pytest.raises(ConfigError, match='Unknown configuration key'):
+    with pytest.raises(ConfigError, match=r'Unknown parameter\(s\) \[.em.no_such_key.\]'):
         effective_config(None, ['em.no_such_key=1'])
 
 

@@ -59,6 +59,81 @@ def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
     assert outside == [], f'{path.name} imports {outside}'
 
 
+#: The rooms of the core, each importing only the ones before it (and itself): the floor
+#: (configuration, errors, SO(3)/SE(3), the Kent distribution, the per-point kernels), the
+#: prepared scan, the registration, the odometry.
+CORE_ROOMS = (
+    ('config', 'errors', 'geometry', 'kent', 'kernels'),
+    ('scan',),
+    ('registration',),
+    ('odometry',),
+)
+
+
+def _facade_names(path: Path) -> list[str]:
+    """Names ``path`` imports from ``kentreg_ros.core`` itself that are not its modules."""
+    tree = ast.parse(path.read_text(encoding='utf-8'))
+    core = PACKAGE / 'core'
+    return [
+        alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and node.module == 'kentreg_ros.core'
+        for alias in node.names
+        if not ((core / alias.name).is_dir() or (core / f'{alias.name}.py').is_file())
+    ]
+
+
+def _room(module: str) -> int | None:
+    """Index in :data:`CORE_ROOMS` of ``kentreg_ros.core.<x>...`` (None for the facade)."""
+    parts = module.split('.')
+    if parts[:2] != ['kentreg_ros', 'core'] or len(parts) < 3:
+        return None
+    return next((i for i, room in enumerate(CORE_ROOMS) if parts[2] in room), None)
+
+
+@pytest.mark.parametrize(
+    'path',
+    [p for p in modules(PACKAGE / 'core') if p.name != '__init__.py' or p.parent.name != 'core'],
+    ids=lambda p: str(p.relative_to(PACKAGE / 'core')),
+)
+def test_core_rooms_import_only_the_rooms_below_them(path: Path) -> None:
+    """floor <- scan <- registration <- odometry, and never the facade from inside."""
+    module = '.'.join(path.relative_to(PACKAGE.parent).with_suffix('').parts)
+    own = _room(module)
+    assert own is not None, f'{module} is in no room of CORE_ROOMS'
+    names = {n for n in kentreg_imports(path) if n.split('.')[:2] == ['kentreg_ros', 'core']}
+    assert not _facade_names(path), f'{module} imports {_facade_names(path)} from the facade'
+    for name in names - {'kentreg_ros.core'}:
+        room = _room(name)
+        if room is None:  # ``from kentreg_ros.core import kernels`` names a floor module
+            continue
+        assert room <= own, f'{module} (room {CORE_ROOMS[own]}) imports {name}'
+
+
+def test_the_rooms_exist_as_the_layout_describes() -> None:
+    for room in CORE_ROOMS[1:]:
+        assert (PACKAGE / 'core' / room[0] / '__init__.py').is_file(), room
+    assert (PACKAGE / 'core' / 'kernels' / '_numpy.py').is_file()
+
+
+@pytest.mark.parametrize(
+    'path',
+    [p for p in modules(PACKAGE) if p.relative_to(PACKAGE).parts[0] != 'core'],
+    ids=lambda p: str(p.relative_to(PACKAGE)),
+)
+def test_outside_core_reaches_it_through_its_facade(path: Path) -> None:
+    """Only ``kentreg_ros.core`` (and its configuration module) are the core's public face: its
+    rooms may move without the node, the command lines or the evaluation noticing."""
+    bad = sorted(
+        n
+        for n in kentreg_imports(path)
+        if n.startswith('kentreg_ros.core.')
+        and not n.startswith('kentreg_ros.core.config')
+        and n.count('.') > 2  # kentreg_ros.core.<name> may be a facade name
+    )
+    assert bad == [], f'{path.relative_to(PACKAGE)} imports {bad}'
+
+
 @pytest.mark.parametrize(
     ('folder', 'forbidden'),
     [

@@ -70,11 +70,11 @@ REMAPPED = (
 #: Reliable input, and queue and history deep enough that a burst of test messages is kept.
 QUEUE_ALL = (
     '-p',
-    'node.qos_reliability:=reliable',
+    'qos_reliability:=reliable',
     '-p',
-    'node.queue_size:=20',
+    'queue_size:=20',
     '-p',
-    'node.qos_depth:=50',
+    'qos_depth:=50',
 )
 
 
@@ -296,7 +296,7 @@ def test_node_tracks_the_sample_bag_like_replay(
     harness: Harness, bag_scans: list[Any], tmp_path: Path
 ) -> None:
     # Reliable input so that the lockstep publication below loses nothing.
-    proc = harness.start_node('-p', 'node.qos_reliability:=reliable')
+    proc = harness.start_node('-p', 'qos_reliability:=reliable')
     out = harness.connect(proc)
     for i, scan in enumerate(bag_scans):
         out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
@@ -353,8 +353,8 @@ def test_node_map_reaches_a_late_transient_local_subscriber(
     voxel, radius = 0.5, 15.0
     proc = harness.start_node(
         *QUEUE_ALL,
-        *('-p', 'node.map_period:=0.01', '-p', f'node.map_voxel_size:={voxel}'),
-        *('-p', f'node.map_radius:={radius}'),
+        *('-p', 'map_period:=0.01', '-p', f'map_voxel_size:={voxel}'),
+        *('-p', f'map_radius:={radius}'),
     )
     out = harness.connect(proc)
     n = 3
@@ -414,14 +414,14 @@ def test_node_overload_drops_oldest_counts_and_stays_responsive(
 
     How many scans a node drops under a flood depends on how fast the machine registers them
     compared with the publishing rate, so the worker is held on one scan instead
-    (``test/gated_node.py``) while ``n`` more arrive: with ``node.queue_size`` 1 and
+    (``test/gated_node.py``) while ``n`` more arrive: with ``queue_size`` 1 and
     ``drop_oldest``, exactly the newest stays queued and ``n - 1`` are dropped, on any machine.
     """
     n = 150
     hold = tmp_path / 'hold'
     proc = harness.start_node(
-        '-p', 'node.qos_reliability:=reliable', '-p', f'node.qos_depth:={n + 10}',
-        '-p', 'node.diagnostics_period:=0.2', hold_file=hold,
+        '-p', 'qos_reliability:=reliable', '-p', f'qos_depth:={n + 10}',
+        '-p', 'diagnostics_period:=0.2', hold_file=hold,
     )  # fmt: skip
     out = harness.connect(proc)
     # Let the first scan become the model, then measure memory.
@@ -479,7 +479,7 @@ def test_node_overload_drops_oldest_counts_and_stays_responsive(
     np.testing.assert_allclose(pose_matrix(out.odom[2].pose.pose), np.eye(4), atol=1e-12)
     # Memory stays bounded while the worker was held. Had the node kept every scan, it would
     # hold n decoded scans (float64 x, y, z) more, ~73 MB: half of that is the bound (measured:
-    # +77 MB with node.queue_size 1000, which keeps them all; +3 MB with queue_size 1).
+    # +77 MB with queue_size 1000, which keeps them all; +3 MB with queue_size 1).
     all_queued_mb = n * min(len(s.points) for s in bag_scans) * 3 * 8 / 2**20
     assert rss_held - rss_start < 0.5 * all_queued_mb, (rss_start, rss_held, all_queued_mb)
     assert proc.stop() == 0, proc.log()
@@ -533,14 +533,14 @@ def test_node_survives_bad_input_and_counts_it(harness: Harness, bag_scans: list
 def test_node_validates_runtime_parameter_changes(
     harness: Harness, bag_scans: list[Any], tmp_path: Path
 ) -> None:
-    params = _write_params(tmp_path, em__max_iterations=33, node__path_length=7)
+    params = _write_params(tmp_path, max_range=33.0, path_length=7)
     proc = harness.start_node(*QUEUE_ALL, params=params)
     out = harness.connect(proc)
     assert out.params.wait_for_services(timeout_sec=10.0)
     # The parameter file applies (not just the defaults, which would be 50 and 1000).
-    future = out.params.get_parameters(['em.max_iterations', 'node.path_length'])
+    future = out.params.get_parameters(['max_range', 'path_length'])
     assert harness.spin_until(future.done, 10.0, proc)
-    assert [parameter_value_to_python(v) for v in future.result().values] == [33, 7]
+    assert [parameter_value_to_python(v) for v in future.result().values] == [33.0, 7]
 
     def set_params(*params: Parameter) -> list[Any]:
         future = out.params.set_parameters(list(params))
@@ -548,21 +548,22 @@ def test_node_validates_runtime_parameter_changes(
         return future.result().results
 
     rejected = [
-        Parameter('em.max_iterations', value=0),  # below its range
-        Parameter('mode', value='fast'),  # not a choice
-        Parameter('node.qos_depth', value=3),  # read-only after startup
-        Parameter('node.odom_frame', value='base_link'),  # same as the base frame
-        Parameter('em.tolerance', value='small'),  # wrong type
+        Parameter('path_length', value=0),  # below its range
+        Parameter('model', value='fast'),  # not a choice
+        Parameter('qos_depth', value=3),  # read-only after startup
+        Parameter('odom_frame', value='base_link'),  # same as the base frame
+        Parameter('max_range', value='far'),  # wrong type
+        Parameter('min_range', value=40.0),  # not below max_range
     ]
     for param in rejected:
         (result,) = set_params(param)
         assert not result.successful and result.reason, param.name
-    (ok,) = set_params(Parameter('em.max_iterations', value=30))
+    (ok,) = set_params(Parameter('max_range', value=30))  # an integer for a double
     assert ok.successful
-    future = out.params.get_parameters(['em.max_iterations', 'mode', 'node.qos_depth'])
+    future = out.params.get_parameters(['max_range', 'model', 'qos_depth', 'min_range'])
     assert harness.spin_until(future.done, 10.0, proc)
     values = [parameter_value_to_python(v) for v in future.result().values]
-    assert values == [30, 'robust', 50]  # nothing rejected was applied
+    assert values == [30, 'previous_scan', 50, 0.0]  # nothing rejected was applied
     # The node still works after the accepted change.
     for k in range(2):
         out.pub.publish(cloud_msg(bag_scans[k].points, (k + 1) * 1_000_000_000))
@@ -595,10 +596,7 @@ def test_node_restarts_when_time_goes_back_or_frame_changes(
 
 def _write_params(tmp_path: Path, **updates: Any) -> Path:
     data = yaml.safe_load(PARAMS.read_text())
-    params = data['kentreg_node']['ros__parameters']
-    for dotted, value in updates.items():
-        section, _, key = dotted.rpartition('__')
-        (params[section] if section else params)[key] = value
+    data['/**']['ros__parameters'].update(updates)
     path = tmp_path / 'params.yaml'
     path.write_text(yaml.safe_dump(data))
     return path
@@ -607,12 +605,12 @@ def _write_params(tmp_path: Path, **updates: Any) -> Path:
 @pytest.mark.parametrize(
     ('how', 'expected'),
     [
-        (['-p', 'em.max_iterations:=0'], 'em.max_iterations out of range'),
-        (['-p', 'mode:=fast'], "Expected `mode` to be one of ['robust', 'paper']"),
-        (['-p', 'preprocess.voxel_size:=1'], 'with a decimal point'),
-        (['-p', 'node.odom_frame:=base_link'], 'must differ'),
-        ({'em__bogus': 3}, "unknown parameter(s) ['em.bogus']"),
-        ({'node__queue_policy': 'fifo'}, 'Expected `node.queue_policy` to be one of'),
+        (['-p', 'path_length:=0'], 'Expected `path_length` in [1, 1000000], got 0.'),
+        (['-p', 'model:=fast'], "Expected `odometry.model` to be one of ['previous_scan', "),
+        (['-p', 'voxel_size:=true'], 'Expected `preprocess.voxel_size` to be a number'),
+        (['-p', 'odom_frame:=base_link'], 'must differ'),
+        ({'min_range': 9.0, 'max_range': 5.0}, 'min_range < preprocess.max_range'),
+        ({'qos_reliability': 'fifo'}, 'Expected `qos_reliability` to be one of'),
         (['--params-file', '/nonexistent/params.yaml'], "Couldn't parse params file"),
     ],
 )

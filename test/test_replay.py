@@ -391,8 +391,8 @@ def test_replay_interrupted_writes_scans_so_far(
     ('argv', 'match'),
     [
         (['{tmp}/missing.mcap'], 'no such file'),
-        (['{bag}', '--set', 'em.no_such_key=1'], 'Unknown configuration key'),
-        (['{bag}', '--config', '{tmp}/bad.yaml'], 'Unknown configuration key'),
+        (['{bag}', '--set', 'em.no_such_key=1'], 'Unknown parameter'),
+        (['{bag}', '--config', '{tmp}/bad.yaml'], 'Unknown parameter'),
         (['{bag}', '--set', 'mode=fast'], 'mode'),
         (['{bag}', '--start', '50'], 'only 50 scans'),
         (['{bag}', '--max-scans', '0'], 'positive integer'),

@@ -14,7 +14,9 @@ from kentreg_ros.core.errors import (
     KentRegError,
 )
 from kentreg_ros.core.geometry import (
+    check_transform,
     exp_so3,
+    hat,
     invert_transform,
     log_so3,
     make_transform,
@@ -62,10 +64,12 @@ __all__ = [
     'RegistrationResult',
     'VoxelMap',
     'as_points',
+    'check_transform',
     'choose_voxel_size',
     'count_voxels',
     'drop_nonfinite',
     'exp_so3',
+    'hat',
     'invert_transform',
     'kernels',
     'log_so3',

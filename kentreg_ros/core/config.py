@@ -597,8 +597,8 @@ def iter_fields(config: Any, prefix: str = '') -> Iterator[tuple[str, Any, datac
 def validate_value(name: str, value: Any, meta: Mapping[str, Any]) -> None:
     """Check ``value`` against a field's metadata: among ``choices``, within ``range``.
 
-    ``meta`` is the metadata of a field as :func:`_f` writes it (the node's ``node.*``
-    parameters in :mod:`kentreg_ros.ros.params` carry the same keys, so both are validated here).
+    ``meta`` is the metadata of a field as :func:`_f` writes it (the node's own parameters in
+    :mod:`kentreg_ros.io.params` carry the same keys, so both are validated here).
 
     Raises
     ------

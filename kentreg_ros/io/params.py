@@ -1,23 +1,42 @@
-"""Parameter files: the YAML that ``kentreg_node`` and the command lines share.
+"""The parameters an operator sets, and the parameter file the node and the command lines share.
 
-One file, in the ROS 2 form ``kentreg_node: {ros__parameters: {...}}``, configures the node
-(``--params-file``) and every command line (``--config``); the keys are the dotted names of
-:class:`~kentreg_ros.core.config.KentRegConfig` fields (``em.max_iterations``), nested or dotted.
-The node's own ``node.*`` keys live in the same file and are skipped by :func:`load_config`.
-``--set KEY=VALUE`` items (:func:`parse_overrides`) override single keys on top of a file.
+The product surface is small and flat (ROS names such as ``odom_frame``, ``max_range``): the
+core's operator settings (:data:`CORE_PARAMETERS`, each the flat name of a
+:class:`~kentreg_ros.core.config.KentRegConfig` field, which gives it its default, range and
+description) and the node's own (:class:`NodeSettings`). :data:`PARAMETERS` lists them all, in
+the order of the shipped file ``config/kentreg.yaml`` (``/**: ros__parameters:``, so any node
+name and namespace picks it up) and of the README's table.
+
+The research configuration (the paper's recipe, every ablation: ``mode``, ``em.*``,
+``refine.*`` ...) is :class:`~kentreg_ros.core.config.KentRegConfig` itself, reached from
+Python, the benchmarks and the command lines' ``--set em.tolerance=1e-3`` (dotted names);
+the node declares none of it. A parameter file may carry dotted research keys for the command
+lines (the replay writes the ones that differ from the defaults into its ``config.yaml``); the
+node warns about them once, as about any name that is not its own.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from kentreg_ros.core import ConfigError
-from kentreg_ros.core.config import KentRegConfig, flatten_keys, nest_keys
+from kentreg_ros.core.config import (
+    KentRegConfig,
+    Section,
+    coerce_value,
+    flatten_keys,
+    iter_fields,
+    nest_keys,
+    plain_value,
+)
 
 #: The node's name: the top key of the parameter file.
 NODE_NAME = 'kentreg_node'
@@ -82,28 +101,6 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
     return flatten_keys(nest_keys(data))
 
 
-def load_config(
-    path: str | Path, node_name: str = NODE_NAME, ignore_prefixes: tuple[str, ...] = ('node.',)
-) -> KentRegConfig:
-    """Load a :class:`KentRegConfig` from a YAML file (see :func:`parameters_from_yaml`).
-
-    Keys under ``ignore_prefixes`` belong to the ROS node only and are skipped here.
-
-    Raises
-    ------
-    ConfigError
-        An unreadable file, an unknown key (the message lists the valid ones) or a bad value.
-    """
-    params = parameters_from_yaml(path, node_name)
-    params = {k: v for k, v in params.items() if not k.startswith(ignore_prefixes)}
-    return KentRegConfig.from_dict(params)
-
-
-def dump_config(config: KentRegConfig, node_name: str = NODE_NAME) -> str:
-    """YAML text in the ``<node_name>: ros__parameters:`` form, loadable by both consumers."""
-    return yaml.safe_dump({node_name: {'ros__parameters': config.to_dict()}}, sort_keys=False)
-
-
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
     """``KEY=VALUE`` items as ``{KEY: value}``, each value read as a YAML scalar.
 
@@ -129,24 +126,384 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
     return updates
 
 
-def effective_config(
-    path: str | Path | None = None, overrides: Iterable[str] | Mapping[str, Any] = ()
-) -> KentRegConfig:
-    """The configuration of a run: a parameter file (or the defaults) plus overrides.
+# --------------------------------------------------------------------------------------------
+# The product surface
 
-    Parameters
-    ----------
-    path : str or Path, optional
-        A parameter file (see :func:`load_config`); None for the defaults.
-    overrides : iterable of str, or mapping
-        ``KEY=VALUE`` items (see :func:`parse_overrides`) or a ``{dotted_key: value}`` mapping,
-        applied in order on top of the file.
+
+class QosReliability(StrEnum):
+    """Reliability of the input subscription."""
+
+    BEST_EFFORT = 'best_effort'
+    RELIABLE = 'reliable'
+
+
+#: The core's operator settings: flat parameter name -> the research field behind it (its
+#: default, range and description are that field's).
+CORE_PARAMETERS: dict[str, str] = {
+    'voxel_size': 'preprocess.voxel_size',
+    'min_range': 'preprocess.min_range',
+    'max_range': 'preprocess.max_range',
+    'model': 'odometry.model',
+    'local_map_radius': 'odometry.map_radius',
+    'deskew': 'odometry.deskew',
+    'point_time_unit': 'odometry.point_time_unit',
+    'point_time_reference': 'odometry.point_time_reference',
+    'max_linear_speed': 'odometry.max_linear_speed',
+    'max_angular_speed_deg': 'odometry.max_angular_speed_deg',
+}
+
+
+def _param(
+    default: Any,
+    description: str,
+    *,
+    range: tuple[float, float] | None = None,
+    read_only: bool = False,
+) -> Any:
+    """A :class:`NodeSettings` field: the metadata of a configuration field (``description``,
+    ``range``; ``choices`` from a :class:`~enum.StrEnum` default), plus ``read_only`` (set at
+    start-up only)."""
+    meta: dict[str, Any] = {'description': description}
+    if range is not None:
+        meta['range'] = range
+    if isinstance(default, StrEnum):
+        meta['choices'] = tuple(m.value for m in type(default))
+    if read_only:
+        meta['read_only'] = True
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class NodeSettings(Section):
+    """The node's own parameters (frames, TF, input QoS, queue, outputs), validated like every
+    configuration section (:class:`~kentreg_ros.core.config.Section`).
 
     Raises
     ------
     ConfigError
-        Unreadable file, unknown key, invalid value or malformed item.
+        A value out of range, not among its choices or of the wrong type, ``base_to_lidar``
+        not 6 numbers, an empty frame name, or the same name for both frames.
     """
-    cfg = load_config(path) if path is not None else KentRegConfig()
+
+    odom_frame: str = _param(
+        'odom',
+        'Fixed frame of the odometry (REP-105): header.frame_id of odometry, pose and path.',
+    )
+    base_frame: str = _param(
+        'base_link',
+        'Robot body frame (REP-105): child_frame_id of the odometry and of the odom->base TF.',
+    )
+    base_to_lidar: tuple[float, ...] = _param(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        'Pose of the sensor in base_frame as [x, y, z, roll, pitch, yaw] (m, rad), used when '
+        'tf2 is not available or has no base_frame<-sensor transform within tf_wait. All '
+        'zeros: the sensor frame is the base frame.',
+    )
+    publish_tf: bool = _param(
+        True,
+        'Broadcast odom_frame->base_frame on /tf (needs tf2_ros; logged once if missing).',
+    )
+    tf_wait: float = _param(
+        1.0,
+        'Seconds to wait for the base_frame<-sensor transform in tf2 before using '
+        'base_to_lidar (scans that arrive meanwhile are dropped and counted).',
+        range=(0.0, 60.0),
+    )
+    publish_path: bool = _param(True, 'Publish nav_msgs/Path after every scan.')
+    path_length: int = _param(
+        1000,
+        'Most recent poses kept in the published path (bounded memory).',
+        range=(1, 1_000_000),
+    )
+    diagnostics_period: float = _param(
+        1.0,
+        'Seconds between diagnostics messages (rates are measured over this window).',
+        range=(0.1, 3600.0),
+        read_only=True,
+    )
+    queue_size: int = _param(
+        1,
+        'Scans waiting for the worker at most; when full the oldest is dropped (and counted), '
+        'so the odometry never lags the sensor: 1 keeps only the newest.',
+        range=(1, 1000),
+    )
+    qos_reliability: QosReliability = _param(
+        QosReliability.BEST_EFFORT,
+        'Reliability of the input subscription: best_effort (sensor-data QoS, matches every '
+        'publisher) or reliable.',
+        read_only=True,
+    )
+    qos_depth: int = _param(
+        5,
+        'History depth of the input subscription.',
+        range=(1, 1000),
+        read_only=True,
+    )
+    map_period: float = _param(
+        2.0,
+        'Seconds between publications of the map (sensor_msgs/PointCloud2 in odom_frame, '
+        'transient-local so a viewer that starts later gets the latest); 0 keeps no map. A '
+        'map changes little between scans and is large: a slow rate saves bandwidth.',
+        range=(0.0, 3600.0),
+    )
+    map_voxel_size: float = _param(
+        0.2,
+        'Voxel edge of the published map (m), one point per voxel: fine enough to show walls, '
+        'poles and doorways, coarse enough that a map of map_radius stays a few hundred '
+        'thousand points.',
+        range=(0.01, 10.0),
+    )
+    map_radius: float = _param(
+        50.0,
+        'Published map points farther than this from the sensor are dropped (m): the '
+        'surroundings a viewer wants while the memory of a long-running node stays bounded. '
+        'Beyond the range of most spinning LiDARs indoors and in streets.',
+        range=(1.0, 10000.0),
+    )
+
+    def check(self) -> None:
+        values = self.base_to_lidar
+        if isinstance(values, str | bytes) or not isinstance(values, Sequence):
+            raise ConfigError(f'Expected `base_to_lidar` to be a list of numbers, got {values!r}.')
+        numbers = tuple(
+            coerce_value(f'base_to_lidar[{i}]', v, float) for i, v in enumerate(values)
+        )
+        if len(numbers) != 6:
+            raise ConfigError(
+                f'Expected `base_to_lidar` to be a list of 6 numbers, got {list(values)!r}.'
+            )
+        object.__setattr__(self, 'base_to_lidar', numbers)
+        for key in ('odom_frame', 'base_frame'):
+            if not getattr(self, key).strip():
+                raise ConfigError(f'Expected `{key}` to be a non-empty frame name.')
+        if self.odom_frame == self.base_frame:
+            raise ConfigError(
+                f'`odom_frame` and `base_frame` are both {self.odom_frame!r}; they must differ.'
+            )
+
+    def with_updates(self, values: Mapping[str, Any]) -> NodeSettings:
+        """A copy with ``{name: value}`` applied and validated.
+
+        Raises
+        ------
+        ConfigError
+            An unknown name (the message lists the valid ones) or a bad value.
+        """
+        valid = sorted(f.name for f in fields(NodeSettings))
+        unknown = sorted(set(values) - set(valid))
+        if unknown:
+            raise ConfigError(f'Unknown node parameter(s) {unknown}; valid ones are {valid}.')
+        return dataclasses.replace(self, **values)
+
+    def to_parameters(self) -> dict[str, Any]:
+        """``{name: value}`` as ROS parameters and YAML hold them (lists, plain strings)."""
+        return {
+            name: list(value) if isinstance(value, tuple) else plain_value(value)
+            for name, value, _ in iter_fields(self)
+        }
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter as the node declares it and the README documents it.
+
+    ``field`` is the research field behind a core parameter ('' for the node's own)."""
+
+    name: str
+    default: Any
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = False
+    field: str = ''
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """The metadata :func:`~kentreg_ros.core.config.validate_value` reads."""
+        meta: dict[str, Any] = {'description': self.description, 'read_only': self.read_only}
+        if self.range is not None:
+            meta['range'] = self.range
+        if self.choices is not None:
+            meta['choices'] = self.choices
+        return meta
+
+
+def _parameters() -> tuple[Parameter, ...]:
+    research = {name: (value, f) for name, value, f in iter_fields(KentRegConfig())}
+    out = []
+    for name, path in CORE_PARAMETERS.items():
+        value, f = research[path]
+        meta = f.metadata
+        out.append(
+            Parameter(
+                name,
+                plain_value(value),
+                meta['description'],
+                meta.get('range'),
+                meta.get('choices'),
+                field=path,
+            )
+        )
+    for name, value, f in iter_fields(NodeSettings()):
+        meta = f.metadata
+        default = list(value) if isinstance(value, tuple) else plain_value(value)
+        out.append(
+            Parameter(
+                name,
+                default,
+                meta['description'],
+                meta.get('range'),
+                meta.get('choices'),
+                bool(meta.get('read_only', False)),
+            )
+        )
+    return tuple(out)
+
+
+#: Every parameter an operator sets: the core's, then the node's own.
+PARAMETERS: tuple[Parameter, ...] = _parameters()
+_NODE_NAMES = frozenset(f.name for f in fields(NodeSettings))
+_RESEARCH_NAMES = frozenset(name for name, _, _ in iter_fields(KentRegConfig()))
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A run's configuration: the core's (research tree) and the node's."""
+
+    config: KentRegConfig
+    node: NodeSettings
+    #: Names given that are neither a parameter nor a research field (the node warns).
+    unknown: tuple[str, ...] = ()
+
+
+def apply_parameters(
+    values: Mapping[str, Any],
+    *,
+    config: KentRegConfig | None = None,
+    node: NodeSettings | None = None,
+    research: bool = True,
+    strict: bool = True,
+) -> Settings:
+    """``values`` (flat parameter names; with ``research``, dotted research names too) applied
+    on top of ``config`` and ``node`` (default: the defaults), validated.
+
+    Parameters
+    ----------
+    research : bool
+        Whether dotted research names (``em.tolerance``) are taken (the command lines) or are
+        unknown (the node).
+    strict : bool
+        Unknown names are an error listing the valid ones (True), or returned in
+        :attr:`Settings.unknown` (False, the node: a shared bringup file holds other nodes'
+        keys).
+
+    Raises
+    ------
+    ConfigError
+        A bad value, a broken cross-field rule, or (``strict``) an unknown name.
+    """
+    core: dict[str, Any] = {}
+    own: dict[str, Any] = {}
+    unknown: list[str] = []
+    for name, value in flatten_keys(nest_keys(values)).items():
+        if name in CORE_PARAMETERS:
+            core[CORE_PARAMETERS[name]] = value
+        elif name in _NODE_NAMES:
+            own[name] = value
+        elif research and name in _RESEARCH_NAMES:
+            core[name] = value
+        else:
+            unknown.append(name)
+    if unknown and strict:
+        valid = [p.name for p in PARAMETERS]
+        extra = ' or a research field (dotted, e.g. em.tolerance)' if research else ''
+        raise ConfigError(
+            f'Unknown parameter(s) {sorted(unknown)}; expected one of {valid}{extra}.'
+        )
+    cfg = config if config is not None else KentRegConfig()
+    settings = node if node is not None else NodeSettings()
+    return Settings(
+        cfg.with_updates(core) if core else cfg,
+        settings.with_updates(own) if own else settings,
+        tuple(sorted(unknown)),
+    )
+
+
+def product_values(config: KentRegConfig, node: NodeSettings) -> dict[str, Any]:
+    """``{name: value}`` of every parameter (:data:`PARAMETERS` order) for ``config`` and
+    ``node``."""
+    research = config.to_flat_dict()
+    own = node.to_parameters()
+    return {p.name: research[p.field] if p.field else own[p.name] for p in PARAMETERS}
+
+
+def dump_parameter_file(
+    config: KentRegConfig | None = None, node: NodeSettings | None = None
+) -> str:
+    """The parameter file of ``config`` and ``node`` (default: the shipped defaults): every
+    parameter under ``/**: ros__parameters:``, then the research fields that differ from
+    their defaults (dotted; the command lines read them, the node warns that they are not its
+    own)."""
+    cfg = config if config is not None else KentRegConfig()
+    params = product_values(cfg, node if node is not None else NodeSettings())
+    behind = set(CORE_PARAMETERS.values())
+    defaults = KentRegConfig().to_flat_dict()
+    research = {
+        k: v for k, v in cfg.to_flat_dict().items() if k not in behind and v != defaults[k]
+    }
+    header = (
+        '# kentreg parameters: read by kentreg_node (ros2 run / launch: --params-file) and by\n'
+        '# kentreg_replay --config. Every key is documented in README.md (parameter table).\n'
+        '# Regenerate: python3 -m kentreg_ros.docs --parameter-file > config/kentreg.yaml\n'
+    )
+    body = yaml.safe_dump({'/**': {'ros__parameters': params}}, sort_keys=False)
+    if research:
+        body += (
+            yaml.safe_dump({'research': research}, sort_keys=False)
+            .replace('research:\n', '    # research settings (command lines only):\n')
+            .replace('\n  ', '\n    ')
+        )
+    return header + body
+
+
+def load_settings(
+    path: str | Path | None = None,
+    overrides: Iterable[str] | Mapping[str, Any] = (),
+    *,
+    node_name: str = NODE_NAME,
+) -> Settings:
+    """A run's settings: a parameter file (or the defaults) plus overrides, parameters and
+    research fields alike (the command lines' ``--config`` and ``--set``).
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, unknown key (the message lists the valid ones), invalid value or
+        malformed item.
+    """
+    settings = Settings(KentRegConfig(), NodeSettings())
+    if path is not None:
+        settings = apply_parameters(parameters_from_yaml(path, node_name))
     updates = dict(overrides) if isinstance(overrides, Mapping) else parse_overrides(overrides)
-    return cfg.with_updates(updates) if updates else cfg
+    if updates:
+        settings = apply_parameters(updates, config=settings.config, node=settings.node)
+    return settings
+
+
+def load_config(path: str | Path, node_name: str = NODE_NAME) -> KentRegConfig:
+    """The core configuration of a parameter file (its node parameters validated, unused)."""
+    return load_settings(path, node_name=node_name).config
+
+
+def effective_config(
+    path: str | Path | None = None, overrides: Iterable[str] | Mapping[str, Any] = ()
+) -> KentRegConfig:
+    """The core configuration of a run: a parameter file (or the defaults) plus overrides
+    (see :func:`load_settings`)."""
+    return load_settings(path, overrides).config
+
+
+def dump_config(config: KentRegConfig) -> str:
+    """The parameter file of ``config`` with the node's defaults (loadable by both
+    consumers)."""
+    return dump_parameter_file(config)

@@ -1,12 +1,13 @@
 """Everything that talks ROS 2 through rclpy: the node, its parameters, message conversions, play.
 
 - :mod:`kentreg_ros.ros.node`: ``kentreg_node``, live odometry from PointCloud2 messages.
-- :mod:`kentreg_ros.ros.params`: the node's own ``node.*`` parameters and the shipped parameter
-  file (rclpy-free, so the docs and the tests read them without ROS).
+- :mod:`kentreg_ros.ros.parameters`: the node's parameters (:mod:`kentreg_ros.io.params`) through
+  rclpy; :mod:`kentreg_ros.ros.outputs`: what it publishes; :mod:`kentreg_ros.ros.diagnostics`:
+  its counters and status; :mod:`kentreg_ros.ros.logbridge`: the core's logs to /rosout.
 - :mod:`kentreg_ros.ros.messages`: poses, stamps and covariances to and from ROS messages.
 - :mod:`kentreg_ros.ros.play`: ``kentreg_play``, publishes the scans of a bag or a folder.
 
 No other package of kentreg_ros imports rclpy or a ROS message package (the PointCloud2 codec in
 :mod:`kentreg_ros.io.pointcloud2` works on rclpy and rosbags messages without importing either).
-This ``__init__`` imports nothing, so ``kentreg_ros.ros.params`` loads where rclpy is absent.
+This ``__init__`` imports nothing.
 """

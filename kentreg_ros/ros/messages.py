@@ -16,21 +16,16 @@ rotation about Z)``, the order of :attr:`kentreg_ros.core.RegistrationResult.cov
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, Transform
 from numpy.typing import ArrayLike, NDArray
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core import InvalidInputError
-from kentreg_ros.core.config import KentRegConfig, iter_fields, plain_value
-from kentreg_ros.core.geometry import check_transform, hat
+from kentreg_ros.core import InvalidInputError, check_transform, hat
 from kentreg_ros.io.pointcloud2 import ns_to_sec_nanosec
-from kentreg_ros.ros.params import PREFIX, NodeSettings
 
 __all__ = [
     'covariance_from_msg',
@@ -149,39 +144,6 @@ def covariance_from_msg(values: Sequence[float]) -> FloatArray:
     if flat.shape != (36,):
         raise InvalidInputError(f'Expected 36 covariance values, got shape {flat.shape}.')
     return flat.reshape(6, 6).copy()
-
-
-def parameter_descriptor(name: str, default: Any, meta: Mapping[str, Any]) -> ParameterDescriptor:
-    """The ROS descriptor of a field with the metadata of core.config / ros.params."""
-    desc = ParameterDescriptor(
-        name=name,
-        description=meta.get('description', ''),
-        read_only=bool(meta.get('read_only', False)),
-    )
-    choices = meta.get('choices')
-    if choices:
-        desc.additional_constraints = 'one of: ' + ', '.join(map(str, choices))
-    rng = meta.get('range')
-    if rng is not None and isinstance(default, int) and not isinstance(default, bool):
-        desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
-    elif rng is not None and isinstance(default, float):
-        desc.floating_point_range = [
-            FloatingPointRange(from_value=float(rng[0]), to_value=float(rng[1]), step=0.0)
-        ]
-    return desc
-
-
-def parameter_declarations() -> list[tuple[str, Any, ParameterDescriptor]]:
-    """``(name, default, ParameterDescriptor)`` for every parameter the node declares."""
-    out = []
-    for name, value, f in iter_fields(KentRegConfig()):
-        value = plain_value(value)
-        out.append((name, value, parameter_descriptor(name, value, f.metadata)))
-    node_defaults = NodeSettings().to_parameters()
-    for name, _, f in iter_fields(NodeSettings(), PREFIX):
-        default = node_defaults[name]
-        out.append((name, default, parameter_descriptor(name, default, f.metadata)))
-    return out
 
 
 def transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:

@@ -6,25 +6,20 @@ Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points
 ``points``     sensor_msgs/PointCloud2 (subscribed)   sensor-data QoS by default
 ``odom``       nav_msgs/Odometry                      odom_frame -> base_frame, twist, covariance
 ``pose``       geometry_msgs/PoseStamped              base_frame pose in odom_frame
-``path``       nav_msgs/Path                          the last ``node.path_length`` poses
+``path``       nav_msgs/Path                          the last ``path_length`` poses
 ``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures, mode
 ``/tf``        odom_frame -> base_frame               when tf2_ros is installed
-``~/map``      sensor_msgs/PointCloud2                every ``node.map_period`` s, transient-local
+``~/map``      sensor_msgs/PointCloud2                every ``map_period`` s, transient-local
 ``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
 ============== ====================================== ==========================================
 
-The map on ``~/map`` holds the registered points of every scan whose pose was registered (its
-prepared points: voxel centroids with isolated returns and normal outliers removed, deskewed
-when deskewing ran), in ``odom_frame``, one per ``node.map_voxel_size`` voxel, dropped beyond
-``node.map_radius`` of the sensor (bounded memory). Adding a prepared scan of ~10k points costs
-about a millisecond; the raw 80k-point scan would cost several. The worker thread owns it,
-updates it after each step and publishes it when ``node.map_period`` has passed since the last
-publication; it is reliable and transient-local (depth 1), so a viewer that subscribes later
-still receives the latest map.
+The map, TF and odometry messages are built by :mod:`kentreg_ros.ros.outputs`; the parameters
+(flat names, :data:`kentreg_ros.io.params.PARAMETERS`) are declared by
+:mod:`kentreg_ros.ros.parameters`; diagnostics by :mod:`kentreg_ros.ros.diagnostics`.
 
 Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
 points) and puts the scan into a bounded queue; one worker thread runs
-:class:`~kentreg_ros.core.odometry.loop.Odometry` and publishes. When the queue is full the oldest
+:class:`~kentreg_ros.core.odometry.Odometry` and publishes. When the queue is full the oldest
 scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
 is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
 worker and applied between scans. An unexpected error while the worker handles a scan (a bug)
@@ -57,34 +52,14 @@ import rclpy
 import rclpy.clock
 import rclpy.logging
 import rclpy.time
-from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, TransformStamped
-from nav_msgs.msg import Odometry as OdometryMsg
-from nav_msgs.msg import Path
-from rcl_interfaces.msg import (
-    SetParametersResult,
-)
-from rclpy.exceptions import (
-    InvalidParameterTypeException,
-    InvalidParameterValueException,
-    ParameterException,
-)
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-    qos_profile_sensor_data,
-)
-from rclpy.time_source import USE_SIM_TIME_NAME
-from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.utilities import remove_ros_args
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
+from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from kentreg_ros import __version__
@@ -94,40 +69,15 @@ from kentreg_ros.cli.common import (
     CliError,
     interrupt_through_rclpy,
 )
-from kentreg_ros.core import (
-    ACCEPTED,
-    HEALTHS,
-    ConfigError,
-    Health,
-    KentRegError,
-    Odometry,
-    OdometryStep,
-    PointTimes,
-    VoxelMap,
-    invert_transform,
-    log_so3,
-)
-from kentreg_ros.core.config import KentRegConfig, iter_fields
-from kentreg_ros.io.params import NODE_NAME
-from kentreg_ros.io.pointcloud2 import (
-    POINT_TIME_FIELDS,
-    array_to_pointcloud2,
-    point_time_field,
-    pointcloud2_to_array,
-    rclpy_factory,
-)
+from kentreg_ros.core import KentRegConfig, Odometry, PointTimes
+from kentreg_ros.io.params import NODE_NAME, NodeSettings, QosReliability
+from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
+from kentreg_ros.ros import parameters
+from kentreg_ros.ros.diagnostics import Counters, Snapshot, odometry_status
 from kentreg_ros.ros.logbridge import RclpyLogHandler
-from kentreg_ros.ros.messages import (
-    covariance_to_msg,
-    parameter_declarations,
-    pose_covariance_in_base,
-    pose_to_msg,
-    stamp_to_msg,
-    transform_from_msg,
-    transform_from_xyzrpy,
-    transform_to_msg,
-)
-from kentreg_ros.ros.params import NODE_PARAMETERS, NodeParameter, NodeSettings
+from kentreg_ros.ros.messages import transform_from_msg, transform_from_xyzrpy
+from kentreg_ros.ros.outputs import Outputs
+from kentreg_ros.ros.parameters import StartupError
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros
@@ -150,23 +100,6 @@ MAX_ERRORS_IN_A_ROW = 3
 #: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
 #: one-line message only, so a node failing in ever new ways cannot fill its log.
 MAX_ERROR_KINDS = 32
-#: Variance reported for unknown twist components (no motion measured yet).
-UNKNOWN_VARIANCE = 1e6
-#: Diagnostics turn WARN when no scan arrived for this many seconds.
-STALE_INPUT_S = 5.0
-#: Parameters every rclpy node has besides its own (rclpy declares and reads them itself):
-#: the clock source, whether to serve ~/get_type_description, and QoS overrides of publishers
-#: and subscriptions (``qos_overrides.<topic>.<publisher|subscription>.<policy>``).
-RCLPY_PARAMETERS = frozenset({USE_SIM_TIME_NAME, START_TYPE_DESCRIPTION_SERVICE_PARAM})
-QOS_OVERRIDES_PREFIX = 'qos_overrides.'
-
-
-class StartupError(KentRegError):
-    """The node cannot start with the given parameters (message says which and why).
-
-    Part of the library's error hierarchy (like the command lines' ``CliError``), so callers
-    that construct the node catch it with ``except KentRegError``.
-    """
 
 
 @dataclass
@@ -177,40 +110,6 @@ class _Scan:
     received: float  # time.monotonic()
     n_nonfinite: int
     point_times: PointTimes | None = None  # the driver's per-point times, for deskewing
-
-
-class _Counters:
-    """Thread-safe event counters, cumulative and per diagnostics window."""
-
-    NAMES = (
-        'received',
-        'processed',
-        'published',
-        'dropped_queue',
-        'dropped_duplicate_stamp',
-        'dropped_waiting_for_tf',
-        'malformed',
-        'nonfinite_points',
-        'errors',
-        'resets',
-        'searched',
-        *HEALTHS,
-    )
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.total = dict.fromkeys(self.NAMES, 0)
-        self.window = dict.fromkeys(self.NAMES, 0)
-
-    def add(self, name: str, n: int = 1) -> None:
-        with self._lock:
-            self.total[name] += n
-            self.window[name] += n
-
-    def take_window(self) -> tuple[dict[str, int], dict[str, int]]:
-        with self._lock:
-            window, self.window = self.window, dict.fromkeys(self.NAMES, 0)
-            return dict(self.total), window
 
 
 class KentRegNode(Node):
@@ -229,25 +128,32 @@ class KentRegNode(Node):
     def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
         # rclpy declares every parameter given for this node (files, -p, parameter_overrides)
         # before __init__ returns, so the node can see what it was given through the public
-        # parameter API and refuse names it does not know (_declare_and_read).
+        # parameter API, validate it and warn about names it does not know (parameters.declare).
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True, **kwargs)
         # The core's warnings (rejected scans, deskew without times, frame changes) reach this
         # node's logger, and so /rosout, from now until destroy_node.
         self._log_handler = RclpyLogHandler(self.get_logger(), throttle_s=THROTTLE_S).attach()
-        self._counters = _Counters()
+        self._counters = Counters()
         try:
-            self._config, self._settings = self._declare_and_read()
+            declared = parameters.declare(self)
         except StartupError:
             self._log_handler.detach()
             super().destroy_node()
             raise
+        self._config, self._settings = declared.config, declared.node
+        if declared.unknown:
+            self.get_logger().warning(
+                f'Ignoring parameter(s) {list(declared.unknown)}: not parameters of this node '
+                '(see the README parameter table; research settings such as em.* are set from '
+                'Python or the command lines).'
+            )
 
         self._lock = threading.Condition()
         self._queue: collections.deque[_Scan] = collections.deque()
         self._pending_config: KentRegConfig | None = None
-        #: The mode the worker registers with (changed by the worker, under the lock, when it
-        #: adopts a pending configuration); self._config is the latest accepted one.
-        self._mode_in_use = self._config.mode
+        #: The model the worker registers against (changed by the worker, under the lock, when
+        #: it adopts a pending configuration); self._config is the latest accepted one.
+        self._model_in_use = self._config.odometry.model
         self._pending_reset = False
         self._stop = False
 
@@ -255,7 +161,6 @@ class KentRegNode(Node):
         # from the executor thread (parameters, reset) reach it under the lock as pending
         # values or through the settings it copies before each scan.
         self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
-        self._path: collections.deque[Any] = collections.deque(maxlen=self._settings.path_length)
         self._T_base_lidar: FloatArray | None = None
         self._frame_id: str | None = None
         self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
@@ -267,8 +172,6 @@ class KentRegNode(Node):
         self._step_ms: collections.deque[float] = collections.deque(maxlen=1000)
         self._last_received = time.monotonic()
         self._window_start = time.monotonic()
-        self._map: VoxelMap | None = None
-        self._map_published: float | None = None  # time.monotonic() of the last ~/map
         self._errors_in_a_row = 0
         #: Kinds of unexpected error (type, file, line) whose traceback was logged.
         self._error_kinds: set[tuple[str, str, int]] = set()
@@ -277,20 +180,19 @@ class KentRegNode(Node):
         self._tf_buffer = None
         if tf2_ros is not None:
             self._tf_broadcaster = tf2_ros.TransformBroadcaster(self)
-            if self._settings.use_tf:
-                self._tf_buffer = tf2_ros.Buffer()
-                self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+            self._tf_buffer = tf2_ros.Buffer()
+            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
         else:
             self.get_logger().info(
                 'tf2_ros is not installed (pip-only rclpy): not broadcasting '
                 f'{self._settings.odom_frame}->{self._settings.base_frame} on /tf; the sensor '
-                'pose in the base frame comes from node.base_to_lidar. Install ROS 2 Jazzy '
+                'pose in the base frame comes from base_to_lidar. Install ROS 2 Jazzy '
                 '(ros-jazzy-tf2-ros) for TF.'
             )
 
         reliability = (
             ReliabilityPolicy.RELIABLE
-            if self._settings.qos_reliability == 'reliable'
+            if self._settings.qos_reliability == QosReliability.RELIABLE
             else ReliabilityPolicy.BEST_EFFORT
         )
         qos = QoSProfile(
@@ -299,19 +201,8 @@ class KentRegNode(Node):
             reliability=reliability,
             durability=qos_profile_sensor_data.durability,
         )
-        self._pub_odom = self.create_publisher(OdometryMsg, 'odom', 10)
-        self._pub_pose = self.create_publisher(PoseStamped, 'pose', 10)
-        self._pub_path = self.create_publisher(Path, 'path', 1)
+        self._outputs = Outputs(self, self._tf_broadcaster, self._settings.path_length)
         self._pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        # Latched: a viewer that starts later gets the latest map.
-        map_qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=1,
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
-        self._pub_map = self.create_publisher(PointCloud2, '~/map', map_qos)
-        self._cloud_factory = rclpy_factory(PointCloud2, PointField, Header, TimeMsg)
         self._sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
         # A steady timer: diagnostics keep coming when simulated time is paused or absent.
@@ -327,93 +218,33 @@ class KentRegNode(Node):
         self._worker.start()
         self._log_handler.own_thread(self._worker.ident)
         self.get_logger().info(
-            f'kentreg_node ready: mode={self._config.mode}, listening on '
+            f'kentreg_node ready: model={self._config.odometry.model}, listening on '
             f'{self._sub.topic_name} ({self._settings.qos_reliability}, depth '
-            f'{self._settings.qos_depth}), publishing {self._pub_odom.topic_name} in '
+            f'{self._settings.qos_depth}), publishing {self._outputs.odom.topic_name} in '
             f'{self._settings.odom_frame}->{self._settings.base_frame}.'
         )
 
     # ----------------------------------------------------------------------------------------
     # Parameters
 
-    def _declare_and_read(self) -> tuple[KentRegConfig, NodeSettings]:
-        """Refuse unknown parameters, declare the known ones with their descriptors, read them.
-
-        Every name given for this node was declared by rclpy as it came (no descriptor, no
-        range). An unknown one is an error, not ignored. A known one is undeclared and declared
-        again with its descriptor: its given value still applies (rclpy keeps the overrides),
-        now checked against the declared type and range.
-        """
-        declarations = parameter_declarations()
-        known = {name for name, _, _ in declarations}
-        given = set(self.get_parameters_by_prefix(''))
-        unknown = sorted(
-            n for n in given - known - RCLPY_PARAMETERS if not n.startswith(QOS_OVERRIDES_PREFIX)
-        )
-        if unknown:
-            raise StartupError(
-                f'unknown parameter(s) {unknown}; valid ones are the keys of '
-                'config/kentreg.yaml (see README: parameter table).'
-            )
-        for name in given & known:
-            self.undeclare_parameter(name)
-        try:
-            # rclpy annotates `parameters` as an invariant List of a Union of tuples.
-            self.declare_parameters('', declarations)  # type: ignore[arg-type]
-        except (
-            InvalidParameterTypeException,
-            InvalidParameterValueException,
-            ParameterException,
-        ) as exc:
-            hint = ''
-            if "expecting type 'DOUBLE'" in str(exc):
-                hint = ' (write floating-point values with a decimal point, e.g. 1.0)'
-            raise StartupError(f'{exc}{hint}') from exc
-        except TypeError as exc:  # e.g. an integer given where a list is declared
-            raise StartupError(f'a parameter has the wrong type: {exc}') from exc
-        config_values = {
-            name: self.get_parameter(name).value for name, _, _ in iter_fields(KentRegConfig())
-        }
-        node_values = {p.name: self.get_parameter(p.name).value for p in NODE_PARAMETERS}
-        try:
-            return KentRegConfig.from_dict(config_values), NodeSettings.from_dict(node_values)
-        except ConfigError as exc:
-            raise StartupError(str(exc)) from exc
-
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        config_updates: dict[str, Any] = {}
-        node_updates: dict[str, Any] = {}
-        config_names = {name for name, _, _ in iter_fields(KentRegConfig())}
-        node_by_name: dict[str, NodeParameter] = {p.name: p for p in NODE_PARAMETERS}
-        for p in params:
-            if p.name in config_names:
-                config_updates[p.name] = p.value
-            elif p.name in node_by_name:
-                if node_by_name[p.name].read_only:
-                    return SetParametersResult(
-                        successful=False, reason=f'{p.name} takes effect only at startup'
-                    )
-                node_updates[p.name] = p.value
-        try:
-            config = self._config.with_updates(config_updates) if config_updates else None
-            settings = self._settings.with_updates(node_updates) if node_updates else None
-        except ConfigError as exc:
-            self.get_logger().warning(f'Rejected parameter change: {exc}')
-            return SetParametersResult(successful=False, reason=str(exc))
+        changed = parameters.changes(params, self._config, self._settings)
+        if isinstance(changed, str):
+            self.get_logger().warning(f'Rejected parameter change: {changed}')
+            return SetParametersResult(successful=False, reason=changed)
         with self._lock:
-            if config is not None:
-                self._config = config
-                self._pending_config = config
-            if settings is not None:
-                self._apply_settings(settings)
-        changed = ', '.join(f'{p.name}={p.value!r}' for p in params)
-        self.get_logger().info(f'Parameters changed: {changed}')
+            if changed.config != self._config:
+                self._config = changed.config
+                self._pending_config = changed.config
+            if changed.node != self._settings:
+                self._apply_settings(changed.node)
+        self.get_logger().info(f'Parameters changed: {parameters.values_text(params)}')
         return SetParametersResult(successful=True)
 
     def _apply_settings(self, settings: NodeSettings) -> None:
         """Adopt new runtime node settings (called with the lock held)."""
         old = self._settings
-        self._settings = settings  # node.path_length reaches the worker's path through it
+        self._settings = settings  # path_length reaches the worker's path through it
         if settings.base_to_lidar != old.base_to_lidar or (
             settings.odom_frame,
             settings.base_frame,
@@ -458,9 +289,7 @@ class KentRegNode(Node):
         )
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
-                self._counters.add('dropped_queue')
-                if self._settings.queue_policy == 'drop_newest':
-                    return
+                self._counters.add('dropped_queue')  # the oldest: latest wins
                 self._queue.popleft()
             self._queue.append(scan)
             self._lock.notify()
@@ -492,11 +321,9 @@ class KentRegNode(Node):
                 if config is not None:
                     self._odometry.reconfigure(config)
                     with self._lock:
-                        self._mode_in_use = config.mode
+                        self._model_in_use = config.odometry.model
                 if reset:
                     self._reset('reset requested')
-                if self._path.maxlen != settings.path_length:
-                    self._path = collections.deque(self._path, maxlen=settings.path_length)
                 self._process(scan, settings)
             except Exception as exc:
                 if not self.context.ok():
@@ -543,8 +370,7 @@ class KentRegNode(Node):
 
     def _reset(self, why: str) -> None:
         self._odometry.reset()
-        self._path.clear()
-        self._map = None
+        self._outputs.reset()
         with self._lock:
             self._frame_id = None
         self._T_base_lidar = None
@@ -571,7 +397,7 @@ class KentRegNode(Node):
                 return None
             self.get_logger().warning(
                 f'No tf2 transform {settings.base_frame}<-{frame_id} after {settings.tf_wait} s; '
-                f'using node.base_to_lidar={list(settings.base_to_lidar)}.'
+                f'using base_to_lidar={list(settings.base_to_lidar)}.'
             )
             return fallback
         return transform_from_msg(tf)
@@ -618,8 +444,8 @@ class KentRegNode(Node):
         self._counters.add(step.health)
         if step.searched:
             self._counters.add('searched')
-        self._publish(step, prev_stamp, settings)
-        self._update_map(step, settings)
+        assert self._T_base_lidar is not None  # set above
+        self._outputs.publish(step, self._T_base_lidar, prev_stamp, settings)
         self._counters.add('published')
         latency_ms = (time.monotonic() - scan.received) * 1e3
         with self._lock:  # read by the diagnostics timer on the executor thread
@@ -628,87 +454,7 @@ class KentRegNode(Node):
             self._step_ms.append(step.timings.get('total', 0.0))
 
     # ----------------------------------------------------------------------------------------
-    # Output
-
-    def _publish(self, step: OdometryStep, prev_stamp: int | None, settings: NodeSettings) -> None:
-        assert self._T_base_lidar is not None  # set before any step
-        T_bl = self._T_base_lidar
-        T_odom_base = T_bl @ step.T_world_lidar @ invert_transform(T_bl)
-        stamp = stamp_to_msg(step.stamp_ns)
-        pose = pose_to_msg(T_odom_base)
-
-        odom = OdometryMsg()
-        odom.header.stamp = stamp
-        odom.header.frame_id = settings.odom_frame
-        odom.child_frame_id = settings.base_frame
-        odom.pose.pose = pose
-        cov = pose_covariance_in_base(step.covariance, T_bl, T_odom_base)
-        odom.pose.covariance = covariance_to_msg(cov)
-        twist_cov = np.eye(6) * UNKNOWN_VARIANCE
-        if prev_stamp is not None and step.index > 0 and step.stamp_ns > prev_stamp:
-            dt = (step.stamp_ns - prev_stamp) * 1e-9
-            # The current base pose in the previous base frame.
-            T_motion = T_bl @ step.T_prev_curr @ invert_transform(T_bl)
-            R = T_motion[:3, :3]
-            v = R.T @ T_motion[:3, 3] / dt  # in the current base frame (child_frame_id)
-            w = log_so3(R) / dt
-            odom.twist.twist.linear.x, odom.twist.twist.linear.y, odom.twist.twist.linear.z = (
-                float(x) for x in v
-            )
-            odom.twist.twist.angular.x, odom.twist.twist.angular.y, odom.twist.twist.angular.z = (
-                float(x) for x in w
-            )
-            if step.result is not None and step.ok:
-                J = np.zeros((6, 6))
-                J[:3, :3] = J[3:, 3:] = T_bl[:3, :3]
-                twist_cov = J @ np.asarray(step.result.covariance) @ J.T / dt**2
-        odom.twist.covariance = covariance_to_msg(twist_cov)
-        self._pub_odom.publish(odom)
-
-        pose_msg = PoseStamped()
-        pose_msg.header = odom.header
-        pose_msg.pose = pose
-        self._pub_pose.publish(pose_msg)
-
-        if settings.publish_path:
-            self._path.append(pose_msg)
-            path = Path()
-            path.header = odom.header
-            path.poses = list(self._path)
-            self._pub_path.publish(path)
-
-        if settings.publish_tf and self._tf_broadcaster is not None:
-            tf = TransformStamped()
-            tf.header = odom.header
-            tf.child_frame_id = settings.base_frame
-            tf.transform = transform_to_msg(T_odom_base)
-            self._tf_broadcaster.sendTransform(tf)
-
-    def _update_map(self, step: OdometryStep, settings: NodeSettings) -> None:
-        """Add the scan to the map when its pose was registered; publish the map when
-        ``node.map_period`` has passed (worker thread: the map is the worker's alone)."""
-        if settings.map_period <= 0.0:
-            self._map = None
-            return
-        if self._map is None or self._map.voxel_size != settings.map_voxel_size:
-            self._map = VoxelMap(settings.map_voxel_size)
-        if step.points is not None and (step.health in ACCEPTED or step.health == Health.FIRST):
-            assert self._T_base_lidar is not None  # set before any step
-            # Sensor points -> odom frame: T_odom_lidar = T_base_lidar @ T_world_lidar.
-            T = self._T_base_lidar @ step.T_world_lidar
-            self._map.insert(step.points @ T[:3, :3].T + T[:3, 3])
-            self._map.crop(T[:3, 3], settings.map_radius)
-        now = time.monotonic()
-        due = self._map_published is None or now - self._map_published >= settings.map_period
-        if due and len(self._map):
-            msg = array_to_pointcloud2(
-                self._map.points,
-                frame_id=settings.odom_frame,
-                stamp_ns=step.stamp_ns,
-                factory=self._cloud_factory,
-            )
-            self._pub_map.publish(msg)
-            self._map_published = now
+    # Diagnostics (executor thread)
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
@@ -716,59 +462,26 @@ class KentRegNode(Node):
         self._window_start = now
         total, window = self._counters.take_window()
         with self._lock:  # everything the worker writes is read under the lock
-            queued = len(self._queue)
-            settings = self._settings
-            mode = self._mode_in_use
             pending = self._pending_config
-            latencies = list(self._latencies_ms)[-max(window['published'], 1) :]
-            steps = list(self._step_ms)[-max(window['processed'], 1) :]
-            frame_id = self._frame_id
-            last_health, last_message = self._last_health, self._last_message
-        if not settings.publish_diagnostics:
-            return
-        status = DiagnosticStatus()
-        status.name = f'{self.get_name()}: odometry'
-        status.hardware_id = frame_id or ''
-        level, message = DiagnosticStatus.OK, 'tracking'
-        problems = []
-        if window['fell_back'] or window['rejected']:
-            problems.append(
-                f'{window["fell_back"] + window["rejected"]} scans fell back or were rejected'
+            snap = Snapshot(
+                queued=len(self._queue),
+                model=str(self._model_in_use),
+                pending_model=str(pending.odometry.model) if pending is not None else '',
+                latencies_ms=list(self._latencies_ms)[-max(window['published'], 1) :],
+                steps_ms=list(self._step_ms)[-max(window['processed'], 1) :],
+                frame_id=self._frame_id or '',
+                last_health=str(self._last_health),
+                last_message=self._last_message,
             )
-        if window['errors']:
-            problems.append(
-                f'{window["errors"]} scans skipped after an unexpected error (see the log)'
-            )
-        if window['malformed']:
-            problems.append(f'{window["malformed"]} malformed messages')
-        if window['dropped_queue']:
-            problems.append(f'{window["dropped_queue"]} scans dropped (worker busy)')
-        if window['degenerate']:
-            problems.append(f'{window["degenerate"]} degenerate scans')
-        if problems:
-            # An unexpected error is a fault of the node, not of its input: ERROR.
-            level = DiagnosticStatus.ERROR if window['errors'] else DiagnosticStatus.WARN
-            message = '; '.join(problems)
-        if total['received'] == 0 or now - self._last_received > STALE_INPUT_S:
-            level = max(level, DiagnosticStatus.WARN)
-            message = f'no scans on {self._sub.topic_name} for {now - self._last_received:.0f} s'
-        status.level = level
-        status.message = message
-        values = {
-            'input_rate_hz': f'{window["received"] / period:.2f}',
-            'output_rate_hz': f'{window["published"] / period:.2f}',
-            'latency_ms_mean': f'{np.mean(latencies):.1f}' if latencies else 'nan',
-            'latency_ms_max': f'{np.max(latencies):.1f}' if latencies else 'nan',
-            'step_ms_mean': f'{np.mean(steps):.1f}' if steps else 'nan',
-            'queue_length': str(queued),
-            'last_health': last_health,
-            'last_message': last_message,
-            'mode': mode,  # in use; an accepted change applies from the next scan
-            'pending_mode': pending.mode if pending is not None else '',
-        }
-        values.update({f'total.{k}': str(v) for k, v in total.items()})
-        values.update({f'window.{k}': str(v) for k, v in window.items()})
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        status = odometry_status(
+            self.get_name(),
+            self._sub.topic_name,
+            total,
+            window,
+            period,
+            now - self._last_received,
+            snap,
+        )
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [status]
@@ -823,7 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
             '\n'
             'Parameters: every one, with its type, default, range and reason, in the README\n'
             '(section Configuration: the parameter tables); the file with every default:\n'
-            '  python3 -m kentreg_ros.ros.params > kentreg.yaml\n'
+            '  python3 -m kentreg_ros.docs --parameter-file > kentreg.yaml\n'
             'At run time: ros2 param describe /kentreg_node <name>.'
         ),
     )
