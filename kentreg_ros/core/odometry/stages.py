@@ -242,14 +242,30 @@ def prepare_input(
     stage can run in another process with the same result; an unusable cloud is a
     :class:`Preparation` with ``rejected`` set, not an exception."""
     t0 = time.perf_counter()
-    sweep: Sweep | None = None
     try:
         sweep = read_sweep(points, point_times, stamp, config)
+    except InvalidPointCloudError as exc:
+        return Preparation(None, None, str(exc), elapsed_ms(t0), None, voxel_size_hint)
+    return prepare_sweep(sweep, twist, config, voxel_size_hint, t0=t0)
+
+
+def prepare_sweep(
+    sweep: Sweep,
+    twist: FloatArray,
+    config: KentRegConfig,
+    voxel_size_hint: float,
+    *,
+    t0: float | None = None,
+) -> Preparation:
+    """The second half of :func:`prepare_input`, on a sweep already read (``t0``: when the
+    stage started, a ``time.perf_counter()`` reading; default now)."""
+    start = time.perf_counter() if t0 is None else t0
+    used = np.array(twist, dtype=np.float64) if sweep.times is not None else None
+    try:
         scan = prepare(sweep, twist, config, voxel_size_hint)
     except InvalidPointCloudError as exc:
-        return Preparation(sweep, None, str(exc), elapsed_ms(t0), None, voxel_size_hint)
-    used = np.array(twist, dtype=np.float64) if sweep.times is not None else None
-    return Preparation(sweep, scan, '', elapsed_ms(t0), used, voxel_size_hint)
+        return Preparation(sweep, None, str(exc), elapsed_ms(start), None, voxel_size_hint)
+    return Preparation(sweep, scan, '', elapsed_ms(start), used, voxel_size_hint)
 
 
 # ------------------------------------------------------------------------------------------------

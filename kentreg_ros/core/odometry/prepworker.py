@@ -1,0 +1,175 @@
+"""The worker process of :class:`~kentreg_ros.core.odometry.pipeline.PipelinedOdometry`: it
+prepares the scans the main process sends, in order, and sends back each
+:class:`~kentreg_ros.core.odometry.stages.Preparation` with the inputs it was made with.
+
+Run as ``python -m kentreg_ros.core.odometry.prepworker REQUESTS_FD RESULTS_FD PARENT_PID`` by
+the pipeline (never by hand). Messages (pickled tuples) from the main process: ``('job', id,
+points, times, field, stamp, hint)``, ``('go', id, twist, hint)`` (the loop's inputs for that
+scan, once known), ``('discard', id)``, ``('config', generation, config)``, ``('stop',)``.
+Replies: ``('result', id, generation, preparation)`` or ``('error', id, generation,
+traceback)``.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass, replace
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.stages import Preparation, Sweep, prepare_sweep, read_sweep
+from kentreg_ros.core.scan.prepared import elapsed_ms
+
+FloatArray = NDArray[np.float64]
+
+#: Seconds between the worker's checks that its parent is still alive (it exits when not) and
+#: between the main process's checks that the worker is (while it waits for a result).
+PARENT_CHECK_S = 0.5
+
+
+@dataclass
+class _Job:
+    """A scan given to the worker, as the worker holds it."""
+
+    id: int
+    points: NDArray[Any]
+    times: NDArray[Any] | None
+    field: str
+    stamp: int
+    hint: float | None  # None: continue from the worker's last prepared scan
+    sweep: Sweep | None = None
+
+
+def _strip(prep: Preparation) -> Preparation:
+    """``prep`` without the raw points of a sweep that has no times (the main process needs
+    them only to deskew again): a third of the bytes of a result, not 3 MB."""
+    sweep = prep.sweep
+    if sweep is None or sweep.times is not None:
+        return prep
+    return replace(prep, sweep=replace(sweep, points=np.zeros((0, 3))))
+
+
+def _worker_main(requests: Connection, results: Connection, parent: int) -> None:
+    """Entry point of the worker process: prepare the scans of ``requests`` in order."""
+    from kentreg_ros.core import kernels
+
+    kernels.warm_up()
+    config = KentRegConfig()
+    generation = 0
+    chain = 0.0  # voxel size of the last scan this worker prepared
+    jobs: deque[_Job] = deque()
+    go: dict[int, tuple[FloatArray, float]] = {}
+    discarded: set[int] = set()
+
+    def take(message: tuple[Any, ...]) -> bool:
+        nonlocal config, generation, chain
+        kind = message[0]
+        if kind == 'job':
+            jobs.append(_Job(*message[1:]))
+        elif kind == 'go':
+            if jobs and message[1] >= jobs[0].id:  # else: a scan prepared before it came
+                go[message[1]] = (message[2], message[3])
+        elif kind == 'discard':
+            discarded.add(message[1])
+        elif kind == 'config':
+            if message[2].preprocess != config.preprocess:
+                chain = 0.0  # as the sequential loop: the size was searched for other settings
+            generation, config = message[1], message[2]
+        return kind != 'stop'
+
+    def waiting() -> bool:
+        """Nothing to do until a message comes: no scan, or a sweep waiting for its twist."""
+        return not jobs or (jobs[0].sweep is not None and jobs[0].id not in go)
+
+    # The pipe is read by a thread of its own, so the main process's sends (3 MB scans) never
+    # wait for a preparation to finish while this process waits to send a result: each side
+    # blocked on a full pipe would deadlock the other.
+    inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
+    threading.Thread(target=_read, args=(requests, inbox), daemon=True).start()
+
+    def reply(message: tuple[Any, ...]) -> bool:
+        try:
+            results.send(message)
+        except (OSError, ValueError):  # the main process closed its end: it is done with us
+            return False
+        return True
+
+    while True:
+        while True:
+            try:
+                message = inbox.get(timeout=PARENT_CHECK_S) if waiting() else inbox.get_nowait()
+            except queue.Empty:
+                if not waiting():
+                    break
+                if os.getppid() != parent:
+                    return  # the parent is gone: never outlive it
+                continue
+            if not take(message):
+                return
+        job = jobs[0]
+        if job.id in discarded:
+            jobs.popleft()
+            discarded.discard(job.id)
+            go.pop(job.id, None)
+            continue
+        try:
+            t0 = time.perf_counter()
+            if job.sweep is None:
+                times = None if job.times is None else PointTimes(job.times, job.field)
+                try:
+                    job.sweep = read_sweep(job.points, times, job.stamp, config)
+                except InvalidPointCloudError as exc:
+                    rejected = Preparation(None, None, str(exc), elapsed_ms(t0))
+                    jobs.popleft()
+                    if not reply(('result', job.id, generation, rejected)):
+                        return
+                    continue
+                if job.sweep.times is not None and job.id not in go:
+                    # A sweep to deskew waits for the twist the main process learns once it
+                    # has registered the scan before (this scan's 'go').
+                    continue
+            twist, hint = go.pop(job.id, (np.zeros(6), job.hint))
+            hint = chain if hint is None else hint
+            prep = prepare_sweep(job.sweep, twist, config, hint, t0=t0)
+            if prep.scan is not None:
+                chain = prep.scan.voxel_size
+            answer: tuple[Any, ...] = ('result', job.id, generation, _strip(prep))
+        except Exception:  # noqa: BLE001 - reported to the main process, which raises it
+            answer = ('error', job.id, generation, traceback.format_exc())
+        jobs.popleft()
+        if not reply(answer):
+            return
+
+
+def _read(requests: Connection, inbox: queue.Queue[tuple[Any, ...]]) -> None:
+    """Move every request into ``inbox``; a closed pipe is a stop."""
+    while True:
+        try:
+            message = requests.recv()
+        except (EOFError, OSError):
+            inbox.put(('stop',))
+            return
+        inbox.put(message)
+        if message[0] == 'stop':
+            return
+
+
+if __name__ == '__main__':
+    # python -m kentreg_ros.core.odometry.prepworker REQUESTS_FD RESULTS_FD PARENT_PID
+    _worker_main(
+        Connection(int(sys.argv[1]), writable=False),
+        Connection(int(sys.argv[2]), readable=False),
+        int(sys.argv[3]),
+    )
