@@ -30,6 +30,8 @@ from kentreg_ros.core.odometry import (
     LocalMap,
     Odometry,
     OdometryStep,
+    PipelinedOdometry,
+    PipelineError,
     PointTimes,
     VoxelMap,
 )
@@ -60,6 +62,8 @@ __all__ = [
     'LocalMap',
     'Odometry',
     'OdometryStep',
+    'PipelineError',
+    'PipelinedOdometry',
     'PreparedScan',
     'RegistrationResult',
     'VoxelMap',

@@ -69,7 +69,7 @@ from kentreg_ros.cli.common import (
     CliError,
     interrupt_through_rclpy,
 )
-from kentreg_ros.core import KentRegConfig, Odometry, PointTimes
+from kentreg_ros.core import KentRegConfig, PointTimes
 from kentreg_ros.io.params import NODE_NAME, NodeSettings, QosReliability
 from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
 from kentreg_ros.ros import parameters
@@ -78,6 +78,7 @@ from kentreg_ros.ros.logbridge import RclpyLogHandler
 from kentreg_ros.ros.messages import transform_from_msg, transform_from_xyzrpy
 from kentreg_ros.ros.outputs import Outputs
 from kentreg_ros.ros.parameters import StartupError
+from kentreg_ros.ros.pipeline import close_odometry, create_odometry, discard, prefetch
 
 try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
     import tf2_ros
@@ -160,7 +161,7 @@ class KentRegNode(Node):
         # Worker state: only the worker thread reads or writes these after start-up. Changes
         # from the executor thread (parameters, reset) reach it under the lock as pending
         # values or through the settings it copies before each scan.
-        self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
+        self._odometry = create_odometry(self._config, self._settings, ODOMETRY_HISTORY)
         self._T_base_lidar: FloatArray | None = None
         self._frame_id: str | None = None
         self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
@@ -287,12 +288,16 @@ class KentRegNode(Node):
             n_nonfinite=cloud.n_dropped,
             point_times=point_time_field(cloud.extras),
         )
+        prefetch(self._odometry, scan.points, scan.stamp_ns, scan.point_times)
+        dropped = None
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
                 self._counters.add('dropped_queue')  # the oldest: latest wins
-                self._queue.popleft()
+                dropped = self._queue.popleft()
             self._queue.append(scan)
             self._lock.notify()
+        if dropped is not None:
+            discard(self._odometry, dropped.points)
 
     def _on_reset(self, request: Any, response: Any) -> Any:
         with self._lock:
@@ -503,6 +508,7 @@ class KentRegNode(Node):
             self._stop = True
             self._lock.notify_all()
         self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
+        close_odometry(self._odometry)
         self._log_handler.detach()
         if self._worker.is_alive():
             self.get_logger().error(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -65,6 +66,9 @@ def _worker_main(requests: Connection, results: Connection, parent: int) -> None
     """Entry point of the worker process: prepare the scans of ``requests`` in order."""
     from kentreg_ros.core import kernels
 
+    # Ctrl-C reaches the whole process group: the node shuts down and closes the pipe, which
+    # ends this process; an interrupt of its own would only print a traceback.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     kernels.warm_up()
     config = KentRegConfig()
     generation = 0
