@@ -508,7 +508,7 @@ class KentRegNode(Node):
             self._stop = True
             self._lock.notify_all()
         self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
-        close_odometry(self._odometry)
+        close_odometry(self._odometry, self._worker)
         self._log_handler.detach()
         if self._worker.is_alive():
             self.get_logger().error(

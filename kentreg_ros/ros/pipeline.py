@@ -12,6 +12,7 @@ are the sequential loop's.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from kentreg_ros.core import KentRegConfig, Odometry, PipelinedOdometry, PointTimes
@@ -39,7 +40,17 @@ def discard(odometry: Odometry, points: Any) -> None:
         odometry.discard(points)
 
 
-def close_odometry(odometry: Odometry) -> None:
-    """Stop the preparing process, if any (the node's worker thread has stopped)."""
-    if isinstance(odometry, PipelinedOdometry):
+def close_odometry(odometry: Odometry, worker: threading.Thread) -> None:
+    """Stop the preparing process, if any, once the node's worker thread has stopped: now, or
+    (when it still holds a scan past the node's stop timeout) right after it finishes it."""
+    if not isinstance(odometry, PipelinedOdometry):
+        return
+    if not worker.is_alive():
         odometry.close()
+        return
+
+    def close_after() -> None:
+        worker.join()
+        odometry.close()
+
+    threading.Thread(target=close_after, name='kentreg_pipeline_close', daemon=True).start()
