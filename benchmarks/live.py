@@ -41,7 +41,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -529,7 +529,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--streams', nargs='+', default=['kitti_hdl64', 'balm_10hz'])
     parser.add_argument('--models', nargs='+', default=['previous_scan', 'local_map'])
-    parser.add_argument('--pipelines', nargs='+', default=['process', 'off'])
+    parser.add_argument('--pipelines', nargs='+', default=['process', 'sequential'])
     parser.add_argument('--dds', nargs='+', default=['shm'], choices=['shm', 'udp'])
     parser.add_argument('--scans', type=int, default=50)
     parser.add_argument('--rounds', type=int, default=1)

@@ -134,7 +134,7 @@ class PipelineMode(StrEnum):
     """How the node's odometry uses the cores."""
 
     PROCESS = 'process'
-    OFF = 'off'
+    SEQUENTIAL = 'sequential'
 
 
 class QosReliability(StrEnum):
@@ -238,9 +238,9 @@ class NodeSettings(Section):
         PipelineMode.PROCESS,
         'How the odometry uses the cores: process prepares each scan (deskew, voxels, '
         'normals, clusters) in a worker process while the node registers the scan before, '
-        'and moves the local map after the pose is out: the same poses as off, on two cores '
-        "(a 10 Hz 64-beam LiDAR needs both to keep up). off runs every stage in the node's "
-        'worker thread, on one core.',
+        'and moves the local map after the pose is out: the same poses as sequential, on two '
+        'cores (a 10 Hz 64-beam LiDAR needs both to keep up). sequential runs every stage in '
+        "the node's worker thread, on one core.",
         read_only=True,
     )
     qos_reliability: QosReliability = _param(

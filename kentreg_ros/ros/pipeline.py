@@ -1,4 +1,4 @@
-"""How the node's odometry runs: one thread (``pipeline: off``) or two processes (``process``).
+"""How the node runs its odometry: one thread (``pipeline: sequential``) or two processes.
 
 The node keeps its shape either way (:mod:`kentreg_ros.ros.node`): the subscription callback
 decodes a cloud and queues it, one worker thread steps the odometry and publishes. With

@@ -40,12 +40,14 @@ when its parent closes the pipe, exits or dies (it checks its parent every
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import logging
 import multiprocessing as mp
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
@@ -61,7 +63,7 @@ from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry.deskew import PointTimes
 from kentreg_ros.core.odometry.loop import Odometry
-from kentreg_ros.core.odometry.prepworker import PARENT_CHECK_S
+from kentreg_ros.core.odometry.prepworker import PARENT_CHECK_S, write_scan_file
 from kentreg_ros.core.odometry.stages import Preparation
 from kentreg_ros.core.odometry.step import OdometryStep
 from kentreg_ros.core.scan.prepared import elapsed_ms
@@ -81,6 +83,26 @@ MAX_OPEN_JOBS = 8
 
 class PipelineError(KentRegError, RuntimeError):
     """The worker process failed on a scan (its traceback is in the message)."""
+
+
+#: Where scans are handed to the worker: memory (tmpfs) where the system has it.
+SCAN_DIR = '/dev/shm' if os.path.isdir('/dev/shm') else tempfile.gettempdir()
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
+def _widen_pipe(fd: int) -> None:
+    """Give the results pipe 1 MB (Linux; 64 kB by default), so a prepared scan (~0.5 MB)
+    goes in one write and the main process reads it in one piece."""
+    try:
+        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, 1 << 20)
+    except (AttributeError, OSError):  # not Linux, or above /proc/sys/fs/pipe-max-size
+        pass
 
 
 def _package_path() -> str:
@@ -103,7 +125,7 @@ class _Open:
     points: Any  # the caller's array: identifies the scan when it is stepped
     stamp: int
     worker: int  # the worker (by number) that holds it
-    went: bool = False
+    path: str = ''  # the file handing the scan over (the worker removes it when it reads it)
 
 
 @dataclass
@@ -164,6 +186,7 @@ class PipelinedOdometry(Odometry):
         req_r, req_w = mp.Pipe(duplex=False)
         res_r, res_w = mp.Pipe(duplex=False)
         fds = (req_r.fileno(), res_w.fileno())
+        _widen_pipe(res_w.fileno())
         proc = subprocess.Popen(
             [
                 sys.executable,
@@ -205,6 +228,8 @@ class PipelinedOdometry(Odometry):
         with self._lock:
             self._stop_worker(wait=False)
             self._results.clear()
+            for item in self._open:
+                _unlink(item.path)
             if not self._closed:
                 self._start_worker()
 
@@ -235,8 +260,10 @@ class PipelinedOdometry(Odometry):
             if self._closed:
                 return
             self._closed = True
-            self._open.clear()
             self._stop_worker(wait=True)
+            for item in self._open:
+                _unlink(item.path)  # files the worker did not read
+            self._open.clear()
 
     @property
     def worker_pid(self) -> int | None:
@@ -280,17 +307,27 @@ class PipelinedOdometry(Odometry):
         pts = np.asarray(points)
         field_name = point_times.field if isinstance(point_times, PointTimes) else ''
         times = None if point_times is None else np.asarray(point_times)
+        job = next(self._ids)
+        path = os.path.join(SCAN_DIR, f'kentreg_scan_{os.getpid()}_{id(self)}_{job}.npy')
+        try:
+            write_scan_file(path, pts, times)
+        except (OSError, ValueError) as exc:  # no room, or a dtype np.save refuses
+            _unlink(path)
+            logger.warning('Could not hand the scan to the worker (%s); preparing it here.', exc)
+            return None
         with self._lock:
             if self._closed:
+                _unlink(path)
                 return None
             while len(self._open) >= MAX_OPEN_JOBS:
                 self._send(('discard', self._open.popleft().id))
-            job = next(self._ids)
             # The hint the loop will use is known when no earlier scan is still to be prepared.
             hint = None if (self._open or self._stepping) else self.voxel_size_hint
-            if not self._send(('job', job, pts, times, field_name, int(stamp_ns), hint)):
+            message = ('job', job, path, times is not None, field_name, int(stamp_ns), hint)
+            if not self._send(message):
+                _unlink(path)
                 return None
-            return _Open(job, points, int(stamp_ns), self._n_workers)
+            return _Open(job, points, int(stamp_ns), self._n_workers, path)
 
     def discard(self, points: ArrayLike) -> None:
         """Forget a prefetched scan that will not be stepped (e.g. dropped from a queue)."""
@@ -375,6 +412,8 @@ class PipelinedOdometry(Odometry):
         the scan prepared here."""
         t0 = time.perf_counter()
         reply = self._wait(item.id) if item is not None else None
+        if reply is None and item is not None:
+            _unlink(item.path)  # the worker died before it read the scan
         self.stats.wait_ms.append(elapsed_ms(t0))
         if reply is not None:
             kind, generation, payload = reply
