@@ -62,8 +62,8 @@ from numpy.typing import ArrayLike, NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.handover import PARENT_CHECK_S, write_scan_file
 from kentreg_ros.core.odometry.loop import Odometry
-from kentreg_ros.core.odometry.prepworker import PARENT_CHECK_S, write_scan_file
 from kentreg_ros.core.odometry.stages import Preparation
 from kentreg_ros.core.odometry.step import OdometryStep
 from kentreg_ros.core.scan.prepared import elapsed_ms
@@ -85,6 +85,10 @@ class PipelineError(KentRegError, RuntimeError):
     """The worker process failed on a scan (its traceback is in the message)."""
 
 
+#: The worker's native libraries on one thread each: it is one of the two processes the
+#: pipeline spreads over two cores, and BLAS threads spinning beside the main process's work
+#: would take the core it registers on.
+ONE_THREAD_ENV = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1'}
 #: Where scans are handed to the worker: memory (tmpfs) where the system has it.
 SCAN_DIR = '/dev/shm' if os.path.isdir('/dev/shm') else tempfile.gettempdir()
 
@@ -198,7 +202,7 @@ class PipelinedOdometry(Odometry):
             ],
             pass_fds=fds,
             stdin=subprocess.DEVNULL,
-            env={**os.environ, 'PYTHONPATH': _package_path()},
+            env={**os.environ, **ONE_THREAD_ENV, 'PYTHONPATH': _package_path()},
         )
         req_r.close()
         res_w.close()

@@ -3,12 +3,13 @@ prepares the scans the main process sends, in order, and sends back each
 :class:`~kentreg_ros.core.odometry.stages.Preparation` with the inputs it was made with.
 
 Run as ``python -m kentreg_ros.core.odometry.prepworker REQUESTS_FD RESULTS_FD PARENT_PID`` by
-the pipeline (never by hand). Messages (pickled tuples) from the main process: ``('job', id,
-path, has_times, field, stamp, hint)`` (the points and times in the file ``path``, see
-:func:`write_scan_file`), ``('go', id, twist, hint)`` (the loop's inputs for that
-scan, once known), ``('discard', id)``, ``('config', generation, config)``, ``('stop',)``.
-Replies: ``('result', id, generation, preparation)`` or ``('error', id, generation,
-traceback)``.
+the pipeline (never by hand; nothing imports this module, so ``-m`` runs it once). Messages
+(pickled tuples) from the main process: ``('job', id, path, has_times, field, stamp, hint)``
+(the points and times in the file ``path``, see
+:func:`~kentreg_ros.core.odometry.handover.write_scan_file`), ``('go', id, twist, hint)`` (the
+loop's inputs for that scan, once known), ``('discard', id)``, ``('config', generation,
+config)``, ``('stop',)``. Replies: ``('result', id, generation, preparation)`` or
+``('error', id, generation, traceback)``.
 """
 
 from __future__ import annotations
@@ -31,14 +32,11 @@ from numpy.typing import NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.handover import PARENT_CHECK_S, read_scan_file
 from kentreg_ros.core.odometry.stages import Preparation, Sweep, prepare_sweep, read_sweep
 from kentreg_ros.core.scan.prepared import elapsed_ms
 
 FloatArray = NDArray[np.float64]
-
-#: Seconds between the worker's checks that its parent is still alive (it exits when not) and
-#: between the main process's checks that the worker is (while it waits for a result).
-PARENT_CHECK_S = 0.5
 
 
 @dataclass
@@ -52,30 +50,6 @@ class _Job:
     stamp: int
     hint: float | None  # None: continue from the worker's last prepared scan
     sweep: Sweep | None = None
-
-
-def write_scan_file(path: str, points: NDArray[Any], times: NDArray[Any] | None) -> None:
-    """Hand a scan over in a file (on ``/dev/shm``, memory): one copy, where a 2-3 MB pickle
-    through the pipe is read in 64 kB pieces, each waiting for the reading thread to get the
-    GIL from the preparation running beside it (measured: 100+ ms a scan under load)."""
-    with open(path, 'wb') as f:
-        np.save(f, points, allow_pickle=False)
-        if times is not None:
-            np.save(f, times, allow_pickle=False)
-
-
-def read_scan_file(path: str, has_times: bool) -> tuple[NDArray[Any], NDArray[Any] | None]:
-    """The scan of :func:`write_scan_file`; the file is removed."""
-    try:
-        with open(path, 'rb') as f:
-            points = np.load(f, allow_pickle=False)
-            times = np.load(f, allow_pickle=False) if has_times else None
-    finally:
-        try:
-            os.unlink(path)
-        except FileNotFoundError:
-            pass
-    return points, times
 
 
 def _strip(prep: Preparation) -> Preparation:
