@@ -381,10 +381,18 @@ def measure_throughput(
 # running and writing
 
 
-def _in_child(kind: str, stream: str, n: int, kwargs: dict[str, Any], env: dict[str, str]) -> Any:
+def _in_child(
+    kind: str,
+    stream: str,
+    n: int,
+    kwargs: dict[str, Any],
+    env: dict[str, str],
+    niceness: int = 10,
+) -> Any:
     """Run one measurement in a fresh process (its own DDS environment, no state carried)."""
     out = subprocess.run(
-        ['nice', sys.executable, __file__, '--child', kind, stream, str(n), json.dumps(kwargs)],
+        ['nice', '-n', str(niceness), sys.executable, __file__, '--child', kind, stream, str(n)]
+        + [json.dumps(kwargs)],
         capture_output=True,
         text=True,
         env=env,
@@ -408,6 +416,7 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
         'commit': git_describe(),
         'machine': machine_info(),
         'scans': options.scans,
+        'live_niceness': options.live_nice,
         'streams': {},
     }
     for stream in options.streams:
@@ -430,6 +439,7 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
                             options.scans,
                             {'model': model, 'pipeline': pipeline, 'profile': profile},
                             _node_env(profile, tmp),
+                            niceness=options.live_nice,
                         )
                         res['round'], res['load_before'] = r, round(load, 2)
                         res['load_after'] = round(_load()[0], 2)
@@ -541,6 +551,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--rounds', type=int, default=1)
     parser.add_argument('--no-per-scan', dest='per_scan', action='store_false')
     parser.add_argument('--per-scan-rounds', type=int, default=2)
+    parser.add_argument(
+        '--live-nice',
+        type=int,
+        default=0,
+        help='niceness of the live runs (node and publisher; default 0, as a user runs them: '
+        'on a shared machine, work at a higher niceness then takes the leftover CPU); the '
+        'offline measurements run at 10',
+    )
     parser.add_argument('--out', type=Path, default=RESULTS)
     parser.add_argument('--child', nargs=4, help=argparse.SUPPRESS)  # one measurement
     options = parser.parse_args(argv)
