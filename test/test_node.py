@@ -48,8 +48,9 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.eval.groundtruth import GroundTruth  # noqa: E402
-from kentreg_ros.io.bags import open_scan_source, read_ground_truth  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
+from kentreg_ros.io.recordings import read_ground_truth  # noqa: E402
+from kentreg_ros.io.sources import open_scan_source  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / 'bags' / 'balm_50'

@@ -240,7 +240,7 @@ def test_replay_stride_processes_every_third_scan_with_original_stamps(
 
 def test_run_odometry_stride_selects_start_plus_multiples() -> None:
     from kentreg_ros.eval.run import run_odometry
-    from kentreg_ros.io.bags import Scan
+    from kentreg_ros.io.sources import Scan
 
     class Recorder:
         """Stands in for Odometry: records what it was given."""
@@ -460,8 +460,8 @@ def test_replay_hands_a_bags_per_point_times_to_the_odometry(tmp_path: Path) -> 
     """A bag whose clouds carry a `t` field (Ouster-style nanoseconds) reaches Odometry.step as
     point_times, aligned with the finite points (the NaN point is dropped from both)."""
     from kentreg_ros.eval.run import run_odometry
-    from kentreg_ros.io.bags import open_recording
     from kentreg_ros.io.bagwriter import BagWriter
+    from kentreg_ros.io.recordings import open_recording
 
     points = np.array([[1.0, 0, 0], [np.nan, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
     t = np.array([0, 25_000_000, 50_000_000, 75_000_000], dtype=np.uint32)

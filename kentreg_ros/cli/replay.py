@@ -89,8 +89,9 @@ from kentreg_ros.eval.report import (
     skipped_text,
     stride_text,
 )
-from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC, ScanSource
 from kentreg_ros.io.mapfile import MAP_SUFFIXES
+from kentreg_ros.io.recordings import GROUND_TRUTH_TOPIC
+from kentreg_ros.io.sources import ScanSource
 
 logger = logging.getLogger('kentreg_ros.cli.replay')  # also when run as __main__
 
@@ -187,7 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def open_input(args: argparse.Namespace) -> tuple[ScanSource, GroundTruth | None]:
     """The scan source and its ground truth (``--gt``, the bag's topic, a file beside scans)."""
-    from kentreg_ros.io.bags import is_bag, open_recording
+    from kentreg_ros.io.bags import is_bag
+    from kentreg_ros.io.recordings import open_recording
 
     path = Path(args.input)
     if not path.exists():

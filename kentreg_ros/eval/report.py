@@ -22,7 +22,7 @@ from kentreg_ros.core import HEALTHS, OdometryStep
 from kentreg_ros.eval import kitti, metrics
 from kentreg_ros.eval.groundtruth import GT_TOLERANCE_S, GroundTruth, associate
 from kentreg_ros.eval.run import OdometryRun
-from kentreg_ros.io.bags import SkippedScan
+from kentreg_ros.io.sources import SkippedScan
 
 logger = logging.getLogger(__name__)
 

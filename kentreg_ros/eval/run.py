@@ -21,8 +21,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import ACCEPTED, Health, KentRegError, Odometry, OdometryStep, VoxelMap
-from kentreg_ros.io.bags import ScanSource, SkippedScan
 from kentreg_ros.io.pointcloud2 import point_time_field
+from kentreg_ros.io.sources import ScanSource, SkippedScan
 
 logger = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ MAX_SKIPPED_NAMED = 5
 
 
 class ScanLike(Protocol):
-    """One scan: what :func:`run_odometry` reads of a :class:`kentreg_ros.io.bags.Scan`."""
+    """One scan: what :func:`run_odometry` reads of a :class:`kentreg_ros.io.sources.Scan`."""
 
     @property
     def stamp_ns(self) -> int: ...
@@ -47,7 +47,7 @@ class ScanLike(Protocol):
 
 
 class ScanSequence(Protocol):
-    """Scans in order with their count: a :class:`kentreg_ros.io.bags.ScanSource` or a list."""
+    """Scans in order with their count: a :class:`kentreg_ros.io.sources.ScanSource` or a list."""
 
     def __len__(self) -> int: ...
 
@@ -122,7 +122,7 @@ def run_odometry(
     processed scans, and :attr:`OdometryRun.input_indices` records which input scans they were.
 
     A selected scan that cannot be decoded (a malformed PointCloud2 in a bag, an unreadable scan
-    file; :meth:`~kentreg_ros.io.bags.ScanSource.entries`) is skipped and counted in
+    file; :meth:`~kentreg_ros.io.sources.ScanSource.entries`) is skipped and counted in
     :attr:`OdometryRun.n_skipped`, the first few named in :attr:`OdometryRun.skipped`; the run
     goes on, as the ROS node does. A read error of the container itself (a damaged bag) ends
     the run early; the scans read before it are kept and the error is recorded in

@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.io.bags import ODOMETRY, PATH, POSESTAMPED, _describe
-from kentreg_ros.io.errors import BagError
+from kentreg_ros.io.bags import ODOMETRY, PATH, POSESTAMPED
+from kentreg_ros.io.errors import BagError, describe_error
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,
     array_to_pointcloud2,
@@ -105,7 +105,7 @@ class BagWriter:
         try:
             writer.open()
         except Exception as exc:
-            raise BagError(f'{self.path}: cannot create bag ({_describe(exc)}).') from exc
+            raise BagError(f'{self.path}: cannot create bag ({describe_error(exc)}).') from exc
         self._writer = writer
 
     def close(self) -> None:

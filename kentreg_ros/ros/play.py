@@ -69,7 +69,7 @@ from kentreg_ros.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from kentreg_ros.io.bags import SkippedScan
+    from kentreg_ros.io.sources import SkippedScan
 
 logger = logging.getLogger('kentreg_ros.ros.play')  # also when run as __main__
 
@@ -393,7 +393,7 @@ class Player:
 
     def _scans(self) -> Iterator[tuple[int, Any]]:
         """Yield ``(output_stamp_ns, scan)`` over every pass, stamps shifted per pass."""
-        from kentreg_ros.io.bags import ScanSource, SkippedScan
+        from kentreg_ros.io.sources import ScanSource, SkippedScan
 
         offset_ns = 0
         n_pass = 0
