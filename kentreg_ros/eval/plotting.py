@@ -69,7 +69,7 @@ def plot_trajectory(
 
     The left panel shows the x-y positions of the estimate over the ground truth with equal axes
     and start (circle) and end (square) markers. The ground truth is drawn as given: align the
-    trajectories first (e.g. with :func:`kentreg_ros.eval.metrics.ate`'s ``T_gt_est``) if they
+    trajectories first (e.g. with :func:`kentreg_ros.eval.alignment.ate`'s ``T_gt_est``) if they
     do not share a world frame. Each given error series adds a panel on the right, plotted
     against the pair index.
 

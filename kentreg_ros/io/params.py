@@ -27,8 +27,8 @@ from typing import Any
 
 import yaml
 
-from kentreg_ros.core import ConfigError
-from kentreg_ros.core.config import (
+from kentreg_ros.core import (
+    ConfigError,
     KentRegConfig,
     Section,
     coerce_value,
