@@ -19,8 +19,8 @@ from kentreg_ros.core.kent import (
     fit_kent_moments_batch,
     kent_log_normalizer,
     kent_log_pdf,
-    sample_kent,
 )
+from kentreg_ros.core.kent_sampling import sample_kent
 
 FloatArray = NDArray[np.float64]
 

@@ -59,6 +59,22 @@ class KittiResult(TypedDict):
     segment_r_err_deg_per_m: FloatArray
 
 
+def _segment_lengths(lengths: Sequence[float], step: int) -> FloatArray:
+    """``lengths`` as an array, checked with ``step`` (see :func:`kitti_segment_errors`)."""
+    lens = _as_float_array(lengths, 'lengths')
+    if lens.ndim != 1 or lens.size == 0:
+        raise ValueError(
+            f'Expected `lengths` to be a non-empty sequence of floats, got shape {lens.shape}.'
+        )
+    if not (np.isfinite(lens).all() and (lens > 0.0).all()):
+        raise ValueError(f'Expected every segment length to be positive, got {lens.tolist()}.')
+    if np.unique(lens).size != lens.size:
+        raise ValueError(f'Expected distinct segment lengths, got {lens.tolist()}.')
+    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
+        raise ValueError(f'Expected `step` to be a positive integer, got {step!r}.')
+    return lens
+
+
 def kitti_segment_errors(
     T_est: ArrayLike,
     T_gt: ArrayLike,
@@ -104,18 +120,7 @@ def kitti_segment_errors(
         ``step < 1``.
     """
     est, gt = _as_pose_pair(T_est, T_gt, ('T_est', 'T_gt'))
-    lens = _as_float_array(lengths, 'lengths')
-    if lens.ndim != 1 or lens.size == 0:
-        raise ValueError(
-            f'Expected `lengths` to be a non-empty sequence of floats, got shape {lens.shape}.'
-        )
-    if not (np.isfinite(lens).all() and (lens > 0.0).all()):
-        raise ValueError(f'Expected every segment length to be positive, got {lens.tolist()}.')
-    if np.unique(lens).size != lens.size:
-        raise ValueError(f'Expected distinct segment lengths, got {lens.tolist()}.')
-    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
-        raise ValueError(f'Expected `step` to be a positive integer, got {step!r}.')
-
+    lens = _segment_lengths(lengths, step)
     n = est.shape[0]
     dist = _path_length(gt)
     first_all = np.arange(0, n, int(step))

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -53,6 +53,69 @@ def _plot_top_view(
     ax.plot(xy[:, 0], xy[:, 1], color=colour, label=label, linewidth=linewidth, alpha=alpha)
     ax.plot(*xy[0], marker='o', color=colour, markersize=7, linestyle='none')
     ax.plot(*xy[-1], marker='s', color=colour, markersize=7, linestyle='none')
+
+
+def _draw_map(ax: Any, cloud: NDArray[np.float64]) -> None:
+    """The map behind the paths: points shaded by height (darker is higher)."""
+    z_lo, z_hi = np.percentile(cloud[:, 2], [2.0, 98.0])
+    ax.scatter(
+        cloud[:, 0],
+        cloud[:, 1],
+        c=cloud[:, 2],
+        cmap=_MAP_CMAP,
+        vmin=z_lo - 0.5 * (z_hi - z_lo),  # the lowest points mid-grey, not white
+        vmax=z_hi,
+        s=0.3,
+        alpha=0.5,
+        linewidths=0,
+        rasterized=True,
+        zorder=0,
+        label=f'map ({len(cloud)} points)',
+    )
+
+
+def _frame_paths_and_map(
+    ax: Any, est: NDArray[np.float64], gt: NDArray[np.float64] | None, cloud: NDArray[np.float64]
+) -> None:
+    """The view: the paths and the bulk of the map; a few stray far returns must not shrink
+    the paths to a dot."""
+    # The scatter put every map point into the data limits: they are
+    # replaced by that box, and the view limits stay automatic (with the axes' margins),
+    # so the equal aspect below can widen one of them to the panel's shape. Fixed limits
+    # would leave it nothing to adjust: matplotlib then overrides them and logs "Ignoring
+    # fixed x limits ..." at every draw.
+    paths = est[:, :2, 3] if gt is None else np.vstack([est[:, :2, 3], gt[:, :2, 3]])
+    lo = np.minimum(paths.min(axis=0), np.percentile(cloud[:, :2], 1.0, axis=0))
+    hi = np.maximum(paths.max(axis=0), np.percentile(cloud[:, :2], 99.0, axis=0))
+    ax.ignore_existing_data_limits = True
+    ax.update_datalim(np.array([lo, hi]))
+    ax.autoscale_view()
+
+
+def _plot_error_panels(
+    fig: Any, grid: Any, series: list[tuple[NDArray[np.float64], str, str]]
+) -> None:
+    """One panel per error series on the right, against the pair index."""
+    ax_prev = None
+    for row, (values, label, colour) in enumerate(series):
+        ax = fig.add_subplot(grid[row, 1], sharex=ax_prev)
+        index = np.arange(values.size)
+        ax.plot(index, values, color=colour, linewidth=1.0, marker='.', markersize=3)
+        finite = values[np.isfinite(values)]
+        if finite.size:
+            mean = float(finite.mean())
+            ax.axhline(
+                mean, color='black', linestyle='--', linewidth=0.8, label=f'mean {mean:.3g}'
+            )
+            ax.legend(loc='upper right')
+        ax.set_ylabel(label)
+        ax.set_ylim(bottom=0.0)
+        ax.grid(True, alpha=0.3)
+        if row == len(series) - 1:
+            ax.set_xlabel('pair index')
+        else:
+            ax.tick_params(labelbottom=False)
+        ax_prev = ax
 
 
 def plot_trajectory(
@@ -141,21 +204,7 @@ def plot_trajectory(
     FigureCanvasAgg(fig)
 
     if cloud is not None and len(cloud):
-        z_lo, z_hi = np.percentile(cloud[:, 2], [2.0, 98.0])
-        ax_top.scatter(
-            cloud[:, 0],
-            cloud[:, 1],
-            c=cloud[:, 2],
-            cmap=_MAP_CMAP,
-            vmin=z_lo - 0.5 * (z_hi - z_lo),  # the lowest points mid-grey, not white
-            vmax=z_hi,
-            s=0.3,
-            alpha=0.5,
-            linewidths=0,
-            rasterized=True,
-            zorder=0,
-            label=f'map ({len(cloud)} points)',
-        )
+        _draw_map(ax_top, cloud)
     if gt is not None:
         _plot_top_view(ax_top, gt[:, :2, 3], 'ground truth', _GT_COLOUR, linewidth=2.5, alpha=0.8)
     _plot_top_view(ax_top, est[:, :2, 3], 'estimate', _EST_COLOUR, linewidth=1.5, alpha=1.0)
@@ -163,18 +212,7 @@ def plot_trajectory(
     ax_top.plot([], [], marker='o', color='black', linestyle='none', label='start')
     ax_top.plot([], [], marker='s', color='black', linestyle='none', label='end')
     if cloud is not None and len(cloud):
-        # The view: the paths and the bulk of the map; a few stray far returns must not shrink
-        # the paths to a dot. The scatter put every map point into the data limits: they are
-        # replaced by that box, and the view limits stay automatic (with the axes' margins),
-        # so the equal aspect below can widen one of them to the panel's shape. Fixed limits
-        # would leave it nothing to adjust: matplotlib then overrides them and logs "Ignoring
-        # fixed x limits ..." at every draw.
-        paths = est[:, :2, 3] if gt is None else np.vstack([est[:, :2, 3], gt[:, :2, 3]])
-        lo = np.minimum(paths.min(axis=0), np.percentile(cloud[:, :2], 1.0, axis=0))
-        hi = np.maximum(paths.max(axis=0), np.percentile(cloud[:, :2], 99.0, axis=0))
-        ax_top.ignore_existing_data_limits = True
-        ax_top.update_datalim(np.array([lo, hi]))
-        ax_top.autoscale_view()
+        _frame_paths_and_map(ax_top, est, gt, cloud)
     ax_top.set_aspect('equal', adjustable='datalim')
     ax_top.set_xlabel('x [m]')
     ax_top.set_ylabel('y [m]')
@@ -182,27 +220,8 @@ def plot_trajectory(
     ax_top.grid(True, alpha=0.3)
     ax_top.legend(loc='best')
 
-    ax_prev = None
-    for row, (values, label, colour) in enumerate(series):
-        ax = fig.add_subplot(grid[row, 1], sharex=ax_prev)
-        index = np.arange(values.size)
-        ax.plot(index, values, color=colour, linewidth=1.0, marker='.', markersize=3)
-        finite = values[np.isfinite(values)]
-        if finite.size:
-            mean = float(finite.mean())
-            ax.axhline(
-                mean, color='black', linestyle='--', linewidth=0.8, label=f'mean {mean:.3g}'
-            )
-            ax.legend(loc='upper right')
-        ax.set_ylabel(label)
-        ax.set_ylim(bottom=0.0)
-        ax.grid(True, alpha=0.3)
-        if row == len(series) - 1:
-            ax.set_xlabel('pair index')
-        else:
-            ax.tick_params(labelbottom=False)
-        ax_prev = ax
-
+    if series:
+        _plot_error_panels(fig, grid, series)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=120)
