@@ -55,6 +55,40 @@ def _plot_top_view(
     ax.plot(*xy[-1], marker='s', color=colour, markersize=7, linestyle='none')
 
 
+def _figure(n_series: int) -> tuple[Any, Any, Any]:
+    """A figure with the top view on the left and ``n_series`` error panels on the right (its
+    grid; None without panels), and the top view's axes."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as exc:
+        raise ImportError(
+            'plot_trajectory needs matplotlib: pip install matplotlib '
+            "(or the package's `bench` / `test` extra)."
+        ) from exc
+    grid = None
+    if n_series:
+        fig = Figure(figsize=(13.0, 6.0), layout='constrained')
+        grid = fig.add_gridspec(n_series, 2, width_ratios=(1.1, 1.0))
+        ax_top = fig.add_subplot(grid[:, 0])
+    else:
+        fig = Figure(figsize=(7.0, 6.5), layout='constrained')
+        ax_top = fig.add_subplot()
+    FigureCanvasAgg(fig)
+    return fig, grid, ax_top
+
+
+def _map_sample(map_points: ArrayLike) -> NDArray[np.float64]:
+    """The finite map points, evenly subsampled to :data:`MAX_MAP_POINTS`."""
+    cloud = np.asarray(map_points, dtype=np.float64)
+    if cloud.ndim != 2 or cloud.shape[1] != 3:
+        raise ValueError(f'Expected `map_points` to have shape (P, 3), got {cloud.shape}.')
+    cloud = cloud[np.isfinite(cloud).all(axis=1)]
+    if len(cloud) > MAX_MAP_POINTS:
+        cloud = cloud[:: -(-len(cloud) // MAX_MAP_POINTS)]
+    return cloud
+
+
 def _draw_map(ax: Any, cloud: NDArray[np.float64]) -> None:
     """The map behind the paths: points shaded by height (darker is higher)."""
     z_lo, z_hi = np.percentile(cloud[:, 2], [2.0, 98.0])
@@ -170,38 +204,15 @@ def plot_trajectory(
     """
     est = as_poses(T_est, 'T_est')
     gt = None if T_gt is None else as_poses(T_gt, 'T_gt')
-    cloud = None
-    if map_points is not None:
-        cloud = np.asarray(map_points, dtype=np.float64)
-        if cloud.ndim != 2 or cloud.shape[1] != 3:
-            raise ValueError(f'Expected `map_points` to have shape (P, 3), got {cloud.shape}.')
-        cloud = cloud[np.isfinite(cloud).all(axis=1)]
-        if len(cloud) > MAX_MAP_POINTS:
-            cloud = cloud[:: -(-len(cloud) // MAX_MAP_POINTS)]
+    cloud = None if map_points is None else _map_sample(map_points)
     series: list[tuple[NDArray[np.float64], str, str]] = []
     if e_R_deg is not None:
         series.append((_as_series(e_R_deg, 'e_R_deg'), 'rotation error $e_R$ [deg]', 'tab:red'))
     if e_t is not None:
         series.append((_as_series(e_t, 'e_t'), 'translation error $e_t$ [m]', 'tab:green'))
 
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as exc:
-        raise ImportError(
-            'plot_trajectory needs matplotlib: pip install matplotlib '
-            "(or the package's `bench` / `test` extra)."
-        ) from exc
-
     path = Path(path_png)
-    if series:
-        fig = Figure(figsize=(13.0, 6.0), layout='constrained')
-        grid = fig.add_gridspec(len(series), 2, width_ratios=(1.1, 1.0))
-        ax_top = fig.add_subplot(grid[:, 0])
-    else:
-        fig = Figure(figsize=(7.0, 6.5), layout='constrained')
-        ax_top = fig.add_subplot()
-    FigureCanvasAgg(fig)
+    fig, grid, ax_top = _figure(len(series))
 
     if cloud is not None and len(cloud):
         _draw_map(ax_top, cloud)

@@ -205,6 +205,30 @@ def _as_uint8(data: Any) -> NDArray[np.uint8]:
         return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
+def _extra_names(layout: Mapping[str, Any], fields: Sequence[str] | None) -> list[str]:
+    """The extra fields to decode (all but x, y, z when ``fields`` is None), after checking
+    that x, y, z are there with one value each and that every requested field is."""
+    missing = [c for c in 'xyz' if c not in layout]
+    if missing:
+        raise InvalidPointCloudError(
+            f'PointCloud2 has no {"/".join(missing)} field; its fields are {sorted(layout)}.'
+        )
+    for c in 'xyz':
+        if layout[c].count != 1:
+            raise InvalidPointCloudError(
+                f'PointField {c!r} has count {layout[c].count}; expected 1.'
+            )
+    if fields is None:
+        return [n for n in layout if n not in ('x', 'y', 'z')]
+    names = [str(n) for n in fields if n not in ('x', 'y', 'z')]
+    absent = [n for n in names if n not in layout]
+    if absent:
+        raise InvalidPointCloudError(
+            f'PointCloud2 has no field {absent[0]!r}; its fields are {sorted(layout)}.'
+        )
+    return names
+
+
 def _xyz(
     layout: Mapping[str, Any],
     buf: NDArray[np.uint8],
@@ -321,25 +345,7 @@ def pointcloud2_to_array(
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     layout = _parse_fields(msg.fields, point_step, bool(msg.is_bigendian))
-    missing = [c for c in 'xyz' if c not in layout]
-    if missing:
-        raise InvalidPointCloudError(
-            f'PointCloud2 has no {"/".join(missing)} field; its fields are {sorted(layout)}.'
-        )
-    for c in 'xyz':
-        if layout[c].count != 1:
-            raise InvalidPointCloudError(
-                f'PointField {c!r} has count {layout[c].count}; expected 1.'
-            )
-    if fields is None:
-        extra_names = [n for n in layout if n not in ('x', 'y', 'z')]
-    else:
-        extra_names = [str(n) for n in fields if n not in ('x', 'y', 'z')]
-        absent = [n for n in extra_names if n not in layout]
-        if absent:
-            raise InvalidPointCloudError(
-                f'PointCloud2 has no field {absent[0]!r}; its fields are {sorted(layout)}.'
-            )
+    extra_names = _extra_names(layout, fields)
 
     buf = _as_uint8(msg.data)
     if height < 0 or width < 0 or buf.size != row_step * height:
