@@ -64,7 +64,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos_overriding_options import InvalidQosOverridesError
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -82,7 +81,13 @@ from kentreg_ros.ros import parameters, services
 from kentreg_ros.ros.diagnostics import Counters, Snapshot, odometry_status
 from kentreg_ros.ros.frames import Frames, moving_frame
 from kentreg_ros.ros.logbridge import RclpyLogHandler
-from kentreg_ros.ros.outputs import Outputs, input_qos, qos_overridable
+from kentreg_ros.ros.outputs import (
+    MAP_TICK_S,
+    Outputs,
+    input_qos,
+    qos_overridable,
+    qos_override_errors,
+)
 from kentreg_ros.ros.parameters import StartupError
 from kentreg_ros.ros.usage import build_parser
 
@@ -102,9 +107,6 @@ MAX_ERRORS_IN_A_ROW = 3
 #: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
 #: one-line message only, so a node failing in ever new ways cannot fill its log.
 MAX_ERROR_KINDS = 32
-#: Seconds between the map timer's looks at whether ``map_period`` has passed (a cheap check;
-#: the map itself goes out every ``map_period``).
-MAP_TICK_S = 0.1
 
 
 @dataclass
@@ -209,7 +211,7 @@ class KentRegNode(Node):
             A QoS override rclpy cannot apply (an unknown policy value, a wrong type).
         """
         settings = self._settings
-        try:
+        with qos_override_errors():
             self._frames = Frames(self, settings, tf)
             self._outputs = Outputs(self, self._frames, settings)
             self._pub_diag = self.create_publisher(
@@ -222,13 +224,6 @@ class KentRegNode(Node):
                 input_qos(settings),
                 qos_overriding_options=qos_overridable(),
             )
-        except (InvalidQosOverridesError, RuntimeError, ValueError, TypeError) as exc:
-            raise StartupError(f'Invalid qos_overrides: {exc}') from exc
-        except AssertionError as exc:  # rclpy's QoSProfile checks a value's type by assert
-            raise StartupError(
-                'Invalid qos_overrides: a value of the wrong type (depth takes an integer; '
-                'history, reliability and durability a policy name such as reliable)'
-            ) from exc
         self._sub_pose = self.create_subscription(
             PoseWithCovarianceStamped, names.INITIAL_POSE, self._on_initial_pose, 10
         )

@@ -31,8 +31,10 @@ trajectory log have their own.
 from __future__ import annotations
 
 import collections
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -48,7 +50,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
-from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -64,16 +66,36 @@ from kentreg_ros.ros.messages import (
     pose_to_msg,
     stamp_to_msg,
 )
+from kentreg_ros.ros.parameters import StartupError
 
 FloatArray = np.ndarray
 #: Variance reported for unknown twist components (no motion measured yet).
 UNKNOWN_VARIANCE = 1e6
+#: Seconds between the map timer's looks at whether ``map_period`` has passed (a cheap check;
+#: the map itself goes out every ``map_period``).
+MAP_TICK_S = 0.1
 
 
 def qos_overridable() -> QoSOverridingOptions:
     """``qos_overrides.<topic>.<publisher|subscription>.{history,depth,reliability}`` apply
     (rclpy reads them when the endpoint is created; they are read-only afterwards)."""
     return QoSOverridingOptions.with_default_policies()
+
+
+@contextlib.contextmanager
+def qos_override_errors() -> Iterator[None]:
+    """Creating endpoints: a ``qos_overrides`` value rclpy cannot apply is a
+    :class:`~kentreg_ros.ros.parameters.StartupError` naming it (rclpy raises RuntimeError on
+    an unknown policy name and asserts on a wrong type)."""
+    try:
+        yield
+    except (InvalidQosOverridesError, RuntimeError, ValueError, TypeError) as exc:
+        raise StartupError(f'Invalid qos_overrides: {exc}') from exc
+    except AssertionError as exc:
+        raise StartupError(
+            'Invalid qos_overrides: a value of the wrong type (depth takes an integer; '
+            'history, reliability and durability a policy name such as reliable)'
+        ) from exc
 
 
 def input_qos(settings: NodeSettings) -> QoSProfile:
