@@ -97,13 +97,16 @@ echo "colcon_check: install tree complete (marker, package.xml, config, launch, 
 
 # What colcon test runs: by default the tests of the ROS-facing packaging (launch file and the
 # install tree seen through the ament index, which only runs here; kentreg_play over real rclpy;
-# the node in-process, its parameters and message conversions; the generated parameter table).
+# the node in-process, its frames, drop-in outputs, RViz file, parameters and message
+# conversions; the generated parameter table). With a sourced tf2_ros the frame tests still
+# use their stand-ins; the launch file loads for real.
 # The whole suite already ran in test/run_tests.sh; --all repeats it under colcon.
 if [[ "$ALL" == 1 ]]; then
   PYTEST_ARGS=()
 else
   PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py test/test_ros_node.py
-    test/test_parameters.py test/test_ros_messages.py)
+    test/test_ros_dropin.py test/test_ros_frames.py test/test_parameters.py
+    test/test_ros_messages.py)
 fi
 if [[ -n "${COLCON_PYTEST_ARGS:-}" ]]; then
   read -r -a PYTEST_ARGS <<< "$COLCON_PYTEST_ARGS"
