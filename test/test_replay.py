@@ -148,6 +148,7 @@ def test_replay_sample_mcap_has_one_message_per_scan(
         '/kentreg/odometry': n,
         '/kentreg/pose': n,
         '/tf': n,
+        '/kentreg/cloud_registered': n,
         '/kentreg/path': 1,
         '/kentreg/map': 1,
     }
@@ -155,6 +156,7 @@ def test_replay_sample_mcap_has_one_message_per_scan(
     assert types['/kentreg/odometry'] == 'nav_msgs/msg/Odometry'
     assert types['/kentreg/pose'] == 'geometry_msgs/msg/PoseStamped'
     assert types['/kentreg/path'] == 'nav_msgs/msg/Path'
+    assert types['/kentreg/cloud_registered'] == 'sensor_msgs/msg/PointCloud2'
 
     messages = mcap_messages(out / 'odometry.mcap')
     input_stamps = [stamp_ns(m) for m in mcap_messages(sample_bag / 'balm_50.mcap')['/points']]
@@ -162,6 +164,14 @@ def test_replay_sample_mcap_has_one_message_per_scan(
     assert [stamp_ns(m) for m in odometry] == input_stamps[:n]
     assert {m.header.frame_id for m in odometry} == {'odom'}  # type: ignore[attr-defined]
     assert {m.child_frame_id for m in odometry} == {'lidar'}  # type: ignore[attr-defined]
+    # The node's names and frames (kentreg_node with no parameters publishes the same).
+    from kentreg_ros.io import names
+
+    for name in (names.ODOMETRY, names.POSE, names.PATH, names.CLOUD_REGISTERED, names.MAP):
+        assert names.absolute(name) in counts
+    clouds = messages['/kentreg/cloud_registered']
+    assert [stamp_ns(m) for m in clouds] == input_stamps[:n]
+    assert {m.header.frame_id for m in clouds} == {'odom'}  # type: ignore[attr-defined]
     path = messages['/kentreg/path'][0]
     positions = [(p.pose.position.x, p.pose.position.y) for p in path.poses]  # type: ignore[attr-defined]
     _, T_tum = read_tum(out / 'poses_tum.txt')

@@ -259,7 +259,9 @@ def plot_run(
     ImportError
         matplotlib is not installed.
     """
-    cloud = run.map.points if run.map is not None and len(run.map) else None
+    cloud = None
+    if run.map is not None and len(run.map):
+        cloud = run.map.points.astype(np.float64)
     if evaluation is None:
         return plot_trajectory(path_png, run.poses, title=title, map_points=cloud)
     ate = evaluation.metrics['ate']

@@ -20,8 +20,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import ACCEPTED, Health, KentRegError, Odometry, OdometryStep, VoxelMap
+from kentreg_ros.core import KentRegError, Odometry, OdometryStep
 from kentreg_ros.io.pointcloud2 import point_time_field
+from kentreg_ros.io.runmap import DEFAULT_MAX_POINTS, RunMap
 from kentreg_ros.io.sources import ScanSource, SkippedScan
 
 logger = logging.getLogger(__name__)
@@ -77,9 +78,10 @@ class OdometryRun:
         unreadable scan file): skipped, as the ROS node skips them, and counted here.
     skipped : list of SkippedScan
         The first :data:`MAX_SKIPPED_NAMED` of them (input index, stamp, reason).
-    map : VoxelMap or None
-        With ``map_voxel_size``: the points of every accepted scan (and the first) at its pose
-        in the odometry frame, one per voxel.
+    map : RunMap or None
+        With ``map_voxel_size``: the map of the run (:class:`~kentreg_ros.io.runmap.RunMap`,
+        the one ``kentreg_node`` builds): the prepared points of every accepted scan (and the
+        first) at its pose in the odometry frame, one per voxel.
     """
 
     steps: list[OdometryStep] = field(default_factory=list)
@@ -90,7 +92,7 @@ class OdometryRun:
     error: str | None = None
     n_skipped: int = 0
     skipped: list[SkippedScan] = field(default_factory=list)
-    map: VoxelMap | None = None
+    map: RunMap | None = None
 
     @property
     def poses(self) -> FloatArray:
@@ -114,6 +116,7 @@ def run_odometry(
     stride: int = 1,
     on_step: Callable[[OdometryStep], object] | None = None,
     map_voxel_size: float = 0.0,
+    map_max_points: int = DEFAULT_MAX_POINTS,
 ) -> OdometryRun:
     """Feed the scans ``start, start + stride, ...`` of ``source`` (at most ``max_scans``).
 
@@ -146,11 +149,14 @@ def run_odometry(
     on_step : callable, optional
         Called with each step after it ran (a progress bar).
     map_voxel_size : float
-        When positive, accumulate the map of the run in :attr:`OdometryRun.map`: the input
-        points of every scan whose pose was registered (and of the first), moved by that pose
-        into the odometry frame, at most one per voxel of this edge (m). Scans that fell back
-        or were rejected stay out: their pose is only a prediction. The points are the input's,
-        not deskewed. The map grows with the area covered (offline use).
+        When positive, accumulate the map of the run in :attr:`OdometryRun.map`: the prepared
+        points (:attr:`OdometryStep.points`: downsampled, outlier-free, deskewed) of every scan
+        whose pose was registered (and of the first), moved by that pose into the odometry
+        frame, at most one per voxel of this edge (m); the node's map, built the same way (see
+        :mod:`kentreg_ros.io.runmap` for why these points). Scans that fell back or were
+        rejected stay out: their pose is only a prediction.
+    map_max_points : int
+        Points the map keeps at most; beyond them its voxel edge doubles.
 
     Returns
     -------
@@ -165,7 +171,7 @@ def run_odometry(
         raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
     run = OdometryRun()
     if map_voxel_size > 0.0:
-        run.map = VoxelMap(map_voxel_size)
+        run.map = RunMap(map_voxel_size, max_points=map_max_points)
     n_total = len(source)
     if start >= n_total:
         raise ValueError(f'start {start}: the input has only {n_total} scans')
@@ -203,10 +209,8 @@ def run_odometry(
             )
             run.steps.append(step)
             run.input_indices.append(index)
-            if run.map is not None and (step.health in ACCEPTED or step.health == Health.FIRST):
-                R, t = step.T_world_lidar[:3, :3], step.T_world_lidar[:3, 3]
-                points = np.asarray(scan.points, dtype=np.float64)
-                run.map.insert(points[np.isfinite(points).all(axis=1)] @ R.T + t)
+            if run.map is not None and step.ok and step.points is not None:
+                run.map.add(step.points, step.T_world_lidar)
             if on_step is not None:
                 on_step(step)
             logger.debug(
