@@ -167,17 +167,10 @@ def run_odometry(
     ValueError
         ``start`` beyond the input, or ``stride`` not a positive integer.
     """
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
+    indices = _indices(len(source), start, max_scans, stride)
     run = OdometryRun()
     if map_voxel_size > 0.0:
         run.map = RunMap(map_voxel_size, max_points=map_max_points)
-    n_total = len(source)
-    if start >= n_total:
-        raise ValueError(f'start {start}: the input has only {n_total} scans')
-    indices = range(start, n_total, stride)
-    if max_scans is not None:
-        indices = indices[:max_scans]
     reader: Iterator[ScanLike | SkippedScan] = (
         source.entries() if isinstance(source, ScanSource) else iter(source)
     )
@@ -201,25 +194,9 @@ def run_odometry(
                 logger.info('Scan %d skipped: %s', index, scan.reason)
                 continue
             run.read_ms.append((time.perf_counter() - t0) * 1e3)
-            step = odometry.step(
-                scan.points,
-                scan.stamp_ns,
-                frame_id=scan.frame_id,
-                point_times=point_time_field(getattr(scan, 'extras', None)),
-            )
-            run.steps.append(step)
-            run.input_indices.append(index)
-            if run.map is not None and step.ok and step.points is not None:
-                run.map.add(step.points, step.T_world_lidar)
+            step = _step(odometry, scan, index, run)
             if on_step is not None:
                 on_step(step)
-            logger.debug(
-                'Scan %d: %s in %.0f ms (%s)',
-                index,
-                step.health,
-                step.timings['total'],
-                step.message,
-            )
     except KeyboardInterrupt:
         run.interrupted = True
     finally:
@@ -227,3 +204,31 @@ def run_odometry(
             reader.close()
     run.elapsed_s = time.perf_counter() - t_run
     return run
+
+
+def _step(odometry: Odometry, scan: ScanLike, index: int, run: OdometryRun) -> OdometryStep:
+    """One scan through the odometry, recorded in ``run`` (and its map)."""
+    step = odometry.step(
+        scan.points,
+        scan.stamp_ns,
+        frame_id=scan.frame_id,
+        point_times=point_time_field(getattr(scan, 'extras', None)),
+    )
+    run.steps.append(step)
+    run.input_indices.append(index)
+    if run.map is not None and step.ok and step.points is not None:
+        run.map.add(step.points, step.T_world_lidar)
+    logger.debug(
+        'Scan %d: %s in %.0f ms (%s)', index, step.health, step.timings['total'], step.message
+    )
+    return step
+
+
+def _indices(n_total: int, start: int, max_scans: int | None, stride: int) -> range:
+    """The input indices a run takes (see :func:`run_odometry`)."""
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
+    if start >= n_total:
+        raise ValueError(f'start {start}: the input has only {n_total} scans')
+    indices = range(start, n_total, stride)
+    return indices[:max_scans] if max_scans is not None else indices
