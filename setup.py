@@ -13,8 +13,10 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
+        # config/*.xml: DDS profiles (the shared-memory Fast DDS profile for large clouds).
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.xml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
+        ('share/' + PACKAGE + '/rviz', glob('rviz/*.rviz')),
     ],
     python_requires='>=3.11',
     install_requires=['numpy>=1.24', 'scipy>=1.10', 'pyyaml>=6', 'setuptools'],

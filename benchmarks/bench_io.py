@@ -24,9 +24,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kentreg_ros.io.bags import open_scan_source  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, pointcloud2_to_array  # noqa: E402
 from kentreg_ros.io.scanfiles import read_pcd  # noqa: E402
+from kentreg_ros.io.sources import open_scan_source  # noqa: E402
 
 
 def _time(fn: Callable[[], Any], repeat: int) -> tuple[float, float]:

@@ -178,6 +178,7 @@ def measure_live(
     from sensor_msgs.msg import PointCloud2, PointField
     from std_msgs.msg import Header
 
+    from kentreg_ros.io import names
     from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
 
     ns = f'/live_{uuid.uuid4().hex[:8]}'
@@ -188,6 +189,8 @@ def measure_live(
         '--ros-args',
         '-r',
         f'__ns:={ns}',
+        '-r',
+        f'{names.DIAGNOSTICS}:={ns}/diagnostics',
         '-p',
         f'model:={model}',
         '-p',
@@ -221,11 +224,12 @@ def measure_live(
             array_to_pointcloud2(p, frame_id='lidar', stamp_ns=s, factory=factory)
             for p, s in zip(scans, stamps, strict=True)
         ]
-        pub = node.create_publisher(PointCloud2, f'{ns}/points', qos_profile_sensor_data)
-        node.create_subscription(OdometryMsg, f'{ns}/odom', on_odom, 50)
+        pub = node.create_publisher(PointCloud2, f'{ns}/{names.POINTS}', qos_profile_sensor_data)
+        odom_topic = f'{ns}/{names.ODOMETRY}'
+        node.create_subscription(OdometryMsg, odom_topic, on_odom, 50)
         node.create_subscription(DiagnosticArray, f'{ns}/diagnostics', on_diag, 50)
         deadline = time.monotonic() + 60.0
-        while pub.get_subscription_count() == 0 or node.count_publishers(f'{ns}/odom') == 0:
+        while pub.get_subscription_count() == 0 or node.count_publishers(odom_topic) == 0:
             if time.monotonic() > deadline or proc.poll() is not None:
                 raise RuntimeError(f'kentreg_node did not come up:\n{_log_text(log)}')
             time.sleep(0.05)

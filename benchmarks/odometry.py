@@ -81,8 +81,9 @@ from kentreg_ros.core import (  # noqa: E402
     prepare_scan,  # noqa: E402
 )
 from kentreg_ros.eval import GroundTruth, associate, evaluate, metrics, run_odometry  # noqa: E402
-from kentreg_ros.io.bags import Scan, open_recording  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
+from kentreg_ros.io.recordings import open_recording  # noqa: E402
+from kentreg_ros.io.sources import Scan  # noqa: E402
 
 logger = logging.getLogger('benchmarks.odometry')
 

@@ -143,7 +143,7 @@ class Sample:
 
     Attributes
     ----------
-    scans : list of kentreg_ros.io.bags.Scan
+    scans : list of kentreg_ros.io.sources.Scan
         Every scan of the input, raw (non-finite points dropped), with its stamp.
     T_world : ndarray, shape (N, 4, 4)
         Reference ``T_world_lidar`` of every scan (rotations projected onto SO(3)).
@@ -170,7 +170,7 @@ def load_sample(path: Path) -> Sample:
     """Every scan and its reference pose from a scan folder with a pose file, or a bag.
 
     The input is opened as ``kentreg_replay`` opens it
-    (:func:`kentreg_ros.io.bags.open_recording`) and the poses are associated by stamp as it
+    (:func:`kentreg_ros.io.recordings.open_recording`) and the poses are associated by stamp as it
     does.
 
     Raises
@@ -179,7 +179,7 @@ def load_sample(path: Path) -> Sample:
         No reference poses, or a scan without one.
     """
     from kentreg_ros.eval import GroundTruth, associate
-    from kentreg_ros.io.bags import open_recording
+    from kentreg_ros.io.recordings import open_recording
 
     source, reference, origin = open_recording(path)
     if reference is None:

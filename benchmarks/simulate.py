@@ -51,9 +51,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from kentreg_ros.eval import GroundTruth
 from kentreg_ros.io import open_recording
-from kentreg_ros.io.bags import Scan
 from kentreg_ros.io.poses import Trajectory
 from kentreg_ros.io.scanfiles import write_pcd
+from kentreg_ros.io.sources import Scan
 
 FloatArray = NDArray[np.float64]
 

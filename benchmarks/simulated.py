@@ -76,7 +76,7 @@ from benchmarks.simulate import (  # noqa: E402
     simulate,
 )
 from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
-from kentreg_ros.io.bags import Scan  # noqa: E402
+from kentreg_ros.io.sources import Scan  # noqa: E402
 
 logger = logging.getLogger('benchmarks.simulated')
 

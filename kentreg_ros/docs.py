@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kentreg_ros.core.config import KentRegConfig, iter_fields, plain_value
+from kentreg_ros.core import KentRegConfig, iter_fields, plain_value
 from kentreg_ros.io.params import PARAMETERS, Parameter, dump_parameter_file
 
 PROG = 'python3 -m kentreg_ros.docs'

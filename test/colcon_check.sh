@@ -62,7 +62,8 @@ for path in \
   "share/ament_index/resource_index/packages/$PKG" \
   "share/$PKG/package.xml" \
   "share/$PKG/config/kentreg.yaml" \
-  "share/$PKG/launch/kentreg.launch.py"; do
+  "share/$PKG/launch/kentreg.launch.py" \
+  "share/$PKG/rviz/kentreg.rviz"; do
   [[ -f "$INSTALL/$path" ]] || fail "install tree lacks $path"
 done
 for exe in kentreg_node kentreg_play kentreg_replay; do
@@ -92,17 +93,20 @@ out="$(run_installed "$INSTALL/lib/$PKG/kentreg_play" "$WS/no_such_bag" 2>&1)" |
   fail "installed kentreg_play: expected exit 2 on a missing bag, got $status: $out"
 run_installed python3 -c "import kentreg_ros; print(kentreg_ros.__file__)" | grep -q "^$INSTALL/" ||
   fail "kentreg_ros is not imported from $INSTALL after sourcing install/local_setup.sh"
-echo "colcon_check: install tree complete (marker, package.xml, config, launch, lib/$PKG/kentreg_node)"
+echo "colcon_check: install tree complete (marker, package.xml, config, launch, rviz, lib/$PKG/kentreg_node)"
 
 # What colcon test runs: by default the tests of the ROS-facing packaging (launch file and the
 # install tree seen through the ament index, which only runs here; kentreg_play over real rclpy;
-# the node in-process, its parameters and message conversions; the generated parameter table).
+# the node in-process, its frames, drop-in outputs, RViz file, parameters and message
+# conversions; the generated parameter table). With a sourced tf2_ros the frame tests still
+# use their stand-ins; the launch file loads for real.
 # The whole suite already ran in test/run_tests.sh; --all repeats it under colcon.
 if [[ "$ALL" == 1 ]]; then
   PYTEST_ARGS=()
 else
   PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py test/test_ros_node.py
-    test/test_parameters.py test/test_ros_messages.py)
+    test/test_ros_dropin.py test/test_ros_frames.py test/test_parameters.py
+    test/test_ros_messages.py)
 fi
 if [[ -n "${COLCON_PYTEST_ARGS:-}" ]]; then
   read -r -a PYTEST_ARGS <<< "$COLCON_PYTEST_ARGS"

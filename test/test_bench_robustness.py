@@ -35,7 +35,7 @@ from benchmarks.robustness import (  # noqa: E402
     run_turned,
     turn_transform,
 )
-from kentreg_ros.io.bags import Scan  # noqa: E402
+from kentreg_ros.io.sources import Scan  # noqa: E402
 
 
 @pytest.fixture(scope='module')

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from kentreg_ros.core import ConfigError
-from kentreg_ros.core.config import KentRegConfig, iter_fields
+from kentreg_ros.core import ConfigError, KentRegConfig, iter_fields
 
 
 def test_every_field_has_a_description_and_a_range_or_choices_or_is_bool() -> None:

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from kentreg_ros import docs
-from kentreg_ros.core.config import KentRegConfig, iter_fields
+from kentreg_ros.core import KentRegConfig, iter_fields
 from kentreg_ros.io.params import PARAMETERS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

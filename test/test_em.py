@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from test_kent import _population_moment_estimate
 
 from kentreg_ros.core import exp_so3, rotation_angle
-from kentreg_ros.core.kent import KentParams, fit_kent_moments_batch, sample_kent
+from kentreg_ros.core.kent import KentParams, fit_kent_moments_batch
+from kentreg_ros.core.kent_sampling import sample_kent
 from kentreg_ros.core.registration.em import paper_cluster_em, shared_rotation_em
 from kentreg_ros.core.scan.clusters import (
     ModelClusters,

@@ -13,13 +13,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from kentreg_ros.io.bags import (
-    bag_topics,
-    is_bag,
-    open_recording,
-    open_scan_source,
-    read_ground_truth,
-)
+from kentreg_ros.io.bags import bag_topics, is_bag
 from kentreg_ros.io.bagwriter import BagWriter
 from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
 from kentreg_ros.io.pointcloud2 import (
@@ -27,7 +21,9 @@ from kentreg_ros.io.pointcloud2 import (
     array_to_pointcloud2,
     rosbags_factory,
 )
+from kentreg_ros.io.recordings import open_recording, read_ground_truth
 from kentreg_ros.io.scanfiles import write_pcd
+from kentreg_ros.io.sources import open_scan_source
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 PC2 = 'sensor_msgs/msg/PointCloud2'
@@ -301,7 +297,7 @@ def test_open_recording_finds_the_reference_poses(
     np.testing.assert_array_equal(reference.stamps_ns, stamps)
     assert [s.stamp_ns for s in source] == stamps.tolist()
     assert all(not s.extras for s in source)  # x, y, z only by default
-    with caplog.at_level(logging.INFO, logger='kentreg_ros.io.bags'):
+    with caplog.at_level(logging.INFO, logger='kentreg_ros.io'):
         assert open_recording(bag, poses_topic='/other').reference is None
     assert 'No ground truth from the bag' in caplog.text
     # A scan folder with BALM's alidarPose.csv beside the scans: its times stamp the scans.
@@ -345,7 +341,7 @@ def test_entries_put_a_skipped_scan_in_place_of_a_malformed_cloud(tmp_path: Path
             if i == 1:
                 msg.fields = [f for f in msg.fields if f.name != 'z']
             writer.write(conn, stamp + 5, JAZZY.serialize_cdr(msg, PC2))
-    from kentreg_ros.io.bags import Scan, SkippedScan
+    from kentreg_ros.io.sources import Scan, SkippedScan
 
     source = open_scan_source(path)
     entries = list(source.entries())
@@ -360,7 +356,7 @@ def test_entries_put_a_skipped_scan_in_place_of_a_malformed_cloud(tmp_path: Path
 
 
 def test_entries_of_a_scan_folder_skip_an_unreadable_file(tmp_path: Path) -> None:
-    from kentreg_ros.io.bags import SkippedScan
+    from kentreg_ros.io.sources import SkippedScan
 
     scans = _scans(3, points=50, seed=10)
     for i, (pts, intensity) in enumerate(scans):

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from kentreg_ros.cli.convert import downsample_scan, main
-from kentreg_ros.io.bags import bag_topics, open_scan_source, read_ground_truth
+from kentreg_ros.io.bags import bag_topics
 from kentreg_ros.io.poses import read_poses, write_kitti, write_tum
+from kentreg_ros.io.recordings import read_ground_truth
 from kentreg_ros.io.scanfiles import write_pcd
+from kentreg_ros.io.sources import open_scan_source
 
 
 def _folder(tmp_path: Path, n: int = 4, points: int = 3000) -> tuple[Path, list[np.ndarray]]:

@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kentreg_ros.io.bags import bag_topics, open_scan_source, read_ground_truth
+from kentreg_ros.io.bags import bag_topics
 from kentreg_ros.io.poses import read_poses
+from kentreg_ros.io.recordings import read_ground_truth
+from kentreg_ros.io.sources import open_scan_source
 
 BALM_FIRST_NS = 1_630_577_758_569_490_000
 BALM_LAST_NS = 1_630_577_783_069_794_000

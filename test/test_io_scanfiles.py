@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from kentreg_ros.io.errors import ScanFileError
+from kentreg_ros.io.ply import read_ply
 from kentreg_ros.io.scanfiles import (
     list_scans,
     natural_key,
     read_eth_csv,
     read_kitti_bin,
     read_pcd,
-    read_ply,
     read_scan,
     write_pcd,
 )

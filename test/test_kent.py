@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from kentreg_ros.core import KentRegError, kent
+from kentreg_ros.core import KentRegError, kent, kent_sampling
 from kentreg_ros.core.kent import (
     KAPPA_MAX,
     KAPPA_SWITCH,
@@ -19,8 +19,8 @@ from kentreg_ros.core.kent import (
     fit_kent_moments_batch,
     kent_log_normalizer,
     kent_log_pdf,
-    sample_kent,
 )
+from kentreg_ros.core.kent_sampling import sample_kent
 
 FloatArray = NDArray[np.float64]
 
@@ -321,7 +321,7 @@ def test_sample_moments_match_normalizer_derivatives(kappa: float, beta: float) 
     ],
 )
 def test_sampler_acceptance_rate_is_reasonable(kappa: float, beta: float, min_rate: float) -> None:
-    samples, rate = kent._sample_kent_frame(kappa, beta, 5000, np.random.default_rng(6))
+    samples, rate = kent_sampling._sample_kent_frame(kappa, beta, 5000, np.random.default_rng(6))
     assert samples.shape == (5000, 3)
     assert rate > min_rate
 

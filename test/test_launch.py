@@ -104,19 +104,29 @@ def _documented_defaults() -> dict[str, str]:
     return {name: default for name, default in found}
 
 
+def _nodes() -> dict[str, ast.Call]:
+    """The ``Node(...)`` actions by package."""
+    return {_value(_keywords(n)['package']): n for n in _calls(_tree(), 'Node')}
+
+
 def _executable() -> str:
-    (node,) = _calls(_tree(), 'Node')
-    kwargs = _keywords(node)
-    assert _value(kwargs['package']) == 'kentreg_ros'
+    kwargs = _keywords(_nodes()['kentreg_ros'])
     return str(_value(kwargs['executable']))
+
+
+#: The arguments, in declaration order.
+ARGUMENTS = ['topic', 'config_file', 'use_sim_time', 'rviz', 'bag', 'odom_frame', 'base_frame']
 
 
 def test_launch_arguments_and_defaults_are_the_documented_ones() -> None:
     declared = _declared_arguments()
     documented = _documented_defaults()
-    assert list(declared) == list(documented) == ['topic', 'config_file', 'use_sim_time']
-    assert documented['topic'] == f'`{_value(declared["topic"])}`'
-    assert documented['use_sim_time'] == f'`{_value(declared["use_sim_time"])}`'
+    assert list(declared) == list(documented) == ARGUMENTS
+    for name in ARGUMENTS:
+        if name == 'config_file':
+            continue
+        value = _value(declared[name])
+        assert documented[name] == (f'`{value}`' if value else 'empty'), name
     package, parts = _config_default_parts()
     assert documented['config_file'] == (f'the installed `share/{package}/{"/".join(parts)}`'), (
         documented['config_file']
@@ -163,7 +173,7 @@ def test_installed_package_has_marker_manifest_config_launch_and_executable() ->
     assert (
         prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'kentreg_ros'
     ).is_file()
-    for relative in ('package.xml', 'launch/kentreg.launch.py'):
+    for relative in ('package.xml', 'launch/kentreg.launch.py', 'rviz/kentreg.rviz'):
         assert (share / relative).is_file(), relative
     # What `ros2 launch` starts: the executable the launch file names, where ros2 run looks.
     executable = prefix / 'lib' / 'kentreg_ros' / _executable()
@@ -171,6 +181,40 @@ def test_installed_package_has_marker_manifest_config_launch_and_executable() ->
     # The launch file's default parameter file, resolved through the ament index as it does.
     package, parts = _config_default_parts()
     assert Path(get_package_share_directory(package)).joinpath(*parts).is_file()
+
+
+def test_rviz_starts_only_with_rviz_true_and_shows_the_package_configuration() -> None:
+    rviz = _keywords(_nodes()['rviz2'])
+    assert ast.unparse(rviz['condition']) == "IfCondition(LaunchConfiguration('rviz'))"
+    assert _value(_declared_arguments()['rviz']) == 'false'
+    # ['-d', rviz_config], rviz_config = os.path.join(share, 'rviz', 'kentreg.rviz')
+    arguments = rviz['arguments']
+    assert isinstance(arguments, ast.List) and _value(arguments.elts[0]) == '-d'
+    (assign,) = [
+        n.value
+        for n in ast.walk(_tree())
+        if isinstance(n, ast.Assign)
+        and any(isinstance(t, ast.Name) and t.id == 'rviz_config' for t in n.targets)
+    ]
+    assert isinstance(assign, ast.Call) and ast.unparse(assign.func) == 'os.path.join'
+    parts = [_value(a) for a in assign.args[1:]]
+    assert parts == ['rviz', 'kentreg.rviz'] and REPO_ROOT.joinpath(*parts).is_file()
+
+
+def test_a_bag_is_played_with_ros2_bag_or_kentreg_play_only_when_given() -> None:
+    source = LAUNCH_FILE.read_text(encoding='utf-8')
+    (function,) = [
+        n
+        for n in ast.walk(_tree())
+        if isinstance(n, ast.FunctionDef) and n.name == '_node_and_bag'
+    ]
+    text = ast.unparse(function)
+    assert 'if bag:' in text and "shutil.which('ros2')" in text
+    assert "['ros2', 'bag', 'play', bag, '--clock']" in text
+    assert "['kentreg_play', bag, '--clock'" in text
+    # Only the frames given on the command line override the parameter file.
+    assert '{name: value for name, value in frames.items() if value}' in text
+    assert 'OpaqueFunction(function=_node_and_bag)' in source
 
 
 #: Top-level imports that are not ROS packages (standard library, kentreg_ros, pip packages).

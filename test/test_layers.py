@@ -63,7 +63,7 @@ def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
 #: (configuration, errors, SO(3)/SE(3), the Kent distribution, the per-point kernels), the
 #: prepared scan, the registration, the odometry.
 CORE_ROOMS = (
-    ('config', 'errors', 'geometry', 'kent', 'kernels'),
+    ('config', 'errors', 'fields', 'geometry', 'kent', 'kent_sampling', 'kernels'),
     ('scan',),
     ('registration',),
     ('odometry',),

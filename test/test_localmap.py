@@ -273,9 +273,9 @@ def test_local_map_on_the_sample_bag_tracks_without_failures(repo_root: Path) ->
     bag = repo_root / 'bags' / 'balm_50'
     if not bag.exists():
         pytest.skip('bags/balm_50 is absent')
+    from kentreg_ros.eval.alignment import ate
     from kentreg_ros.eval.groundtruth import associate
-    from kentreg_ros.eval.metrics import ate
-    from kentreg_ros.io.bags import open_recording
+    from kentreg_ros.io.recordings import open_recording
 
     recording = open_recording(bag)
     assert recording.reference is not None
@@ -310,7 +310,7 @@ def test_local_map_keeps_tracking_with_raw_outliers_and_skipped_frames(repo_root
         pytest.skip('bags/balm_50 is absent')
     from kentreg_ros.eval.groundtruth import associate
     from kentreg_ros.eval.metrics import failed_pairs, pair_errors, relative_poses
-    from kentreg_ros.io.bags import open_recording
+    from kentreg_ros.io.recordings import open_recording
 
     recording = open_recording(bag)
     assert recording.reference is not None

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.core import DegenerateSceneError
+from kentreg_ros.eval.alignment import align_umeyama, ate
 from kentreg_ros.eval.kitti import (
     KITTI_LENGTHS,
     drift_per_metre,
@@ -18,9 +19,7 @@ from kentreg_ros.eval.kitti import (
 from kentreg_ros.eval.metrics import (
     FAIL_ROTATION_DEG,
     FAIL_TRANSLATION_M,
-    align_umeyama,
     as_poses,
-    ate,
     failed_pairs,
     pair_errors,
     relative_poses,

@@ -4,8 +4,8 @@ Every test starts ``python -m kentreg_ros.ros.node`` with the shipped parameter 
 over Fast DDS kept on loopback (``test/fastdds_localhost.xml``,
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, see ``test/ros_env.py``) in a test-only ROS
 domain, and stops it with SIGINT, checking that it exits cleanly. The node keeps its default
-name and namespace: the parameter file's ``kentreg_node:`` key only applies to
-``/kentreg_node``. Its topics and services are remapped under a prefix of the test's own
+name and namespace (the parameter file is under ``/**``, so any name would do). Its topics and
+services are remapped under a prefix of the test's own
 (:data:`REMAPPED`), because a domain is not private: there are only 40 test-only ids, and
 other test runs on the same machine (other checkouts, CI jobs) use them too; with the
 default names their nodes would take our scans and we their diagnostics.
@@ -48,8 +48,9 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.eval.groundtruth import GroundTruth  # noqa: E402
-from kentreg_ros.io.bags import open_scan_source, read_ground_truth  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
+from kentreg_ros.io.recordings import read_ground_truth  # noqa: E402
+from kentreg_ros.io.sources import open_scan_source  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / 'bags' / 'balm_50'
@@ -60,8 +61,9 @@ _DOMAINS = itertools.count()
 #: The node's topics and services (fully qualified, as in the root namespace), each remapped
 #: to ``<prefix><name>`` for a prefix unique to the test.
 REMAPPED = (
-    '/points', '/odom', '/pose', '/path', '/diagnostics', '/clock', '/kentreg_node/reset',
-    '/kentreg_node/map',
+    '/points', '/initialpose', '/kentreg/odometry', '/kentreg/pose', '/kentreg/path',
+    '/kentreg/cloud_registered', '/kentreg/map', '/diagnostics', '/clock',
+    '/kentreg_node/reset', '/kentreg_node/save_map',
     *(f'/kentreg_node/{s}' for s in (
         'describe_parameters', 'get_parameter_types', 'get_parameters', 'list_parameters',
         'set_parameters', 'set_parameters_atomically',
@@ -253,9 +255,15 @@ class Outputs:
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         # Diagnostics last: Harness.connect relies on this order.
         self.subscriptions = [
-            node.create_subscription(OdometryMsg, harness.name('/odom'), self.odom.append, qos),
-            node.create_subscription(PoseStamped, harness.name('/pose'), self.pose.append, qos),
-            node.create_subscription(PathMsg, harness.name('/path'), self.path.append, qos),
+            node.create_subscription(
+                OdometryMsg, harness.name('/kentreg/odometry'), self.odom.append, qos
+            ),
+            node.create_subscription(
+                PoseStamped, harness.name('/kentreg/pose'), self.pose.append, qos
+            ),
+            node.create_subscription(
+                PathMsg, harness.name('/kentreg/path'), self.path.append, qos
+            ),
             node.create_subscription(
                 DiagnosticArray, harness.name('/diagnostics'), self.diag.append, qos
             ),
@@ -309,7 +317,8 @@ def test_node_tracks_the_sample_bag_like_replay(
     assert [stamp_ns(m.header.stamp) for m in out.odom] == stamps
     assert [stamp_ns(m.header.stamp) for m in out.pose] == stamps
     assert {m.header.frame_id for m in out.odom} == {'odom'}
-    assert {m.child_frame_id for m in out.odom} == {'base_link'}
+    # No base_frame (the shipped default): the cloud's own frame moves, as on a bare bag.
+    assert {m.child_frame_id for m in out.odom} == {'lidar'}
     assert {m.header.frame_id for m in out.pose} == {'odom'}
     np.testing.assert_allclose(pose_matrix(out.odom[0].pose.pose), np.eye(4), atol=1e-12)
 
@@ -368,13 +377,17 @@ def test_node_map_reaches_a_late_transient_local_subscriber(
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
-    harness.node.create_subscription(
-        PointCloud2, harness.name('/kentreg_node/map'), maps.append, qos
-    )
+    harness.node.create_subscription(PointCloud2, harness.name('/kentreg/map'), maps.append, qos)
+    # The latest map is handed over at once (it may still be that of the scan before the last:
+    # the map goes out on a timer, map_period after the one before), then the last scan's.
     assert harness.spin_until(lambda: bool(maps), timeout=20.0, proc=proc), proc.log()
+    last = bag_scans[n - 1].stamp_ns
+    assert stamp_ns(maps[0].header.stamp) in {s.stamp_ns for s in bag_scans[:n]}
+    assert harness.spin_until(
+        lambda: stamp_ns(maps[-1].header.stamp) == last, timeout=20.0, proc=proc
+    ), proc.log()
     msg = maps[-1]
     assert msg.header.frame_id == 'odom'
-    assert stamp_ns(msg.header.stamp) == bag_scans[n - 1].stamp_ns
     points = pointcloud2_to_array(msg).points
     # One point per voxel, within the radius of the last sensor position, in the odom frame.
     assert len(points) > 1000
@@ -551,7 +564,7 @@ def test_node_validates_runtime_parameter_changes(
         Parameter('path_length', value=0),  # below its range
         Parameter('model', value='fast'),  # not a choice
         Parameter('qos_depth', value=3),  # read-only after startup
-        Parameter('odom_frame', value='base_link'),  # same as the base frame
+        Parameter('base_frame', value='odom'),  # the same as the odometry frame
         Parameter('max_range', value='far'),  # wrong type
         Parameter('min_range', value=40.0),  # not below max_range
     ]
@@ -608,7 +621,7 @@ def _write_params(tmp_path: Path, **updates: Any) -> Path:
         (['-p', 'path_length:=0'], 'Expected `path_length` in [1, 1000000], got 0.'),
         (['-p', 'model:=fast'], "Expected `odometry.model` to be one of ['previous_scan', "),
         (['-p', 'voxel_size:=true'], 'Expected `preprocess.voxel_size` to be a number'),
-        (['-p', 'odom_frame:=base_link'], 'must differ'),
+        (['-p', 'base_frame:=odom'], 'must differ'),
         ({'min_range': 9.0, 'max_range': 5.0}, 'min_range < preprocess.max_range'),
         ({'qos_reliability': 'fifo'}, 'Expected `qos_reliability` to be one of'),
         (['--params-file', '/nonexistent/params.yaml'], "Couldn't parse params file"),
@@ -697,3 +710,51 @@ def test_node_honours_use_sim_time(harness: Harness, bag_scans: list[Any]) -> No
     assert stamp_ns(out.odom[0].header.stamp) == sim_ns
     harness.node.destroy_timer(timer)
     assert proc.stop() == 0
+
+
+def test_node_dropped_in_saves_its_map_and_takes_an_initial_pose_over_dds(
+    harness: Harness, bag_scans: list[Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No parameters at all, the sample bag: odometry of the cloud frame; ``~/save_map``
+    called over DDS writes map.ply and trajectory_tum.txt under $ROS_HOME/kentreg_maps and
+    answers with their paths; an ``initialpose`` sent over DDS moves the next pose."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from kentreg_ros.ros.messages import pose_to_msg
+
+    monkeypatch.setenv('ROS_HOME', str(tmp_path / 'ros_home'))  # the node inherits it
+    proc = harness.start_node(params=None)
+    out = harness.connect(proc, reliable=True)
+    for i, scan in enumerate(bag_scans[:3]):
+        out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
+        assert harness.spin_until(lambda i=i: len(out.odom) > i, 30.0, proc), proc.log()
+    assert {m.child_frame_id for m in out.odom} == {'lidar'}
+    save = harness.node.create_client(Trigger, harness.name('/kentreg_node/save_map'))
+    assert save.wait_for_service(timeout_sec=10.0)
+    future = save.call_async(Trigger.Request())
+    assert harness.spin_until(future.done, 30.0, proc), proc.log()
+    answer = future.result()
+    assert answer.success, answer.message
+    (run,) = (tmp_path / 'ros_home' / 'kentreg_maps').iterdir()  # ROS keeps its logs beside
+    assert str(run / 'map.ply') in answer.message
+    assert len(np.loadtxt(run / 'trajectory_tum.txt', ndmin=2)) == 3
+    # An initial pose: 10 m along x, turned 90 deg, in odom (what RViz's fixed frame sends).
+    P = np.eye(4)
+    P[:3, :3] = Rotation.from_euler('z', 90, degrees=True).as_matrix()
+    P[:3, 3] = [10.0, 0.0, 0.0]
+    pose_pub = harness.node.create_publisher(
+        PoseWithCovarianceStamped, harness.name('/initialpose'), 10
+    )
+    assert harness.spin_until(lambda: pose_pub.get_subscription_count() >= 1, 10.0, proc)
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = 'odom'
+    msg.pose.pose = pose_to_msg(P)
+    pose_pub.publish(msg)
+    assert harness.spin_until(lambda: 'Initial pose set' in proc.log(), 10.0, proc), proc.log()
+    scan = bag_scans[3]
+    out.pub.publish(cloud_msg(scan.points, scan.stamp_ns, scan.frame_id))
+    assert harness.spin_until(lambda: len(out.odom) == 4, 30.0, proc), proc.log()
+    T = pose_matrix(out.odom[-1].pose.pose)
+    assert np.linalg.norm(T[:3, 3] - P[:3, 3]) < 0.1  # the sample moves millimetres per scan
+    assert Rotation.from_matrix(T[:3, :3] @ P[:3, :3].T).magnitude() < np.radians(1.0)
+    assert proc.stop() == 0, proc.log()

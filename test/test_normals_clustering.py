@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from kentreg_ros.core import InvalidPointCloudError, exp_so3
-from kentreg_ros.core.kent import KentParams, sample_kent
+from kentreg_ros.core.kent import KentParams
+from kentreg_ros.core.kent_sampling import sample_kent
 from kentreg_ros.core.scan.clusters import spherical_kmeans
 from kentreg_ros.core.scan.normals import (
     estimate_normals,

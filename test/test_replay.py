@@ -148,6 +148,7 @@ def test_replay_sample_mcap_has_one_message_per_scan(
         '/kentreg/odometry': n,
         '/kentreg/pose': n,
         '/tf': n,
+        '/kentreg/cloud_registered': n,
         '/kentreg/path': 1,
         '/kentreg/map': 1,
     }
@@ -155,6 +156,7 @@ def test_replay_sample_mcap_has_one_message_per_scan(
     assert types['/kentreg/odometry'] == 'nav_msgs/msg/Odometry'
     assert types['/kentreg/pose'] == 'geometry_msgs/msg/PoseStamped'
     assert types['/kentreg/path'] == 'nav_msgs/msg/Path'
+    assert types['/kentreg/cloud_registered'] == 'sensor_msgs/msg/PointCloud2'
 
     messages = mcap_messages(out / 'odometry.mcap')
     input_stamps = [stamp_ns(m) for m in mcap_messages(sample_bag / 'balm_50.mcap')['/points']]
@@ -162,6 +164,14 @@ def test_replay_sample_mcap_has_one_message_per_scan(
     assert [stamp_ns(m) for m in odometry] == input_stamps[:n]
     assert {m.header.frame_id for m in odometry} == {'odom'}  # type: ignore[attr-defined]
     assert {m.child_frame_id for m in odometry} == {'lidar'}  # type: ignore[attr-defined]
+    # The node's names and frames (kentreg_node with no parameters publishes the same).
+    from kentreg_ros.io import names
+
+    for name in (names.ODOMETRY, names.POSE, names.PATH, names.CLOUD_REGISTERED, names.MAP):
+        assert names.absolute(name) in counts
+    clouds = messages['/kentreg/cloud_registered']
+    assert [stamp_ns(m) for m in clouds] == input_stamps[:n]
+    assert {m.header.frame_id for m in clouds} == {'odom'}  # type: ignore[attr-defined]
     path = messages['/kentreg/path'][0]
     positions = [(p.pose.position.x, p.pose.position.y) for p in path.poses]  # type: ignore[attr-defined]
     _, T_tum = read_tum(out / 'poses_tum.txt')
@@ -240,7 +250,7 @@ def test_replay_stride_processes_every_third_scan_with_original_stamps(
 
 def test_run_odometry_stride_selects_start_plus_multiples() -> None:
     from kentreg_ros.eval.run import run_odometry
-    from kentreg_ros.io.bags import Scan
+    from kentreg_ros.io.sources import Scan
 
     class Recorder:
         """Stands in for Odometry: records what it was given."""
@@ -460,8 +470,8 @@ def test_replay_hands_a_bags_per_point_times_to_the_odometry(tmp_path: Path) -> 
     """A bag whose clouds carry a `t` field (Ouster-style nanoseconds) reaches Odometry.step as
     point_times, aligned with the finite points (the NaN point is dropped from both)."""
     from kentreg_ros.eval.run import run_odometry
-    from kentreg_ros.io.bags import open_recording
     from kentreg_ros.io.bagwriter import BagWriter
+    from kentreg_ros.io.recordings import open_recording
 
     points = np.array([[1.0, 0, 0], [np.nan, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
     t = np.array([0, 25_000_000, 50_000_000, 75_000_000], dtype=np.uint32)

@@ -14,7 +14,6 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -35,7 +34,6 @@ from kentreg_ros.core import (  # noqa: E402
     log_so3,
     make_transform,
 )
-from kentreg_ros.io.params import NodeSettings  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_covariance_in_base  # noqa: E402
@@ -76,19 +74,22 @@ def _random_transform(rng: np.random.Generator, scale: float = 1.0) -> np.ndarra
     return make_transform(exp_so3(rng.normal(size=3)), rng.normal(scale=scale, size=3))
 
 
-def test_pose_covariance_in_base_is_the_first_order_propagation() -> None:
-    """Against a finite-difference Jacobian of ``T_odom_base = T_bl T_world_lidar T_bl^-1``,
+@pytest.mark.parametrize('anchored', [False, True], ids=['odom-at-start', 'initial-pose'])
+def test_pose_covariance_in_base_is_the_first_order_propagation(anchored: bool) -> None:
+    """Against a finite-difference Jacobian of ``T_odom_base = A T_world_lidar T_bl^-1``
+    (``A = T_bl`` when odom is where the base started, another anchor after an initial pose),
     with errors as the covariance convention states: position, then rotation about the fixed
     frame's axes (``R' = exp(dtheta) R``)."""
     rng = np.random.default_rng(0)
     T_bl = _random_transform(rng, 0.5)
     T_wl = _random_transform(rng, 3.0)
+    A = _random_transform(rng, 2.0) if anchored else T_bl
 
     def odom_base(delta: np.ndarray) -> np.ndarray:
         T = T_wl.copy()
         T[:3, 3] += delta[:3]
         T[:3, :3] = exp_so3(delta[3:]) @ T[:3, :3]
-        return T_bl @ T @ np.linalg.inv(T_bl)
+        return A @ T @ np.linalg.inv(T_bl)
 
     T_ob = odom_base(np.zeros(6))
     J = np.zeros((6, 6))
@@ -101,10 +102,10 @@ def test_pose_covariance_in_base_is_the_first_order_propagation() -> None:
         J[3:, k] = (
             log_so3(plus[:3, :3] @ T_ob[:3, :3].T) - log_so3(minus[:3, :3] @ T_ob[:3, :3].T)
         ) / (2 * eps)
-    A = rng.normal(size=(6, 6))
-    cov = A @ A.T
+    L = rng.normal(size=(6, 6))
+    cov = L @ L.T
     expected = J @ cov @ J.T
-    got = pose_covariance_in_base(cov, T_bl, T_ob)
+    got = pose_covariance_in_base(cov, T_bl, T_ob, A if anchored else None)
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
 
 
@@ -263,51 +264,6 @@ def test_destroy_keeps_the_publishers_while_the_worker_still_holds_a_scan(
     assert not node._worker.is_alive()
     assert (total(node, 'published'), total(node, 'errors')) == (1, 0)
     assert 'did not stop within 0.1 s' in capfd.readouterr().err
-
-
-class _FakeTransformError(Exception):
-    """Stands in for tf2_ros.TransformException (tf2_ros is not on PyPI)."""
-
-
-class _Buffer:
-    """A tf2 buffer whose lookup returns ``result`` or raises it."""
-
-    def __init__(self, result: Any) -> None:
-        self.result = result
-
-    def lookup_transform(self, target: str, source: str, when: Any) -> Any:
-        if isinstance(self.result, BaseException):
-            raise self.result
-        return self.result
-
-
-def test_tf_lookup_failures_wait_then_fall_back_and_other_errors_propagate(
-    make_node: Any, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from geometry_msgs.msg import TransformStamped
-
-    node = make_node()
-    monkeypatch.setattr(
-        node_module, 'tf2_ros', SimpleNamespace(TransformException=_FakeTransformError)
-    )
-    waiting = NodeSettings().with_updates({'tf_wait': 30.0, 'base_to_lidar': [1, 0, 0, 0, 0, 0]})
-    expired = NodeSettings().with_updates({'tf_wait': 0.0, 'base_to_lidar': [1, 0, 0, 0, 0, 0]})
-    # A transform tf2 knows is used as it is.
-    stamped = TransformStamped()
-    stamped.transform.translation.x, stamped.transform.translation.z = 0.5, 1.5
-    stamped.transform.rotation.z = stamped.transform.rotation.w = np.sqrt(0.5)
-    node._tf_buffer = _Buffer(stamped)
-    T = node._sensor_in_base('lidar', waiting)
-    np.testing.assert_allclose(T[:3, 3], [0.5, 0.0, 1.5])
-    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
-    # Not (yet) known to tf2: wait while tf_wait lasts, then base_to_lidar.
-    node._tf_buffer = _Buffer(_FakeTransformError('frame lidar does not exist'))
-    assert node._sensor_in_base('lidar', waiting) is None
-    np.testing.assert_allclose(node._sensor_in_base('lidar', expired)[:3, 3], [1.0, 0.0, 0.0])
-    # Anything else is a bug, not a missing transform: it is not mistaken for one.
-    node._tf_buffer = _Buffer(TypeError('a bug'))
-    with pytest.raises(TypeError, match='a bug'):
-        node._sensor_in_base('lidar', expired)
 
 
 @pytest.mark.parametrize('flag', ['--help', '-h'])

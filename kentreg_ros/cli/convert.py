@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from kentreg_ros import __version__
 from kentreg_ros.cli import common
 from kentreg_ros.core import KentRegError, voxel_downsample
-from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC
+from kentreg_ros.io.recordings import GROUND_TRUTH_TOPIC
 
 logger = logging.getLogger('kentreg_ros.cli.convert')
 
@@ -158,9 +158,10 @@ def downsample_scan(
 
 
 def _open_source(args: argparse.Namespace, fields: list[str] | None) -> Any:
-    from kentreg_ros.io.bags import FilesScanSource, is_bag, open_scan_source
+    from kentreg_ros.io.bags import is_bag
     from kentreg_ros.io.poses import read_poses
     from kentreg_ros.io.scanfiles import SCAN_SUFFIXES
+    from kentreg_ros.io.sources import FilesScanSource, open_scan_source
 
     start_ns = round(args.start_time * 1e9)
     poses = None

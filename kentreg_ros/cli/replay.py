@@ -27,14 +27,16 @@ Every third scan of the sample (scans 0, 3, 6, ...; three times the motion per p
 Outputs in ``--out`` (default ``results/<timestamp>/``, with ``results/latest`` pointing there)
 -------------------------------------------------------------------------------------------------
 ``odometry.mcap``
-    One MCAP file (``ros2 bag play``, Foxglove): per scan a nav_msgs/Odometry on
-    ``/kentreg/odometry``, a geometry_msgs/PoseStamped on ``/kentreg/pose`` and a
-    tf2_msgs/TFMessage on ``/tf`` (``odom`` -> sensor frame), header stamps from the input
-    scans; at the end one nav_msgs/Path on ``/kentreg/path``
-    (:func:`kentreg_ros.io.bagwriter.write_odometry_mcap`).
-    With the map of the run (every registered scan at its pose, one point per ``--map-voxel``
-    voxel) as one sensor_msgs/PointCloud2 in ``odom`` on ``/kentreg/map``, so Foxglove shows
-    the run over its map.
+    One MCAP file (``ros2 bag play``, Foxglove) with the topics and frames ``kentreg_node``
+    publishes (:mod:`kentreg_ros.io.names`), so a recorded run and a live one look alike: per
+    scan a nav_msgs/Odometry on ``/kentreg/odometry``, a geometry_msgs/PoseStamped on
+    ``/kentreg/pose``, a tf2_msgs/TFMessage on ``/tf`` (``odom`` -> the scans' frame, the
+    node's child frame when ``base_frame`` is empty) and the scan's registered points in
+    ``odom`` on ``/kentreg/cloud_registered`` (``--no-clouds``: without them), header stamps
+    from the input scans; at the end one nav_msgs/Path on ``/kentreg/path`` and the map of the
+    run (:class:`kentreg_ros.io.runmap.RunMap`, the node's map: the registered points of every
+    accepted scan, one per ``--map-voxel`` voxel) as one sensor_msgs/PointCloud2 in ``odom``
+    on ``/kentreg/map`` (:func:`kentreg_ros.io.bagwriter.write_odometry_mcap`).
 ``--map FILE``
     The same map as a PLY or PCD file (by suffix) for any point-cloud viewer.
 ``poses_tum.txt``, ``poses_kitti.txt``
@@ -89,14 +91,18 @@ from kentreg_ros.eval.report import (
     skipped_text,
     stride_text,
 )
-from kentreg_ros.io.bags import GROUND_TRUTH_TOPIC, ScanSource
 from kentreg_ros.io.mapfile import MAP_SUFFIXES
+from kentreg_ros.io.params import NodeSettings
+from kentreg_ros.io.recordings import GROUND_TRUTH_TOPIC
+from kentreg_ros.io.sources import ScanSource
 
 logger = logging.getLogger('kentreg_ros.cli.replay')  # also when run as __main__
 
 PROG = 'kentreg_replay'
-#: Default voxel edge of the run's map (m), see ``--map-voxel``.
-MAP_VOXEL_SIZE = 0.1
+#: Default voxel edge and size bound of the run's map: the node's (``map_voxel_size``,
+#: ``map_max_points``), so the replay's map and the node's ~/save_map are the same map.
+MAP_VOXEL_SIZE = NodeSettings().map_voxel_size
+MAP_MAX_POINTS = NodeSettings().map_max_points
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,17 +170,22 @@ def build_parser() -> argparse.ArgumentParser:
         '--map',
         type=Path,
         metavar='FILE',
-        help='also write the map of the run (every registered scan at its pose, one point per '
-        '--map-voxel voxel, odometry frame) to FILE (.ply or .pcd); the MCAP carries it anyway',
+        help='also write the map of the run (the registered points of every accepted scan at '
+        'its pose, one point per --map-voxel voxel, odometry frame; what kentreg_node saves) '
+        'to FILE (.ply or .pcd); the MCAP carries it anyway',
     )
     add(
         '--map-voxel',
         type=common.positive_float,
         default=MAP_VOXEL_SIZE,
         metavar='M',
-        help=f'voxel edge of the map in metres (default {MAP_VOXEL_SIZE}: finer than the '
-        "registration's voxels, coarse enough that a street-sized map stays a few million "
-        'points)',
+        help=f"voxel edge of the map in metres (default {MAP_VOXEL_SIZE}, the node's "
+        f'map_voxel_size; it doubles when the map passes {MAP_MAX_POINTS} points)',
+    )
+    add(
+        '--no-clouds',
+        action='store_true',
+        help='leave the per-scan registered clouds out of odometry.mcap (a smaller file)',
     )
     add('--no-plot', action='store_true', help='do not write trajectory.png')
     add('--no-progress', action='store_true', help='no progress bar')
@@ -187,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def open_input(args: argparse.Namespace) -> tuple[ScanSource, GroundTruth | None]:
     """The scan source and its ground truth (``--gt``, the bag's topic, a file beside scans)."""
-    from kentreg_ros.io.bags import is_bag, open_recording
+    from kentreg_ros.io.bags import is_bag
+    from kentreg_ros.io.recordings import open_recording
 
     path = Path(args.input)
     if not path.exists():
@@ -245,6 +257,7 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
             stride=args.stride,
             on_step=advance if bar is not None else None,
             map_voxel_size=args.map_voxel,
+            map_max_points=MAP_MAX_POINTS,
         )
     if not run.steps:
         if run.error is None and run.skipped:
@@ -286,6 +299,7 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
         plot=not args.no_plot,
         title=title,
         map_path=args.map,
+        clouds=not args.no_clouds,
     )
     if args.out is None:
         _link_latest(out)
@@ -315,6 +329,7 @@ def write_outputs(
     plot: bool,
     title: str,
     map_path: Path | None = None,
+    clouds: bool = True,
 ) -> list[str]:
     """Write every output file into ``out`` (and the map to ``map_path``); return the names
     written into ``out``."""
@@ -330,6 +345,7 @@ def write_outputs(
         odom_frame=odom_frame,
         child_frame=child_frame,
         map_points=map_points,
+        clouds=clouds,
     )
     report['odometry_mcap'] = {
         'topics': counts,

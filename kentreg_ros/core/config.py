@@ -1,24 +1,32 @@
-"""Configuration of the registrar and the odometry: one frozen dataclass tree.
+"""The research configuration of the registrar and the odometry: one frozen dataclass tree.
 
-:class:`KentRegConfig` is the single source of defaults, ranges and validation. The ROS node
-declares one parameter per field (dotted names such as ``em.max_iterations``), the command
-lines read the same YAML file (:mod:`kentreg_ros.io.params` reads and writes it), and every output
-directory gets the effective configuration back.
+:class:`KentRegConfig` is the single source of defaults, ranges and validation of everything the
+method can be told, the paper's recipe and every ablation included (dotted names such as
+``em.max_iterations``). Python, the benchmarks and the command lines' ``--set`` reach all of it;
+the operator's product parameters (:mod:`kentreg_ros.io.params`) are a few of its fields under
+flat names, and the node declares only those.
 
 Every field carries metadata: a one-line ``description`` and either a numeric ``range``
-(inclusive) or a tuple of ``choices``. :func:`iter_fields` walks the tree with that metadata.
+(inclusive) or a tuple of ``choices`` (:func:`~kentreg_ros.core.fields.setting`);
+:func:`~kentreg_ros.core.fields.iter_fields` walks the tree with it.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import types
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from enum import StrEnum
-from typing import Any, ClassVar, get_type_hints
+from typing import Any, get_type_hints
 
 from kentreg_ros.core.errors import ConfigError
+from kentreg_ros.core.fields import (
+    Section,
+    flatten_keys,
+    iter_fields,
+    nest_keys,
+    plain_value,
+    setting,
+)
 
 
 class Mode(StrEnum):
@@ -93,85 +101,23 @@ class TimeReference(StrEnum):
     ABSOLUTE = 'absolute'
 
 
-def _f(
-    default: Any,
-    description: str,
-    *,
-    range: tuple[float, float] | None = None,
-    choices: tuple[str, ...] | None = None,
-) -> Any:
-    """A field with its metadata: a description, and a numeric ``range`` (inclusive) or a tuple
-    of ``choices`` (the values of a :class:`~enum.StrEnum` default, when not given)."""
-    meta: dict[str, Any] = {'description': description}
-    if range is not None:
-        meta['range'] = range
-    if choices is None and isinstance(default, StrEnum):
-        choices = tuple(m.value for m in type(default))
-    if choices is not None:
-        meta['choices'] = choices
-    return field(default=default, metadata=meta)
-
-
-class Section:
-    """A section of the configuration tree: every field is validated when an instance is made,
-    however it is made (directly, :meth:`KentRegConfig.from_dict`, ``with_updates``, the node's
-    parameters): :func:`coerce_value` by the field's type (an integral float is an integer, an
-    integer a float; nothing else changes type), then :func:`validate_value` by its metadata.
-    Rules that tie fields together live in :meth:`check`.
-    """
-
-    #: Dotted prefix of the section's fields in messages and parameter names (``'em.'``).
-    prefix: ClassVar[str] = ''
-
-    def __init_subclass__(cls, *, prefix: str = '', **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        cls.prefix = prefix
-
-    def __post_init__(self) -> None:
-        validate_fields(self, self.prefix)
-        self.check()
-
-    def check(self) -> None:
-        """Cross-field rules of the section (none by default); raise ConfigError."""
-
-
-def validate_fields(obj: Any, prefix: str = '') -> None:
-    """Coerce and validate every scalar field of the dataclass ``obj`` in place (see
-    :class:`Section`); sections inside it validate themselves.
-
-    Raises
-    ------
-    ConfigError
-        Naming ``prefix + field``, what was expected and the value given.
-    """
-    hints = get_type_hints(type(obj))
-    for f in fields(obj):
-        value = getattr(obj, f.name)
-        if is_dataclass(value):
-            continue
-        coerced = coerce_value(prefix + f.name, value, hints[f.name])
-        validate_value(prefix + f.name, coerced, f.metadata)
-        if coerced is not value:
-            object.__setattr__(obj, f.name, coerced)
-
-
 @dataclass(frozen=True)
 class PreprocessConfig(Section, prefix='preprocess.'):
     """Range cropping and voxel downsampling applied to every scan."""
 
-    voxel_size: float = _f(
+    voxel_size: float = setting(
         0.0,
         'Voxel edge in metres for downsampling; 0 picks it per scan to reach target_points.',
         range=(0.0, 10.0),
     )
-    target_points: int = _f(
+    target_points: int = setting(
         10000,
         'Voxels kept by automatic voxel downsampling (paper: ~10,000 points). Only voxels '
         'holding at least min_voxel_points returns count, so stray returns cannot choose the '
         'size.',
         range=(100, 2_000_000),
     )
-    min_voxel_points: int = _f(
+    min_voxel_points: int = setting(
         2,
         'Returns a voxel must hold to be kept. A voxel with a single return is where isolated '
         'returns (dust, rain, multipath) land and says nothing about a surface; the floor is '
@@ -179,10 +125,10 @@ class PreprocessConfig(Section, prefix='preprocess.'):
         'voxels would fill more than 5 % of the kept voxels. 1 keeps every voxel.',
         range=(1, 8),
     )
-    min_range: float = _f(
+    min_range: float = setting(
         0.0, 'Drop points closer to the sensor than this (m).', range=(0.0, 1000.0)
     )
-    max_range: float = _f(
+    max_range: float = setting(
         0.0, 'Drop points farther than this (m); 0 keeps all.', range=(0.0, 10000.0)
     )
 
@@ -199,8 +145,8 @@ class PreprocessConfig(Section, prefix='preprocess.'):
 class NormalsConfig(Section, prefix='normals.'):
     """PCA surface normals and their cosine-similarity outlier removal."""
 
-    k_neighbors: int = _f(15, 'Neighbours for PCA normals (paper: 15).', range=(5, 100))
-    max_flatness: float = _f(
+    k_neighbors: int = setting(15, 'Neighbours for PCA normals (paper: 15).', range=(5, 100))
+    max_flatness: float = setting(
         0.25,
         'Keep a normal only where its neighbourhood is a surface: smallest over middle '
         'eigenvalue of the neighbourhood covariance at most this. At 0.25 the normal of 15 '
@@ -208,7 +154,7 @@ class NormalsConfig(Section, prefix='normals.'):
         'a crease (stray returns, far scan rings). 1 keeps every normal.',
         range=(0.0, 1.0),
     )
-    outlier_cosine: float = _f(
+    outlier_cosine: float = setting(
         0.8,
         'Remove a normal whose cosine to its neighbourhood mean normal is below this; '
         '-1 disables.',
@@ -220,11 +166,11 @@ class NormalsConfig(Section, prefix='normals.'):
 class ClusteringConfig(Section, prefix='clustering.'):
     """Spherical k-means over the normals."""
 
-    n_clusters: int = _f(6, 'Number of spherical k-means clusters K.', range=(1, 64))
-    max_iterations: int = _f(50, 'Spherical k-means iterations.', range=(1, 1000))
-    seed: int = _f(0, 'Seed of the k-means++ initialisation.', range=(0, 2**31 - 1))
-    restarts: int = _f(3, 'k-means++ restarts; the best clustering is kept.', range=(1, 100))
-    restart_sample: int = _f(
+    n_clusters: int = setting(6, 'Number of spherical k-means clusters K.', range=(1, 64))
+    max_iterations: int = setting(50, 'Spherical k-means iterations.', range=(1, 1000))
+    seed: int = setting(0, 'Seed of the k-means++ initialisation.', range=(0, 2**31 - 1))
+    restarts: int = setting(3, 'k-means++ restarts; the best clustering is kept.', range=(1, 100))
+    restart_sample: int = setting(
         2000,
         'The restarts run on a seeded subset of this many normals and only the best is '
         'continued on all of them (0: every restart on all normals): a few thousand normals '
@@ -237,45 +183,45 @@ class ClusteringConfig(Section, prefix='clustering.'):
 class EMConfig(Section, prefix='em.'):
     """The EM on the sphere that estimates rotation from normals."""
 
-    max_iterations: int = _f(50, 'Maximum EM iterations.', range=(1, 10000))
-    tolerance: float = _f(
+    max_iterations: int = setting(50, 'Maximum EM iterations.', range=(1, 10000))
+    tolerance: float = setting(
         1e-4,
         'Stop when the relative change of Q or the rotation change (rad) is below this.',
         range=(0.0, 1.0),
     )
-    outlier_weight: float = _f(
+    outlier_weight: float = setting(
         0.1, 'Mixture weight pi0 of the uniform outlier component.', range=(0.0, 0.99)
     )
-    kent_beta: bool = _f(
+    kent_beta: bool = setting(
         False,
         'Robust mode: put the Kent ovalness beta into the E-step kernels as the paper does. '
         "The paper's beta term acts on the observed normal itself (a cluster-wide pull toward "
         "the cluster's major axis), which biased the rotation where a cluster's spread differs "
         'between views; beta is estimated and reported either way (paper mode always uses it).',
     )
-    rotation: EMRotation = _f(
+    rotation: EMRotation = setting(
         EMRotation.SHARED,
         'Robust mode: one rotation shared by all clusters, or per-cluster EM then averaging.',
     )
-    kappa_cap_start: float = _f(
+    kappa_cap_start: float = setting(
         20.0,
         "Robust mode: cap on the kernels' kappa in the first pass, rising each pass: 20 is an "
         'angular spread of ~13 deg, a basin as wide as a cluster of normals.',
         range=(1.0, 1e6),
     )
-    kappa_cap_end: float = _f(
+    kappa_cap_end: float = setting(
         2000.0,
         'Robust mode: final cap on kappa: ~1.3 deg, finer than the noise of PCA normals, so it '
         'only stops a perfectly flat synthetic cluster from collapsing the kernel.',
         range=(1.0, 1e7),
     )
-    kappa_cap_growth: float = _f(
+    kappa_cap_growth: float = setting(
         2.0,
         'Robust mode: factor by which the kappa cap rises per pass (the kernel narrows by '
         'sqrt(2) per pass: the rotation follows it from one basin into the next).',
         range=(1.0, 100.0),
     )
-    max_points_per_cluster: int = _f(
+    max_points_per_cluster: int = setting(
         1500,
         'Paper mode: normals per cluster and cloud used in the dense M x N posterior matrix '
         '(a seeded subsample bounds memory and time).',
@@ -294,36 +240,36 @@ class EMConfig(Section, prefix='em.'):
 class TranslationConfig(Section, prefix='translation.'):
     """Translation with the rotation fixed."""
 
-    method: TranslationMethod = _f(
+    method: TranslationMethod = setting(
         TranslationMethod.POINT_TO_PLANE,
         "Robust mode: 'point_to_plane' (robust 3-DOF least squares) or 'centroid' (paper).",
     )
-    cross_correlation: bool = _f(
+    cross_correlation: bool = setting(
         True, 'Start from a per-direction cross-correlation of plane offsets.'
     )
-    max_iterations: int = _f(
+    max_iterations: int = setting(
         3,
         'Iterations of the 3-DOF solve. The joint refinement re-solves all 6 DOF, so this '
         'stage only places it in its basin; 3 lets the gate shrink from its start to near its '
         'floor.',
         range=(1, 1000),
     )
-    tolerance: float = _f(
+    tolerance: float = setting(
         1e-3, 'Stop when the translation update is below this (m).', range=(0.0, 1.0)
     )
-    max_correspondence_distance: float = _f(
+    max_correspondence_distance: float = setting(
         1.0,
         'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
-    max_shift: float = _f(
+    max_shift: float = setting(
         2.0,
         'How far (m) the translation may lie from its start along each plane normal in the '
         'cross-correlation: 2 m is 20 m/s at 10 Hz, beyond the motion between scans of any '
         'platform the odometry is meant for.',
         range=(0.0, 1000.0),
     )
-    degeneracy_ratio: float = _f(
+    degeneracy_ratio: float = setting(
         0.02,
         'Flag degeneracy when the smallest/largest eigenvalue of the translation normal '
         'matrix is below this.',
@@ -335,25 +281,25 @@ class TranslationConfig(Section, prefix='translation.'):
 class RefineConfig(Section, prefix='refine.'):
     """Final joint 6-DOF refinement on positions and Kent-weighted normals."""
 
-    method: RefineMethod = _f(
+    method: RefineMethod = setting(
         RefineMethod.POINT_TO_PLANE,
         "Joint refinement cost: 'point_to_plane', 'plane_to_plane' (GICP-like), or 'none'.",
     )
-    normal_weight: bool = _f(
+    normal_weight: bool = setting(
         True, 'Weight correspondences by the Kent likelihood of their normals (hybrid).'
     )
-    max_iterations: int = _f(
+    max_iterations: int = setting(
         50,
         'Gauss-Newton iterations at most: enough to follow a creep along a weakly constrained '
         'direction to the tolerance (see max_step_scale).',
         range=(1, 1000),
     )
-    max_correspondence_distance: float = _f(
+    max_correspondence_distance: float = setting(
         1.0,
         'Largest point-to-point distance accepted as a correspondence (m).',
         range=(0.001, 100.0),
     )
-    tolerance: float = _f(
+    tolerance: float = setting(
         5e-5,
         'Stop when the update is below this (rad and m): far below the sensor noise, so that a '
         'creep of nearest-neighbour Gauss-Newton along a weakly constrained direction is '
@@ -361,7 +307,7 @@ class RefineConfig(Section, prefix='refine.'):
         'where it stopped.',
         range=(0.0, 1.0),
     )
-    max_cluster_points: int = _f(
+    max_cluster_points: int = setting(
         1000,
         'Source points per normal cluster used by the translation, the refinement and the fit '
         '(0: all): normal-space sampling with the Kent clusters as strata, evenly in space. '
@@ -372,7 +318,7 @@ class RefineConfig(Section, prefix='refine.'):
         'rotation stage uses every normal.',
         range=(0, 10_000_000),
     )
-    max_step_scale: float = _f(
+    max_step_scale: float = setting(
         16.0,
         'Largest factor by which consecutive refinement steps in the same direction are '
         'lengthened (doubled per step once the gate is at its floor; reversing steps are '
@@ -385,32 +331,32 @@ class RefineConfig(Section, prefix='refine.'):
 class SearchConfig(Section, prefix='search.'):
     """Start-free rotation search from the two clouds' normal-mixture summaries."""
 
-    mode: SearchMode = _f(
+    mode: SearchMode = setting(
         SearchMode.AUTO,
         "When register() searches SO(3) instead of starting only from init: 'auto' when no "
         "init is given (the odometry searches when a step is doubtful), 'always', 'never'.",
     )
-    twist_step_deg: float = _f(
+    twist_step_deg: float = setting(
         5.0,
         'Step of the twist grid about each pair of aligned cluster means (deg). The EM '
         'started from a hypothesis converges from about a quarter of a cluster spread; '
         'hypotheses within half a step of the truth reach it.',
         range=(0.5, 90.0),
     )
-    candidates: int = _f(
+    candidates: int = setting(
         6,
         'Distinct best hypotheses refined by the EM and verified on the points. Symmetric '
         'scenes give their twins equal summary scores (a room has up to 4 about the vertical, '
         'a corridor 2 per axis), so this must exceed the twins of one axis.',
         range=(1, 100),
     )
-    min_separation_deg: float = _f(
+    min_separation_deg: float = setting(
         10.0,
         'Hypotheses closer than this (deg) count as one: twice the twist step, so two grid '
         'neighbours of one peak are not both refined.',
         range=(0.0, 180.0),
     )
-    ambiguity_ratio: float = _f(
+    ambiguity_ratio: float = setting(
         0.9,
         'Another pose, distinct from the best (its points move by more than twice the fit '
         'distance gate), that fits at least this share of the best fit makes the result '
@@ -423,7 +369,7 @@ class SearchConfig(Section, prefix='search.'):
 class OdometryConfig(Section, prefix='odometry.'):
     """Scan-to-model pose integration: the model is the previous scan or a local map."""
 
-    model: Model = _f(
+    model: Model = setting(
         Model.PREVIOUS_SCAN,
         'What each scan is registered against: the previous scan (previous_scan, the design '
         "card's model) or a voxel map of the recent accepted scans around the sensor "
@@ -431,14 +377,14 @@ class OdometryConfig(Section, prefix='odometry.'):
         'all, and a pose error of one step is not handed on as the model of the next, so drift '
         'grows more slowly; it costs the map upkeep and a larger target per scan.',
     )
-    map_voxel_size: float = _f(
+    map_voxel_size: float = setting(
         0.0,
         'Voxel edge of the local map (m); 0 takes the voxel size of the first scan, so the map '
         "has a scan's sampling resolution and the correspondence gates, which are set from the "
         'voxel size, mean the same against the map as against a scan.',
         range=(0.0, 10.0),
     )
-    map_points_per_voxel: int = _f(
+    map_points_per_voxel: int = setting(
         1,
         'Points a local-map voxel keeps: the first to arrive take the places, and every later '
         'point is averaged into the nearest of them, so a surface seen again and again is '
@@ -448,25 +394,25 @@ class OdometryConfig(Section, prefix='odometry.'):
         'surfaces where a voxel straddles an edge, at a proportional cost.',
         range=(1, 20),
     )
-    map_radius: float = _f(
+    map_radius: float = setting(
         0.0,
         'Local-map points farther than this from the sensor are dropped (m); 0 uses the reach '
         'of the latest accepted scan (its farthest kept point): what lies beyond the sensor '
         "range cannot overlap the next scan. The map's memory is bounded by this ball.",
         range=(0.0, 10000.0),
     )
-    constant_velocity: bool = _f(
+    constant_velocity: bool = setting(
         True,
         'Start each registration from the last accepted motion (scaled to the time gap); a '
         'step that fell back never feeds it.',
     )
-    deskew: Deskew = _f(
+    deskew: Deskew = setting(
         Deskew.AUTO,
         "Move every point to the scan stamp's time with the motion of the sweep (constant "
         'velocity, iterated with the registration) when the scans carry per-point times '
         '(auto), always (on: warns once when they do not), or never (off).',
     )
-    point_time_unit: TimeUnit = _f(
+    point_time_unit: TimeUnit = setting(
         TimeUnit.AUTO,
         'Unit of the per-point time field: auto reads it from the field (name and datatype of '
         'the common drivers: Ouster t and Livox offset_time uint32 ns, Velodyne time float32 s, '
@@ -474,27 +420,27 @@ class OdometryConfig(Section, prefix='odometry.'):
         'makes them a sweep of at most 2 s around the stamp); s, ms, us or ns state it for a '
         'driver that does something else.',
     )
-    point_time_reference: TimeReference = _f(
+    point_time_reference: TimeReference = setting(
         TimeReference.AUTO,
         "What the per-point times count from: relative (the scan stamp, i.e. the driver's "
         'zero, usually the sweep start), absolute (the clock of the stamp), or auto (from the '
         'field, then from the values). Times that are no sweep around the stamp in the unit '
         'and reference used are not used: that scan is not deskewed, with one warning.',
     )
-    max_angular_speed_deg: float = _f(
+    max_angular_speed_deg: float = setting(
         360.0,
         'Fastest plausible turn of the sensor (deg/s); a step turning more than this times its '
         'time gap is rejected. One turn per second: beyond hand-held sweeps, vehicles and '
         'most aerial platforms.',
         range=(1.0, 100000.0),
     )
-    max_linear_speed: float = _f(
+    max_linear_speed: float = setting(
         50.0,
         'Fastest plausible motion of the sensor (m/s); a step moving more than this times its '
         'time gap is rejected. 180 km/h: beyond the road vehicles LiDAR odometry runs on.',
         range=(0.01, 10000.0),
     )
-    doubt_ratio: float = _f(
+    doubt_ratio: float = setting(
         0.7,
         'A step whose fit (share of points landing on matching surfaces) is below this share '
         'of the median fit of the last accepted steps is doubtful: the zero-motion start and '
@@ -503,13 +449,13 @@ class OdometryConfig(Section, prefix='odometry.'):
         'surfaces. Searching costs time, not accuracy, so the margin errs toward searching.',
         range=(0.0, 1.0),
     )
-    fit_window: int = _f(
+    fit_window: int = setting(
         10,
         'Accepted steps whose fits form the median doubt_ratio is applied to (a few seconds '
         'of a 2-10 Hz sensor: long enough to be stable, short enough to follow a scene change).',
         range=(1, 1000),
     )
-    min_fit: float = _f(
+    min_fit: float = setting(
         0.1,
         'A step whose best fit is below this (fewer than a tenth of the points land on a '
         'matching surface: the scans barely overlap) falls back to the prediction.',
@@ -527,7 +473,7 @@ class KentRegConfig(Section):
     improved pipeline; each of its ideas has a switch so benchmarks can show ablations.
     """
 
-    mode: Mode = _f(
+    mode: Mode = setting(
         Mode.ROBUST,
         "'robust' (default) or 'paper' (the paper's recipe as written).",
     )
@@ -578,83 +524,6 @@ class KentRegConfig(Section):
         return replace(cls(), mode=Mode.PAPER)
 
 
-def plain_value(value: Any) -> Any:
-    """``value`` as YAML and ROS parameters hold it (an enumeration as its string)."""
-    return value.value if isinstance(value, StrEnum) else value
-
-
-def iter_fields(config: Any, prefix: str = '') -> Iterator[tuple[str, Any, dataclasses.Field]]:
-    """Yield ``(dotted_name, value, dataclass_field)`` for every leaf field of the tree."""
-    for f in fields(config):
-        value = getattr(config, f.name)
-        name = f'{prefix}{f.name}'
-        if is_dataclass(value):
-            yield from iter_fields(value, name + '.')
-        else:
-            yield name, value, f
-
-
-def validate_value(name: str, value: Any, meta: Mapping[str, Any]) -> None:
-    """Check ``value`` against a field's metadata: among ``choices``, within ``range``.
-
-    ``meta`` is the metadata of a field as :func:`_f` writes it (the node's own parameters in
-    :mod:`kentreg_ros.io.params` carry the same keys, so both are validated here).
-
-    Raises
-    ------
-    ConfigError
-        Naming ``name``, the allowed values and the value given.
-    """
-    if 'choices' in meta and value not in meta['choices']:
-        raise ConfigError(
-            f'Expected `{name}` to be one of {list(meta["choices"])}, got {value!r}.'
-        )
-    if 'range' in meta:
-        lo, hi = meta['range']
-        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
-            raise ConfigError(f'Expected `{name}` in [{lo}, {hi}], got {value!r}.')
-
-
-def nest_keys(data: Mapping[str, Any]) -> dict[str, Any]:
-    """``{'em.max_iterations': 9}`` and ``{'em': {...}}`` alike as one nested mapping.
-
-    Raises
-    ------
-    ConfigError
-        A key that is not a string, or one that is both a section and a scalar.
-    """
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        if not isinstance(key, str):
-            raise ConfigError(f'Configuration keys must be strings, got {key!r}.')
-        parts = key.split('.')
-        node = out
-        for part in parts[:-1]:
-            child = node.setdefault(part, {})
-            if not isinstance(child, dict):
-                raise ConfigError(f'Configuration key {key!r} conflicts with a scalar value.')
-            node = child
-        if isinstance(value, Mapping):
-            existing = node.setdefault(parts[-1], {})
-            if not isinstance(existing, dict):
-                raise ConfigError(f'Configuration key {key!r} conflicts with a scalar value.')
-            existing.update(nest_keys(value))
-        else:
-            node[parts[-1]] = value
-    return out
-
-
-def flatten_keys(data: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """A nested mapping as ``{'em.max_iterations': 9, ...}`` (dotted ROS parameter names)."""
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        if isinstance(value, Mapping):
-            out.update(flatten_keys(value, f'{prefix}{key}.'))
-        else:
-            out[f'{prefix}{key}'] = value
-    return out
-
-
 def _valid_names(cls: type) -> list[str]:
     return [name for name, _, _ in iter_fields(cls())]
 
@@ -681,38 +550,3 @@ def _from_mapping(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
         else:
             kwargs[name] = value  # coerced and validated by the section itself
     return cls(**kwargs)
-
-
-def coerce_value(name: str, value: Any, hint: Any) -> Any:
-    """``value`` as the type ``hint`` (bool, int, float, str; ``X | None`` as X) or ConfigError.
-
-    Integers are accepted for floats and integral floats for integers; booleans only for bool.
-    Other hints return ``value`` unchanged.
-    """
-    if isinstance(hint, types.UnionType):
-        hint = hint.__args__[0]
-    if isinstance(hint, type) and issubclass(hint, StrEnum):
-        try:
-            return hint(value)
-        except ValueError:
-            valid = [m.value for m in hint]
-            raise ConfigError(f'Expected `{name}` to be one of {valid}, got {value!r}.') from None
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f'Expected `{name}` to be true or false, got {value!r}.')
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                return int(value)
-            raise ConfigError(f'Expected `{name}` to be an integer, got {value!r}.')
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f'Expected `{name}` to be a number, got {value!r}.')
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise ConfigError(f'Expected `{name}` to be a string, got {value!r}.')
-        return value
-    return value

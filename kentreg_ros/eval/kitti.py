@@ -59,6 +59,52 @@ class KittiResult(TypedDict):
     segment_r_err_deg_per_m: FloatArray
 
 
+def _segment_lengths(lengths: Sequence[float], step: int) -> FloatArray:
+    """``lengths`` as an array, checked with ``step`` (see :func:`kitti_segment_errors`)."""
+    lens = _as_float_array(lengths, 'lengths')
+    if lens.ndim != 1 or lens.size == 0:
+        raise ValueError(
+            f'Expected `lengths` to be a non-empty sequence of floats, got shape {lens.shape}.'
+        )
+    if not (np.isfinite(lens).all() and (lens > 0.0).all()):
+        raise ValueError(f'Expected every segment length to be positive, got {lens.tolist()}.')
+    if np.unique(lens).size != lens.size:
+        raise ValueError(f'Expected distinct segment lengths, got {lens.tolist()}.')
+    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
+        raise ValueError(f'Expected `step` to be a positive integer, got {step!r}.')
+    return lens
+
+
+def _segments(
+    est: FloatArray, gt: FloatArray, dist: FloatArray, lens: FloatArray, step: int
+) -> tuple[list[IntArray], list[IntArray], list[FloatArray], list[FloatArray], list[FloatArray]]:
+    """Per segment length that has segments: their first and last frames, lengths and
+    translation (%) and rotation (deg/m) errors (see :func:`kitti_segment_errors`)."""
+    n = est.shape[0]
+    first_all = np.arange(0, n, step)
+    inv_est = np.linalg.inv(est)
+    inv_gt = np.linalg.inv(gt)
+    firsts: list[IntArray] = []
+    lasts: list[IntArray] = []
+    seg_lens: list[FloatArray] = []
+    t_errs: list[FloatArray] = []
+    r_errs: list[FloatArray] = []
+    for length in lens:
+        # First frame whose distance exceeds dist[first] + length (devkit: strict '>').
+        last = np.searchsorted(dist, dist[first_all] + length, side='right')
+        ok = last < n
+        if not ok.any():
+            continue
+        f, lf = first_all[ok], last[ok]
+        e_R, e_t = _pair_errors(inv_est[f] @ est[lf], inv_gt[f] @ gt[lf])
+        firsts.append(f.astype(np.int64))
+        lasts.append(lf.astype(np.int64))
+        seg_lens.append(np.full(f.size, float(length)))
+        t_errs.append(100.0 * e_t / length)
+        r_errs.append(e_R / length)
+    return firsts, lasts, seg_lens, t_errs, r_errs
+
+
 def kitti_segment_errors(
     T_est: ArrayLike,
     T_gt: ArrayLike,
@@ -104,41 +150,9 @@ def kitti_segment_errors(
         ``step < 1``.
     """
     est, gt = _as_pose_pair(T_est, T_gt, ('T_est', 'T_gt'))
-    lens = _as_float_array(lengths, 'lengths')
-    if lens.ndim != 1 or lens.size == 0:
-        raise ValueError(
-            f'Expected `lengths` to be a non-empty sequence of floats, got shape {lens.shape}.'
-        )
-    if not (np.isfinite(lens).all() and (lens > 0.0).all()):
-        raise ValueError(f'Expected every segment length to be positive, got {lens.tolist()}.')
-    if np.unique(lens).size != lens.size:
-        raise ValueError(f'Expected distinct segment lengths, got {lens.tolist()}.')
-    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
-        raise ValueError(f'Expected `step` to be a positive integer, got {step!r}.')
-
-    n = est.shape[0]
+    lens = _segment_lengths(lengths, step)
     dist = _path_length(gt)
-    first_all = np.arange(0, n, int(step))
-    inv_est = np.linalg.inv(est)
-    inv_gt = np.linalg.inv(gt)
-    firsts: list[IntArray] = []
-    lasts: list[IntArray] = []
-    seg_lens: list[FloatArray] = []
-    t_errs: list[FloatArray] = []
-    r_errs: list[FloatArray] = []
-    for length in lens:
-        # First frame whose distance exceeds dist[first] + length (devkit: strict '>').
-        last = np.searchsorted(dist, dist[first_all] + length, side='right')
-        ok = last < n
-        if not ok.any():
-            continue
-        f, lf = first_all[ok], last[ok]
-        e_R, e_t = _pair_errors(inv_est[f] @ est[lf], inv_gt[f] @ gt[lf])
-        firsts.append(f.astype(np.int64))
-        lasts.append(lf.astype(np.int64))
-        seg_lens.append(np.full(f.size, float(length)))
-        t_errs.append(100.0 * e_t / length)
-        r_errs.append(e_R / length)
+    firsts, lasts, seg_lens, t_errs, r_errs = _segments(est, gt, dist, lens, int(step))
     if not firsts:
         logger.debug(
             'kitti_segment_errors: trajectory of %.2f m does not fill the shortest segment '

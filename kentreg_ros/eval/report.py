@@ -19,10 +19,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import HEALTHS, OdometryStep
-from kentreg_ros.eval import kitti, metrics
+from kentreg_ros.eval import alignment, kitti, metrics
 from kentreg_ros.eval.groundtruth import GT_TOLERANCE_S, GroundTruth, associate
 from kentreg_ros.eval.run import OdometryRun
-from kentreg_ros.io.bags import SkippedScan
+from kentreg_ros.io.sources import SkippedScan
 
 logger = logging.getLogger(__name__)
 
@@ -117,7 +117,7 @@ def evaluate(T_est: FloatArray, T_gt: FloatArray) -> dict[str, Any]:
     out['gt_distance_m'] = gt_distance
     out['ate'] = None
     if len(T_est) >= 3:
-        ate = metrics.ate(T_est, T_gt, align=True)
+        ate = alignment.ate(T_est, T_gt, align=True)
         out['ate'] = {
             'alignment': 'SE(3)',
             'count': ate['count'],

@@ -20,9 +20,10 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import ACCEPTED, Health, KentRegError, Odometry, OdometryStep, VoxelMap
-from kentreg_ros.io.bags import ScanSource, SkippedScan
+from kentreg_ros.core import KentRegError, Odometry, OdometryStep
 from kentreg_ros.io.pointcloud2 import point_time_field
+from kentreg_ros.io.runmap import DEFAULT_MAX_POINTS, RunMap
+from kentreg_ros.io.sources import ScanSource, SkippedScan
 
 logger = logging.getLogger(__name__)
 
@@ -34,7 +35,7 @@ MAX_SKIPPED_NAMED = 5
 
 
 class ScanLike(Protocol):
-    """One scan: what :func:`run_odometry` reads of a :class:`kentreg_ros.io.bags.Scan`."""
+    """One scan: what :func:`run_odometry` reads of a :class:`kentreg_ros.io.sources.Scan`."""
 
     @property
     def stamp_ns(self) -> int: ...
@@ -47,7 +48,7 @@ class ScanLike(Protocol):
 
 
 class ScanSequence(Protocol):
-    """Scans in order with their count: a :class:`kentreg_ros.io.bags.ScanSource` or a list."""
+    """Scans in order with their count: a :class:`kentreg_ros.io.sources.ScanSource` or a list."""
 
     def __len__(self) -> int: ...
 
@@ -77,9 +78,10 @@ class OdometryRun:
         unreadable scan file): skipped, as the ROS node skips them, and counted here.
     skipped : list of SkippedScan
         The first :data:`MAX_SKIPPED_NAMED` of them (input index, stamp, reason).
-    map : VoxelMap or None
-        With ``map_voxel_size``: the points of every accepted scan (and the first) at its pose
-        in the odometry frame, one per voxel.
+    map : RunMap or None
+        With ``map_voxel_size``: the map of the run (:class:`~kentreg_ros.io.runmap.RunMap`,
+        the one ``kentreg_node`` builds): the prepared points of every accepted scan (and the
+        first) at its pose in the odometry frame, one per voxel.
     """
 
     steps: list[OdometryStep] = field(default_factory=list)
@@ -90,7 +92,7 @@ class OdometryRun:
     error: str | None = None
     n_skipped: int = 0
     skipped: list[SkippedScan] = field(default_factory=list)
-    map: VoxelMap | None = None
+    map: RunMap | None = None
 
     @property
     def poses(self) -> FloatArray:
@@ -114,6 +116,7 @@ def run_odometry(
     stride: int = 1,
     on_step: Callable[[OdometryStep], object] | None = None,
     map_voxel_size: float = 0.0,
+    map_max_points: int = DEFAULT_MAX_POINTS,
 ) -> OdometryRun:
     """Feed the scans ``start, start + stride, ...`` of ``source`` (at most ``max_scans``).
 
@@ -122,7 +125,7 @@ def run_odometry(
     processed scans, and :attr:`OdometryRun.input_indices` records which input scans they were.
 
     A selected scan that cannot be decoded (a malformed PointCloud2 in a bag, an unreadable scan
-    file; :meth:`~kentreg_ros.io.bags.ScanSource.entries`) is skipped and counted in
+    file; :meth:`~kentreg_ros.io.sources.ScanSource.entries`) is skipped and counted in
     :attr:`OdometryRun.n_skipped`, the first few named in :attr:`OdometryRun.skipped`; the run
     goes on, as the ROS node does. A read error of the container itself (a damaged bag) ends
     the run early; the scans read before it are kept and the error is recorded in
@@ -146,11 +149,14 @@ def run_odometry(
     on_step : callable, optional
         Called with each step after it ran (a progress bar).
     map_voxel_size : float
-        When positive, accumulate the map of the run in :attr:`OdometryRun.map`: the input
-        points of every scan whose pose was registered (and of the first), moved by that pose
-        into the odometry frame, at most one per voxel of this edge (m). Scans that fell back
-        or were rejected stay out: their pose is only a prediction. The points are the input's,
-        not deskewed. The map grows with the area covered (offline use).
+        When positive, accumulate the map of the run in :attr:`OdometryRun.map`: the prepared
+        points (:attr:`OdometryStep.points`: downsampled, outlier-free, deskewed) of every scan
+        whose pose was registered (and of the first), moved by that pose into the odometry
+        frame, at most one per voxel of this edge (m); the node's map, built the same way (see
+        :mod:`kentreg_ros.io.runmap` for why these points). Scans that fell back or were
+        rejected stay out: their pose is only a prediction.
+    map_max_points : int
+        Points the map keeps at most; beyond them its voxel edge doubles.
 
     Returns
     -------
@@ -161,17 +167,10 @@ def run_odometry(
     ValueError
         ``start`` beyond the input, or ``stride`` not a positive integer.
     """
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
+    indices = _indices(len(source), start, max_scans, stride)
     run = OdometryRun()
     if map_voxel_size > 0.0:
-        run.map = VoxelMap(map_voxel_size)
-    n_total = len(source)
-    if start >= n_total:
-        raise ValueError(f'start {start}: the input has only {n_total} scans')
-    indices = range(start, n_total, stride)
-    if max_scans is not None:
-        indices = indices[:max_scans]
+        run.map = RunMap(map_voxel_size, max_points=map_max_points)
     reader: Iterator[ScanLike | SkippedScan] = (
         source.entries() if isinstance(source, ScanSource) else iter(source)
     )
@@ -195,27 +194,9 @@ def run_odometry(
                 logger.info('Scan %d skipped: %s', index, scan.reason)
                 continue
             run.read_ms.append((time.perf_counter() - t0) * 1e3)
-            step = odometry.step(
-                scan.points,
-                scan.stamp_ns,
-                frame_id=scan.frame_id,
-                point_times=point_time_field(getattr(scan, 'extras', None)),
-            )
-            run.steps.append(step)
-            run.input_indices.append(index)
-            if run.map is not None and (step.health in ACCEPTED or step.health == Health.FIRST):
-                R, t = step.T_world_lidar[:3, :3], step.T_world_lidar[:3, 3]
-                points = np.asarray(scan.points, dtype=np.float64)
-                run.map.insert(points[np.isfinite(points).all(axis=1)] @ R.T + t)
+            step = _step(odometry, scan, index, run)
             if on_step is not None:
                 on_step(step)
-            logger.debug(
-                'Scan %d: %s in %.0f ms (%s)',
-                index,
-                step.health,
-                step.timings['total'],
-                step.message,
-            )
     except KeyboardInterrupt:
         run.interrupted = True
     finally:
@@ -223,3 +204,31 @@ def run_odometry(
             reader.close()
     run.elapsed_s = time.perf_counter() - t_run
     return run
+
+
+def _step(odometry: Odometry, scan: ScanLike, index: int, run: OdometryRun) -> OdometryStep:
+    """One scan through the odometry, recorded in ``run`` (and its map)."""
+    step = odometry.step(
+        scan.points,
+        scan.stamp_ns,
+        frame_id=scan.frame_id,
+        point_times=point_time_field(getattr(scan, 'extras', None)),
+    )
+    run.steps.append(step)
+    run.input_indices.append(index)
+    if run.map is not None and step.ok and step.points is not None:
+        run.map.add(step.points, step.T_world_lidar)
+    logger.debug(
+        'Scan %d: %s in %.0f ms (%s)', index, step.health, step.timings['total'], step.message
+    )
+    return step
+
+
+def _indices(n_total: int, start: int, max_scans: int | None, stride: int) -> range:
+    """The input indices a run takes (see :func:`run_odometry`)."""
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
+    if start >= n_total:
+        raise ValueError(f'start {start}: the input has only {n_total} scans')
+    indices = range(start, n_total, stride)
+    return indices[:max_scans] if max_scans is not None else indices

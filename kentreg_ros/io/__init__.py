@@ -35,37 +35,23 @@ from kentreg_ros.io.poses import (
 from kentreg_ros.io.scanfiles import list_scans, read_scan, write_pcd
 
 if TYPE_CHECKING:
-    from kentreg_ros.io.bags import (
-        BagScanSource,
-        FilesScanSource,
-        Recording,
-        Scan,
-        ScanSource,
-        bag_topics,
-        is_bag,
-        open_recording,
-        open_scan_source,
-        read_ground_truth,
-    )
+    from kentreg_ros.io.bags import BagScanSource, bag_topics, is_bag
     from kentreg_ros.io.bagwriter import BagWriter, write_odometry_mcap
+    from kentreg_ros.io.recordings import Recording, open_recording, read_ground_truth
+    from kentreg_ros.io.sources import FilesScanSource, Scan, ScanSource, open_scan_source
 
 #: The names loaded on first use, and the module each comes from.
 _LAZY = {
-    **dict.fromkeys(
-        (
-            'BagScanSource',
-            'FilesScanSource',
-            'Recording',
-            'Scan',
-            'ScanSource',
-            'bag_topics',
-            'is_bag',
-            'open_recording',
-            'open_scan_source',
-            'read_ground_truth',
-        ),
-        'kentreg_ros.io.bags',
-    ),
+    'BagScanSource': 'kentreg_ros.io.bags',
+    'bag_topics': 'kentreg_ros.io.bags',
+    'is_bag': 'kentreg_ros.io.bags',
+    'FilesScanSource': 'kentreg_ros.io.sources',
+    'Scan': 'kentreg_ros.io.sources',
+    'ScanSource': 'kentreg_ros.io.sources',
+    'open_scan_source': 'kentreg_ros.io.sources',
+    'Recording': 'kentreg_ros.io.recordings',
+    'open_recording': 'kentreg_ros.io.recordings',
+    'read_ground_truth': 'kentreg_ros.io.recordings',
     'BagWriter': 'kentreg_ros.io.bagwriter',
     'write_odometry_mcap': 'kentreg_ros.io.bagwriter',
 }

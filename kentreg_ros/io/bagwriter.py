@@ -19,8 +19,9 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.io.bags import ODOMETRY, PATH, POSESTAMPED, _describe
-from kentreg_ros.io.errors import BagError
+from kentreg_ros.io import names
+from kentreg_ros.io.bags import ODOMETRY, PATH, POSESTAMPED
+from kentreg_ros.io.errors import BagError, describe_error
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,
     array_to_pointcloud2,
@@ -31,12 +32,14 @@ from kentreg_ros.io.pointcloud2 import (
 if TYPE_CHECKING:
     from kentreg_ros.core import OdometryStep
 
-#: Topics of :func:`write_odometry_mcap`.
-ODOMETRY_TOPIC = '/kentreg/odometry'
-POSE_TOPIC = '/kentreg/pose'
-PATH_TOPIC = '/kentreg/path'
-MAP_TOPIC = '/kentreg/map'
-TF_TOPIC = '/tf'
+#: Topics of :func:`write_odometry_mcap`: the node's (:mod:`kentreg_ros.io.names`) as they
+#: resolve in the root namespace, so a recorded run and a live one look alike.
+ODOMETRY_TOPIC = names.absolute(names.ODOMETRY)
+POSE_TOPIC = names.absolute(names.POSE)
+PATH_TOPIC = names.absolute(names.PATH)
+CLOUD_REGISTERED_TOPIC = names.absolute(names.CLOUD_REGISTERED)
+MAP_TOPIC = names.absolute(names.MAP)
+TF_TOPIC = names.TF
 
 
 class BagWriter:
@@ -105,7 +108,7 @@ class BagWriter:
         try:
             writer.open()
         except Exception as exc:
-            raise BagError(f'{self.path}: cannot create bag ({_describe(exc)}).') from exc
+            raise BagError(f'{self.path}: cannot create bag ({describe_error(exc)}).') from exc
         self._writer = writer
 
     def close(self) -> None:
@@ -296,12 +299,15 @@ def write_odometry_mcap(
     odom_frame: str,
     child_frame: str,
     map_points: ArrayLike | None = None,
+    clouds: bool = True,
 ) -> dict[str, int]:
     """Write an odometry run as one MCAP file; return the message count per topic.
 
     Per scan: nav_msgs/Odometry on :data:`ODOMETRY_TOPIC` (with the chained pose covariance),
-    geometry_msgs/PoseStamped on :data:`POSE_TOPIC` and the ``odom_frame`` -> ``child_frame``
-    transform on :data:`TF_TOPIC`, stamped with the scan's header stamp; then one nav_msgs/Path
+    geometry_msgs/PoseStamped on :data:`POSE_TOPIC`, the ``odom_frame`` -> ``child_frame``
+    transform on :data:`TF_TOPIC` and (``clouds``) the scan's registered points (prepared,
+    deskewed) in ``odom_frame`` on :data:`CLOUD_REGISTERED_TOPIC`, as ``kentreg_node`` publishes
+    them by default, stamped with the scan's header stamp; then one nav_msgs/Path
     of every pose on :data:`PATH_TOPIC` and, with ``map_points``, one sensor_msgs/PointCloud2
     of the map in ``odom_frame`` on :data:`MAP_TOPIC` (at the last stamp). The bag is written
     in a hidden folder beside ``path`` and its MCAP file moved to ``path``: a single
@@ -317,6 +323,8 @@ def write_odometry_mcap(
         ``header.frame_id`` and ``child_frame_id`` of the poses.
     map_points : array_like, shape (M, 3), optional
         The map of the run in ``odom_frame`` (float32 ``x y z`` in the message).
+    clouds : bool
+        Write the registered cloud of every scan that has points (default True).
 
     Raises
     ------
@@ -344,6 +352,14 @@ def write_odometry_mcap(
                 child_frame_id=child_frame,
                 topic=TF_TOPIC,
             )
+            if clouds and step.points is not None:
+                T = step.T_world_lidar
+                writer.write_pointcloud(
+                    CLOUD_REGISTERED_TOPIC,
+                    step.stamp_ns,
+                    step.points @ T[:3, :3].T + T[:3, 3],
+                    frame_id=odom_frame,
+                )
         if steps:
             writer.write_path(
                 PATH_TOPIC,

@@ -19,3 +19,9 @@ class PoseFileError(KentRegError, ValueError):
 
 class BagError(KentRegError):
     """A bag cannot be read or written: corrupt, truncated, wrong topic or message type."""
+
+
+def describe_error(exc: BaseException) -> str:
+    """The first line of an exception's message (its type's name when it has none)."""
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]

@@ -27,8 +27,8 @@ from typing import Any
 
 import yaml
 
-from kentreg_ros.core import ConfigError
-from kentreg_ros.core.config import (
+from kentreg_ros.core import (
+    ConfigError,
     KentRegConfig,
     Section,
     coerce_value,
@@ -144,6 +144,14 @@ class QosReliability(StrEnum):
     RELIABLE = 'reliable'
 
 
+class RegisteredCloud(StrEnum):
+    """Where the registered cloud of each scan is published."""
+
+    ODOM = 'odom'
+    SENSOR = 'sensor'
+    OFF = 'off'
+
+
 #: The core's operator settings: flat parameter name -> the research field behind it (its
 #: default, range and description are that field's).
 CORE_PARAMETERS: dict[str, str] = {
@@ -189,30 +197,42 @@ class NodeSettings(Section):
     ------
     ConfigError
         A value out of range, not among its choices or of the wrong type, ``base_to_lidar``
-        not 6 numbers, an empty frame name, or the same name for both frames.
+        not 6 numbers, an empty ``odom_frame``, or the same name for both frames.
     """
 
     odom_frame: str = _param(
         'odom',
-        'Fixed frame of the odometry (REP-105): header.frame_id of odometry, pose and path.',
+        'Fixed frame of the odometry (REP-105): header.frame_id of the odometry, pose, path, '
+        'registered cloud and map.',
     )
     base_frame: str = _param(
-        'base_link',
-        'Robot body frame (REP-105): child_frame_id of the odometry and of the odom->base TF.',
+        '',
+        "Moving frame: child_frame_id of the odometry and of the TF. Empty: the cloud's own "
+        'frame, so a bag without /tf gives odom -> <cloud frame>. Set (base_link) and unlike '
+        'the cloud frame: base <- sensor comes from tf2, looked up on every scan, so one that '
+        'appears or changes later is used, else from base_to_lidar.',
     )
     base_to_lidar: tuple[float, ...] = _param(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-        'Pose of the sensor in base_frame as [x, y, z, roll, pitch, yaw] (m, rad), used when '
-        'tf2 is not available or has no base_frame<-sensor transform within tf_wait. All '
-        'zeros: the sensor frame is the base frame.',
+        'Pose of the sensor in base_frame as [x, y, z, roll, pitch, yaw] (m, rad), used while '
+        'tf2 has no base_frame <- sensor transform after tf_wait (or tf2 is missing); then '
+        'also broadcast as that static transform, so the tree is whole. Zeros: the sensor '
+        'frame is the base frame.',
     )
     publish_tf: bool = _param(
         True,
-        'Broadcast odom_frame->base_frame on /tf (needs tf2_ros; logged once if missing).',
+        'Broadcast odom_frame -> the moving frame on /tf (needs tf2_ros; logged once if missing).',
+    )
+    invert_tf: bool = _param(
+        False,
+        'Broadcast the inverse, moving frame -> odom_frame, for a robot whose odom -> base '
+        "transform is another node's (wheel odometry, an EKF): a frame has one parent in tf, "
+        "so kentreg's odometry frame hangs below the base (name it apart: odom_frame: "
+        'kentreg_odom).',
     )
     tf_wait: float = _param(
         1.0,
-        'Seconds to wait for the base_frame<-sensor transform in tf2 before using '
+        'Seconds to wait for the base_frame <- sensor transform in tf2 before using '
         'base_to_lidar (scans that arrive meanwhile are dropped and counted).',
         range=(0.0, 60.0),
     )
@@ -221,6 +241,12 @@ class NodeSettings(Section):
         1000,
         'Most recent poses kept in the published path (bounded memory).',
         range=(1, 1_000_000),
+    )
+    registered_cloud: RegisteredCloud = _param(
+        RegisteredCloud.ODOM,
+        "Publish each scan's registered points (deskewed, downsampled, outliers removed: "
+        "what was aligned) on kentreg/cloud_registered at the scan's stamp, in odom_frame "
+        "(odom), in the cloud's own frame (sensor), or not (off).",
     )
     diagnostics_period: float = _param(
         1.0,
@@ -246,35 +272,50 @@ class NodeSettings(Section):
     qos_reliability: QosReliability = _param(
         QosReliability.BEST_EFFORT,
         'Reliability of the input subscription: best_effort (sensor-data QoS, matches every '
-        'publisher) or reliable.',
+        'publisher) or reliable. qos_overrides.<topic>.subscription.reliability overrides it.',
         read_only=True,
     )
     qos_depth: int = _param(
         5,
-        'History depth of the input subscription.',
+        'History depth of the input subscription (qos_overrides.<topic>.subscription.depth '
+        'overrides it).',
         range=(1, 1000),
         read_only=True,
     )
     map_period: float = _param(
         2.0,
-        'Seconds between publications of the map (sensor_msgs/PointCloud2 in odom_frame, '
-        'transient-local so a viewer that starts later gets the latest); 0 keeps no map. A '
-        'map changes little between scans and is large: a slow rate saves bandwidth.',
+        'Seconds between publications of the map around the sensor on kentreg/map '
+        '(transient-local, so a viewer that starts later gets the latest); 0: not published '
+        '(~/save_map still has the map). A map changes little between scans and is large.',
         range=(0.0, 3600.0),
     )
     map_voxel_size: float = _param(
-        0.2,
-        'Voxel edge of the published map (m), one point per voxel: fine enough to show walls, '
-        'poles and doorways, coarse enough that a map of map_radius stays a few hundred '
-        'thousand points.',
+        0.1,
+        'Voxel edge of the map (m), one point per voxel, published and saved alike (the '
+        "replay's --map default): fine enough for walls, poles and doorways, coarse enough "
+        'that a street-sized map stays a few million points.',
         range=(0.01, 10.0),
+        read_only=True,
     )
     map_radius: float = _param(
         50.0,
-        'Published map points farther than this from the sensor are dropped (m): the '
-        'surroundings a viewer wants while the memory of a long-running node stays bounded. '
-        'Beyond the range of most spinning LiDARs indoors and in streets.',
+        'The published map shows the points within this distance of the sensor (m): what a '
+        'viewer wants around the robot, at a bounded message size; ~/save_map writes all of '
+        'it. Beyond the range of most spinning LiDARs indoors and in streets.',
         range=(1.0, 10000.0),
+    )
+    map_max_points: int = _param(
+        2_000_000,
+        'Points the map of the run keeps at most: beyond them its voxel edge doubles, so it '
+        'stays the map of the whole run, coarser (2 million: about 60 MB, a 24 MB PLY).',
+        range=(1000, 100_000_000),
+        read_only=True,
+    )
+    map_directory: str = _param(
+        '',
+        'Folder ~/save_map writes into (a new sub-folder per call: map.ply, '
+        'trajectory_tum.txt); ~ is expanded. Empty: $ROS_HOME/kentreg_maps (~/.ros/'
+        'kentreg_maps).',
     )
 
     def check(self) -> None:
@@ -289,9 +330,8 @@ class NodeSettings(Section):
                 f'Expected `base_to_lidar` to be a list of 6 numbers, got {list(values)!r}.'
             )
         object.__setattr__(self, 'base_to_lidar', numbers)
-        for key in ('odom_frame', 'base_frame'):
-            if not getattr(self, key).strip():
-                raise ConfigError(f'Expected `{key}` to be a non-empty frame name.')
+        if not self.odom_frame.strip():
+            raise ConfigError('Expected `odom_frame` to be a non-empty frame name.')
         if self.odom_frame == self.base_frame:
             raise ConfigError(
                 f'`odom_frame` and `base_frame` are both {self.odom_frame!r}; they must differ.'

@@ -205,6 +205,102 @@ def _as_uint8(data: Any) -> NDArray[np.uint8]:
         return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
+def _extra_names(layout: Mapping[str, Any], fields: Sequence[str] | None) -> list[str]:
+    """The extra fields to decode (all but x, y, z when ``fields`` is None), after checking
+    that x, y, z are there with one value each and that every requested field is."""
+    missing = [c for c in 'xyz' if c not in layout]
+    if missing:
+        raise InvalidPointCloudError(
+            f'PointCloud2 has no {"/".join(missing)} field; its fields are {sorted(layout)}.'
+        )
+    for c in 'xyz':
+        if layout[c].count != 1:
+            raise InvalidPointCloudError(
+                f'PointField {c!r} has count {layout[c].count}; expected 1.'
+            )
+    if fields is None:
+        return [n for n in layout if n not in ('x', 'y', 'z')]
+    names = [str(n) for n in fields if n not in ('x', 'y', 'z')]
+    absent = [n for n in names if n not in layout]
+    if absent:
+        raise InvalidPointCloudError(
+            f'PointCloud2 has no field {absent[0]!r}; its fields are {sorted(layout)}.'
+        )
+    return names
+
+
+def _xyz(
+    layout: Mapping[str, Any],
+    buf: NDArray[np.uint8],
+    height: int,
+    width: int,
+    row_step: int,
+    point_step: int,
+    out_dtype: np.dtype[Any],
+) -> NDArray[Any]:
+    """The x, y, z of every point, shape (height * width, 3), in ``out_dtype``."""
+    fx, fy, fz = layout['x'], layout['y'], layout['z']
+    points = np.empty((height, width, 3), out_dtype)
+    step = fx.dtype.itemsize
+    if (
+        fx.dtype == fy.dtype == fz.dtype
+        and fy.offset == fx.offset + step
+        and (fz.offset == fx.offset + 2 * step)
+    ):
+        # x, y, z adjacent and of one type (nearly every driver): one strided copy.
+        points[...] = np.ndarray(
+            (height, width, 3),
+            fx.dtype,
+            buffer=buf,
+            offset=fx.offset,
+            strides=(row_step, point_step, step),
+        )
+    else:
+        for axis, f in enumerate((fx, fy, fz)):
+            points[..., axis] = np.ndarray(
+                (height, width),
+                f.dtype,
+                buffer=buf,
+                offset=f.offset,
+                strides=(row_step, point_step),
+            )
+    return points.reshape(height * width, 3)
+
+
+def _field_values(
+    f: Any,
+    buf: NDArray[np.uint8],
+    height: int,
+    width: int,
+    row_step: int,
+    point_step: int,
+    keep: NDArray[np.bool_] | None,
+    kept: NDArray[np.intp],
+) -> NDArray[Any]:
+    """The values of one extra field for the points kept (all when ``keep`` is None), in
+    native byte order."""
+    n = height * width
+    native = f.dtype.newbyteorder('=')
+    shape: tuple[int, ...] = (height, width, f.count) if f.count > 1 else (height, width)
+    strides = (row_step, point_step, f.dtype.itemsize)[: len(shape)]
+    view = np.ndarray(shape, f.dtype, buffer=buf, offset=f.offset, strides=strides)
+    if keep is None:
+        values = np.empty(shape, native)
+        values[...] = view
+        return values.reshape((n,) + shape[2:])
+    if row_step == width * point_step:  # gather the kept points straight from the data
+        flat = np.ndarray(
+            (n,) + shape[2:],
+            f.dtype,
+            buffer=buf,
+            offset=f.offset,
+            strides=(point_step,) + strides[2:],
+        )
+        return flat.take(kept, axis=0).astype(native, copy=False)
+    # rows padded: no flat view of the data
+    return view[keep.reshape(height, width)].astype(native, copy=False)
+
+
 def pointcloud2_to_array(
     msg: PointCloud2Like,
     *,
@@ -249,25 +345,7 @@ def pointcloud2_to_array(
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     layout = _parse_fields(msg.fields, point_step, bool(msg.is_bigendian))
-    missing = [c for c in 'xyz' if c not in layout]
-    if missing:
-        raise InvalidPointCloudError(
-            f'PointCloud2 has no {"/".join(missing)} field; its fields are {sorted(layout)}.'
-        )
-    for c in 'xyz':
-        if layout[c].count != 1:
-            raise InvalidPointCloudError(
-                f'PointField {c!r} has count {layout[c].count}; expected 1.'
-            )
-    if fields is None:
-        extra_names = [n for n in layout if n not in ('x', 'y', 'z')]
-    else:
-        extra_names = [str(n) for n in fields if n not in ('x', 'y', 'z')]
-        absent = [n for n in extra_names if n not in layout]
-        if absent:
-            raise InvalidPointCloudError(
-                f'PointCloud2 has no field {absent[0]!r}; its fields are {sorted(layout)}.'
-            )
+    extra_names = _extra_names(layout, fields)
 
     buf = _as_uint8(msg.data)
     if height < 0 or width < 0 or buf.size != row_step * height:
@@ -293,37 +371,11 @@ def pointcloud2_to_array(
         }
         return CloudArrays(np.empty((0, 3), out_dtype), extras, 0, stamp_ns, frame_id)
 
-    fx, fy, fz = layout['x'], layout['y'], layout['z']
-    points = np.empty((height, width, 3), out_dtype)
-    step = fx.dtype.itemsize
-    if (
-        fx.dtype == fy.dtype == fz.dtype
-        and fy.offset == fx.offset + step
-        and (fz.offset == fx.offset + 2 * step)
-    ):
-        # x, y, z adjacent and of one type (nearly every driver): one strided copy.
-        points[...] = np.ndarray(
-            (height, width, 3),
-            fx.dtype,
-            buffer=buf,
-            offset=fx.offset,
-            strides=(row_step, point_step, step),
-        )
-    else:
-        for axis, f in enumerate((fx, fy, fz)):
-            points[..., axis] = np.ndarray(
-                (height, width),
-                f.dtype,
-                buffer=buf,
-                offset=f.offset,
-                strides=(row_step, point_step),
-            )
-    points = points.reshape(n, 3)
-
+    points = _xyz(layout, buf, height, width, row_step, point_step, out_dtype)
     n_dropped = 0
     keep: NDArray[np.bool_] | None = None
     kept: NDArray[np.intp] = np.empty(0, np.intp)
-    floats = 'f' in (fx.dtype.kind, fy.dtype.kind, fz.dtype.kind)
+    floats = 'f' in (layout['x'].dtype.kind, layout['y'].dtype.kind, layout['z'].dtype.kind)
     # One contiguous pass for the common all-finite case; column-wise otherwise (much faster
     # than .all(axis=1) on an (N, 3) array).
     if floats and not np.isfinite(points).all():
@@ -344,28 +396,10 @@ def pointcloud2_to_array(
                 n_dropped,
             )
 
-    extras = {}
-    for name in extra_names:
-        f = layout[name]
-        native = f.dtype.newbyteorder('=')
-        shape: tuple[int, ...] = (height, width, f.count) if f.count > 1 else (height, width)
-        strides = (row_step, point_step, f.dtype.itemsize)[: len(shape)]
-        view = np.ndarray(shape, f.dtype, buffer=buf, offset=f.offset, strides=strides)
-        if keep is None:
-            values = np.empty(shape, native)
-            values[...] = view
-            extras[name] = values.reshape((n,) + shape[2:])
-        elif row_step == width * point_step:  # gather the kept points straight from the data
-            flat = np.ndarray(
-                (n,) + shape[2:],
-                f.dtype,
-                buffer=buf,
-                offset=f.offset,
-                strides=(point_step,) + strides[2:],
-            )
-            extras[name] = flat.take(kept, axis=0).astype(native, copy=False)
-        else:  # rows padded: no flat view of the data
-            extras[name] = view[keep.reshape(height, width)].astype(native, copy=False)
+    extras = {
+        name: _field_values(layout[name], buf, height, width, row_step, point_step, keep, kept)
+        for name in extra_names
+    }
     return CloudArrays(points, extras, n_dropped, stamp_ns, frame_id)
 
 

@@ -53,24 +53,6 @@ _PCD_TYPES = {
     ('U', 4): 'u4',
     ('U', 8): 'u8',
 }
-_PLY_TYPES = {
-    'char': 'i1',
-    'int8': 'i1',
-    'uchar': 'u1',
-    'uint8': 'u1',
-    'short': 'i2',
-    'int16': 'i2',
-    'ushort': 'u2',
-    'uint16': 'u2',
-    'int': 'i4',
-    'int32': 'i4',
-    'uint': 'u4',
-    'uint32': 'u4',
-    'float': 'f4',
-    'float32': 'f4',
-    'double': 'f8',
-    'float64': 'f8',
-}
 
 
 def natural_key(name: str) -> tuple[Any, ...]:
@@ -129,6 +111,8 @@ def read_scan(
     CloudArrays
         ``stamp_ns`` is None and ``frame_id`` empty: files carry no time or frame.
     """
+    from kentreg_ros.io.ply import read_ply  # it imports this module's helpers
+
     p = Path(path)
     readers = {'.pcd': read_pcd, '.ply': read_ply, '.bin': read_kitti_bin, '.csv': read_eth_csv}
     reader = readers.get(p.suffix.lower())
@@ -139,14 +123,14 @@ def read_scan(
     return reader(p, fields=fields, dtype=dtype)
 
 
-def _read_bytes(path: Path) -> bytes:
+def read_file_bytes(path: Path) -> bytes:
     try:
         return path.read_bytes()
     except OSError as exc:
         raise ScanFileError(f'{path}: cannot read ({exc.strerror or exc}).') from exc
 
 
-def _finish(
+def finish_cloud(
     path: Path,
     columns: Mapping[str, NDArray[Any]],
     fields: Sequence[str] | None,
@@ -181,7 +165,7 @@ def _finish(
     return CloudArrays(points, extras, n_dropped)
 
 
-def _columns(arr: NDArray[Any]) -> dict[str, NDArray[Any]]:
+def columns_of(arr: NDArray[Any]) -> dict[str, NDArray[Any]]:
     """Fields of a structured array as plain arrays; padding fields are skipped."""
     names = arr.dtype.names or ()
     return {n: arr[n] for n in names if n not in PADDING_FIELDS}
@@ -251,7 +235,7 @@ def read_pcd(
         ``WIDTH * HEIGHT != POINTS``), an unknown type, or truncated data.
     """
     p = Path(path)
-    raw = _read_bytes(p)
+    raw = read_file_bytes(p)
     header, data_start = _parse_pcd_header(p, raw)
     names = header.get('FIELDS', [])
     sizes = header.get('SIZE', [])
@@ -308,8 +292,8 @@ def read_pcd(
             f'{p}: unknown PCD DATA {" ".join(header["DATA"])!r}; expected '
             'ascii, binary or binary_compressed.'
         )
-    columns = {k: v for k, v in _columns(arr).items() if not re.fullmatch(r'_\d+', k)}
-    return _finish(p, columns, fields, dtype)
+    columns = {k: v for k, v in columns_of(arr).items() if not re.fullmatch(r'_\d+', k)}
+    return finish_cloud(p, columns, fields, dtype)
 
 
 def _pcd_ascii(path: Path, body: memoryview, point_dtype: np.dtype[Any], n: int) -> NDArray[Any]:
@@ -467,125 +451,6 @@ def _lzf_literal(plain: bytes) -> bytes:
     return b''.join(chunks)
 
 
-# --- PLY -------------------------------------------------------------------------------------
-
-
-def _parse_ply_header(
-    path: Path, raw: bytes
-) -> tuple[str, list[tuple[str, int, list[tuple[str, str, bool]]]], int]:
-    if not raw.startswith(b'ply'):
-        raise ScanFileError(f'{path}: not a PLY file (no "ply" magic).')
-    end = raw.find(b'end_header')
-    if end < 0:
-        raise ScanFileError(f'{path}: PLY header has no end_header (truncated?).')
-    nl = raw.find(b'\n', end)
-    if nl < 0:
-        raise ScanFileError(f'{path}: PLY header is truncated after end_header.')
-    lines = raw[:end].decode('ascii', errors='replace').splitlines()
-    fmt = ''
-    elements: list[tuple[str, int, list[tuple[str, str, bool]]]] = []
-    for line in lines[1:]:
-        words = line.split()
-        if not words or words[0] in ('comment', 'obj_info'):
-            continue
-        try:
-            if words[0] == 'format':
-                fmt = words[1]
-            elif words[0] == 'element':
-                elements.append((words[1], int(words[2]), []))
-            elif words[0] == 'property':
-                if not elements:
-                    raise ScanFileError(f'{path}: PLY property before any element.')
-                if words[1] == 'list':
-                    elements[-1][2].append((words[4], words[3], True))
-                else:
-                    elements[-1][2].append((words[2], words[1], False))
-            else:
-                raise ScanFileError(f'{path}: unknown PLY header line {line!r}.')
-        except (IndexError, ValueError) as exc:
-            raise ScanFileError(f'{path}: malformed PLY header line {line!r}.') from exc
-    if fmt not in ('ascii', 'binary_little_endian', 'binary_big_endian'):
-        raise ScanFileError(f'{path}: unknown PLY format {fmt!r}.')
-    for _, _, props in elements:
-        for name, typ, _ in props:
-            if typ not in _PLY_TYPES:
-                raise ScanFileError(f'{path}: PLY property {name!r} has unknown type {typ!r}.')
-    return fmt, elements, nl + 1
-
-
-def read_ply(
-    path: str | Path, *, fields: Sequence[str] | None = None, dtype: DTypeLike = np.float64
-) -> CloudArrays:
-    """Read the vertices of a PLY file (ascii or binary, either byte order).
-
-    Parameters
-    ----------
-    path : str or Path
-    fields : sequence of str, optional
-        Extra vertex properties to keep (e.g. ``['scalar_intensity']``); None keeps all.
-    dtype : {numpy.float64, numpy.float32}
-
-    Returns
-    -------
-    CloudArrays
-
-    Raises
-    ------
-    ScanFileError
-        No vertex element or no x/y/z, truncated data, a list property in the vertex element
-        (or, in binary files, in an element before it).
-    """
-    p = Path(path)
-    raw = _read_bytes(p)
-    fmt, elements, start = _parse_ply_header(p, raw)
-    names = [e[0] for e in elements]
-    if 'vertex' not in names:
-        raise ScanFileError(f'{p}: PLY has no vertex element (elements: {names}).')
-    index = names.index('vertex')
-    _, n, props = elements[index]
-    if any(is_list for _, _, is_list in props):
-        raise ScanFileError(f'{p}: PLY vertex element has list properties; not supported.')
-    if fmt == 'ascii':
-        lines = raw[start:].decode('ascii', errors='replace').splitlines()
-        skip = sum(count for _, count, _ in elements[:index])
-        rows = lines[skip : skip + n]
-        if len(rows) < n:
-            raise ScanFileError(
-                f'{p}: PLY ascii vertex data is truncated: {len(rows)} of {n} rows.'
-            )
-        try:
-            table = np.loadtxt(rows, dtype=np.float64, ndmin=2) if n else np.empty((0, 0))
-        except ValueError as exc:
-            raise ScanFileError(f'{p}: PLY ascii vertex data is malformed ({exc}).') from exc
-        if n and table.shape[1] != len(props):
-            raise ScanFileError(
-                f'{p}: PLY ascii vertex rows have {table.shape[1]} values, expected {len(props)}.'
-            )
-        columns = {
-            name: (table[:, i] if n else np.empty(0)).astype(_PLY_TYPES[typ])
-            for i, (name, typ, _) in enumerate(props)
-        }
-    else:
-        order = '<' if fmt == 'binary_little_endian' else '>'
-        offset = start
-        for name, count, eprops in elements[:index]:
-            if any(is_list for _, _, is_list in eprops):
-                raise ScanFileError(
-                    f'{p}: PLY element {name!r} with list properties comes '
-                    'before the vertices; not supported.'
-                )
-            offset += count * sum(np.dtype(_PLY_TYPES[t]).itemsize for _, t, _ in eprops)
-        vdtype = np.dtype([(name, order + _PLY_TYPES[typ]) for name, typ, _ in props])
-        need = n * vdtype.itemsize
-        if len(raw) - offset < need:
-            raise ScanFileError(
-                f'{p}: PLY binary vertex data is truncated: {max(len(raw) - offset, 0)} bytes, '
-                f'expected {n} * {vdtype.itemsize} = {need}.'
-            )
-        columns = _columns(np.frombuffer(raw, vdtype, count=n, offset=offset))
-    return _finish(p, columns, fields, dtype)
-
-
 # --- KITTI and ETH ---------------------------------------------------------------------------
 
 
@@ -602,7 +467,7 @@ def read_kitti_bin(
         The file size is not a multiple of 16 bytes.
     """
     p = Path(path)
-    raw = _read_bytes(p)
+    raw = read_file_bytes(p)
     if len(raw) % 16:
         raise ScanFileError(
             f'{p}: KITTI .bin size {len(raw)} is not a multiple of 16 bytes (float32 x, y, z, '
@@ -611,7 +476,7 @@ def read_kitti_bin(
     arr = np.frombuffer(
         raw, np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
     )
-    return _finish(p, _columns(arr), fields, dtype)
+    return finish_cloud(p, columns_of(arr), fields, dtype)
 
 
 def read_eth_csv(
@@ -628,7 +493,7 @@ def read_eth_csv(
         No header, no x/y/z column, or rows with the wrong number of values.
     """
     p = Path(path)
-    raw = _read_bytes(p)
+    raw = read_file_bytes(p)
     text = raw.decode('utf-8', errors='replace')
     first, _, rest = text.partition('\n')
     names = [c.strip().lower() for c in first.strip().split(',')]
@@ -645,4 +510,4 @@ def read_eth_csv(
     if not table.size:
         table = np.empty((0, len(names)))
     columns = {name: table[:, i] for i, name in enumerate(names)}
-    return _finish(p, columns, fields, dtype)
+    return finish_cloud(p, columns, fields, dtype)

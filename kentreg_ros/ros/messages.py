@@ -156,17 +156,23 @@ def transform_from_xyzrpy(values: Sequence[float]) -> FloatArray:
 
 
 def pose_covariance_in_base(
-    cov_world_lidar: FloatArray, T_base_lidar: FloatArray, T_odom_base: FloatArray
+    cov_world_lidar: FloatArray,
+    T_base_lidar: FloatArray,
+    T_odom_base: FloatArray,
+    T_odom_world: FloatArray | None = None,
 ) -> FloatArray:
-    """Covariance of ``T_odom_base = T_bl T_world_lidar T_bl^-1`` from that of ``T_world_lidar``.
+    """Covariance of ``T_odom_base = T_odom_world T_world_lidar T_bl^-1`` from that of
+    ``T_world_lidar`` (``T_odom_world`` defaults to ``T_bl``: odom is the base at the start).
 
     Both in the nav_msgs order (x, y, z, rot_x, rot_y, rot_z): position error and rotation
-    error about the fixed frame's axes. With ``p_ob = R_bl p_wl + t_bl - R_ob t_bl`` and
-    ``dtheta_ob = R_bl dtheta_wl``, the Jacobian is ``[[R_bl, [R_ob t_bl]x R_bl], [0, R_bl]]``.
+    error about the fixed frame's axes. With ``A = T_odom_world``,
+    ``p_ob = R_A (R_wl t_lb + t_wl) + t_A`` (``t_lb`` the base origin in the lidar frame) and
+    ``dtheta_ob = R_A dtheta_wl``, the Jacobian is ``[[R_A, [R_ob t_bl]x R_A], [0, R_A]]``.
     """
-    R_bl = T_base_lidar[:3, :3]
+    A = T_base_lidar if T_odom_world is None else T_odom_world
+    R_A = A[:3, :3]
     J = np.zeros((6, 6))
-    J[:3, :3] = R_bl
-    J[3:, 3:] = R_bl
-    J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_bl
+    J[:3, :3] = R_A
+    J[3:, 3:] = R_A
+    J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_A
     return J @ cov_world_lidar @ J.T

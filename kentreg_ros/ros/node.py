@@ -1,21 +1,28 @@
 """``kentreg_node``: live LiDAR odometry from ``sensor_msgs/PointCloud2`` with rclpy.
 
-Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points``):
+Topics (relative names, remap as usual: ``--ros-args -r points:=/velodyne_points``; outputs
+under one prefix, :mod:`kentreg_ros.io.names`, so none collides with a robot's ``/odom``):
 
-============== ====================================== ==========================================
-``points``     sensor_msgs/PointCloud2 (subscribed)   sensor-data QoS by default
-``odom``       nav_msgs/Odometry                      odom_frame -> base_frame, twist, covariance
-``pose``       geometry_msgs/PoseStamped              base_frame pose in odom_frame
-``path``       nav_msgs/Path                          the last ``path_length`` poses
-``diagnostics`` diagnostic_msgs/DiagnosticArray       rates, latency, drops, failures, mode
-``/tf``        odom_frame -> base_frame               when tf2_ros is installed
-``~/map``      sensor_msgs/PointCloud2                every ``map_period`` s, transient-local
-``~/reset``    std_srvs/Trigger (service)             restart the trajectory at the next scan
-============== ====================================== ==========================================
+============================ ===================================== ==============================
+``points``                   sensor_msgs/PointCloud2 (subscribed)  sensor-data QoS by default
+``initialpose``              PoseWithCovarianceStamped (subscr.)   sets the current pose (RViz)
+``kentreg/odometry``         nav_msgs/Odometry                     odom -> moving frame, twist
+``kentreg/pose``             geometry_msgs/PoseStamped             the same pose
+``kentreg/path``             nav_msgs/Path                         the last ``path_length`` poses
+``kentreg/cloud_registered`` sensor_msgs/PointCloud2               each scan's registered points
+``kentreg/map``              sensor_msgs/PointCloud2               around the sensor, latched
+``/diagnostics``             diagnostic_msgs/DiagnosticArray       rates, latency, drops, mode
+``/tf``, ``/tf_static``      odom -> moving frame, base <- sensor  when tf2_ros is installed
+``~/save_map``               std_srvs/Trigger (service)            writes map.ply + TUM poses
+``~/reset``                  std_srvs/Trigger (service)            restart the trajectory
+============================ ===================================== ==============================
 
-The map, TF and odometry messages are built by :mod:`kentreg_ros.ros.outputs`; the parameters
-(flat names, :data:`kentreg_ros.io.params.PARAMETERS`) are declared by
-:mod:`kentreg_ros.ros.parameters`; diagnostics by :mod:`kentreg_ros.ros.diagnostics`.
+The moving frame is ``base_frame``, or the cloud's own frame when it is empty (the default);
+frames and TF are :mod:`kentreg_ros.ros.frames`, the outputs and the map of the run
+:mod:`kentreg_ros.ros.outputs`, the services :mod:`kentreg_ros.ros.services`, the parameters
+(flat names, :data:`kentreg_ros.io.params.PARAMETERS`) :mod:`kentreg_ros.ros.parameters`,
+diagnostics :mod:`kentreg_ros.ros.diagnostics`. ``qos_overrides.<topic>.<publisher|
+subscription>.{history,depth,reliability}`` apply to the input and every output topic.
 
 Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
 points) and puts the scan into a bounded queue; one worker thread runs
@@ -38,7 +45,6 @@ with a warning instead of corrupting it; a repeated stamp is dropped and counted
 
 from __future__ import annotations
 
-import argparse
 import collections
 import sys
 import threading
@@ -53,37 +59,38 @@ import rclpy.clock
 import rclpy.logging
 import rclpy.time
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from kentreg_ros import __version__
 from kentreg_ros.cli.common import (
     EXIT_BAD_INPUT,
-    ArgumentParser,
     CliError,
     interrupt_through_rclpy,
 )
 from kentreg_ros.core import KentRegConfig, PointTimes
-from kentreg_ros.io.params import NODE_NAME, NodeSettings, QosReliability
+from kentreg_ros.io import names
+from kentreg_ros.io.params import NODE_NAME, NodeSettings
 from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
-from kentreg_ros.ros import parameters
+from kentreg_ros.ros import parameters, services
 from kentreg_ros.ros.diagnostics import Counters, Snapshot, odometry_status
+from kentreg_ros.ros.frames import Frames, moving_frame
 from kentreg_ros.ros.logbridge import RclpyLogHandler
-from kentreg_ros.ros.messages import transform_from_msg, transform_from_xyzrpy
-from kentreg_ros.ros.outputs import Outputs
+from kentreg_ros.ros.outputs import (
+    MAP_TICK_S,
+    Outputs,
+    input_qos,
+    qos_overridable,
+    qos_override_errors,
+)
 from kentreg_ros.ros.parameters import StartupError
 from kentreg_ros.ros.pipeline import close_odometry, create_odometry, discard, prefetch
-
-try:  # tf2_ros is not on PyPI: a pip-only install runs without TF.
-    import tf2_ros
-except ImportError:  # pragma: no cover - depends on the installation
-    tf2_ros = None
+from kentreg_ros.ros.usage import build_parser
 
 __all__ = ['KentRegNode', 'StartupError', 'main']
 
@@ -126,7 +133,7 @@ class KentRegNode(Node):
     #: How long :meth:`destroy_node` waits for the worker to finish the scan in hand (s).
     WORKER_STOP_TIMEOUT_S = 10.0
 
-    def __init__(self, *, node_name: str = NODE_NAME, **kwargs: Any) -> None:
+    def __init__(self, *, node_name: str = NODE_NAME, tf: Any = None, **kwargs: Any) -> None:
         # rclpy declares every parameter given for this node (files, -p, parameter_overrides)
         # before __init__ returns, so the node can see what it was given through the public
         # parameter API, validate it and warn about names it does not know (parameters.declare).
@@ -162,11 +169,9 @@ class KentRegNode(Node):
         # from the executor thread (parameters, reset) reach it under the lock as pending
         # values or through the settings it copies before each scan.
         self._odometry = create_odometry(self._config, self._settings, ODOMETRY_HISTORY)
-        self._T_base_lidar: FloatArray | None = None
         self._frame_id: str | None = None
         self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
         self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped with
-        self._tf_wait_start: float | None = None
         self._last_health = ''
         self._last_message = ''
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=1000)
@@ -177,53 +182,60 @@ class KentRegNode(Node):
         #: Kinds of unexpected error (type, file, line) whose traceback was logged.
         self._error_kinds: set[tuple[str, str, int]] = set()
 
-        self._tf_broadcaster = None
-        self._tf_buffer = None
-        if tf2_ros is not None:
-            self._tf_broadcaster = tf2_ros.TransformBroadcaster(self)
-            self._tf_buffer = tf2_ros.Buffer()
-            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
-        else:
-            self.get_logger().info(
-                'tf2_ros is not installed (pip-only rclpy): not broadcasting '
-                f'{self._settings.odom_frame}->{self._settings.base_frame} on /tf; the sensor '
-                'pose in the base frame comes from base_to_lidar. Install ROS 2 Jazzy '
-                '(ros-jazzy-tf2-ros) for TF.'
-            )
-
-        reliability = (
-            ReliabilityPolicy.RELIABLE
-            if self._settings.qos_reliability == QosReliability.RELIABLE
-            else ReliabilityPolicy.BEST_EFFORT
-        )
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=self._settings.qos_depth,
-            reliability=reliability,
-            durability=qos_profile_sensor_data.durability,
-        )
-        self._outputs = Outputs(self, self._tf_broadcaster, self._settings.path_length)
-        self._pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        self._sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
-        self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
-        # A steady timer: diagnostics keep coming when simulated time is paused or absent.
-        self._diag_timer = self.create_timer(
-            self._settings.diagnostics_period,
-            self._publish_diagnostics,
-            clock=rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME),
-        )
+        try:
+            self._create_endpoints(tf)
+        except StartupError:
+            self._log_handler.detach()
+            super().destroy_node()
+            raise
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._worker = threading.Thread(target=self._run_worker, name='kentreg_worker')
         self._worker.daemon = True
         self._worker.start()
         self._log_handler.own_thread(self._worker.ident)
+        child = self._settings.base_frame or "the cloud's frame"
         self.get_logger().info(
             f'kentreg_node ready: model={self._config.odometry.model}, listening on '
-            f'{self._sub.topic_name} ({self._settings.qos_reliability}, depth '
-            f'{self._settings.qos_depth}), publishing {self._outputs.odom.topic_name} in '
-            f'{self._settings.odom_frame}->{self._settings.base_frame}.'
+            f'{self._sub.topic_name}, publishing {self._outputs.odom.topic_name} in '
+            f'{self._settings.odom_frame} -> {child}.'
         )
+
+    def _create_endpoints(self, tf: Any) -> None:
+        """Frames (``tf``: stand-ins for tf2_ros's broadcasters and buffer, see
+        :class:`~kentreg_ros.ros.frames.Frames`), publishers, subscriptions, services and
+        timers; ``qos_overrides.*`` apply.
+
+        Raises
+        ------
+        StartupError
+            A QoS override rclpy cannot apply (an unknown policy value, a wrong type).
+        """
+        settings = self._settings
+        with qos_override_errors():
+            self._frames = Frames(self, settings, tf)
+            self._outputs = Outputs(self, self._frames, settings)
+            self._pub_diag = self.create_publisher(
+                DiagnosticArray, names.DIAGNOSTICS, 10, qos_overriding_options=qos_overridable()
+            )
+            self._sub = self.create_subscription(
+                PointCloud2,
+                names.POINTS,
+                self._on_points,
+                input_qos(settings),
+                qos_overriding_options=qos_overridable(),
+            )
+        self._sub_pose = self.create_subscription(
+            PoseWithCovarianceStamped, names.INITIAL_POSE, self._on_initial_pose, 10
+        )
+        self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
+        self._srv_save = self.create_service(Trigger, '~/save_map', self._on_save_map)
+        steady = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
+        # Steady timers: diagnostics and the map keep coming when simulated time is paused.
+        self._diag_timer = self.create_timer(
+            settings.diagnostics_period, self._publish_diagnostics, clock=steady
+        )
+        self._map_timer = self.create_timer(MAP_TICK_S, self._publish_map, clock=steady)
 
     # ----------------------------------------------------------------------------------------
     # Parameters
@@ -289,15 +301,12 @@ class KentRegNode(Node):
             point_times=point_time_field(cloud.extras),
         )
         prefetch(self._odometry, scan.points, scan.stamp_ns, scan.point_times)
-        dropped = None
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
                 self._counters.add('dropped_queue')  # the oldest: latest wins
-                dropped = self._queue.popleft()
+                discard(self._odometry, self._queue.popleft().points)
             self._queue.append(scan)
             self._lock.notify()
-        if dropped is not None:
-            discard(self._odometry, dropped.points)
 
     def _on_reset(self, request: Any, response: Any) -> Any:
         with self._lock:
@@ -307,6 +316,34 @@ class KentRegNode(Node):
         response.message = 'The trajectory restarts at the next scan.'
         self.get_logger().info('Reset requested: the trajectory restarts at the next scan.')
         return response
+
+    def _on_save_map(self, request: Any, response: Any) -> Any:
+        with self._lock:
+            settings = self._settings
+        response.success, response.message, _ = services.save_map(self._outputs, settings)
+        if response.success:  # rclpy's logger wants one severity per call site
+            self.get_logger().info(f'~/save_map: {response.message}')
+        else:
+            self.get_logger().warning(f'~/save_map: {response.message}')
+        return response
+
+    def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        with self._lock:
+            settings = self._settings
+        T = services.initial_pose(msg, settings, self._frames)
+        if isinstance(T, str):
+            self.get_logger().warning(f'Ignored an initialpose message: {T}.')
+            return
+        self._outputs.request_pose(T)
+        self.get_logger().info(
+            f'Initial pose set: the moving frame at {np.round(T[:3, 3], 3).tolist()} m in '
+            f'{settings.odom_frame} from the next scan on.'
+        )
+
+    def _publish_map(self) -> None:
+        with self._lock:
+            settings = self._settings
+        self._outputs.publish_map(settings)
 
     # ----------------------------------------------------------------------------------------
     # Worker thread
@@ -376,36 +413,13 @@ class KentRegNode(Node):
     def _reset(self, why: str) -> None:
         self._odometry.reset()
         self._outputs.reset()
+        self._frames.reset()
         with self._lock:
             self._frame_id = None
-        self._T_base_lidar = None
-        self._tf_wait_start = None
         self._last_stamp_ns = None
         self._last_stepped_ns = None
         self._counters.add('resets')
         self.get_logger().info(f'Trajectory restarted ({why}).')
-
-    def _sensor_in_base(self, frame_id: str, settings: NodeSettings) -> FloatArray | None:
-        """``T_base_lidar`` for this sensor frame, or None while waiting for tf2."""
-        fallback = transform_from_xyzrpy(settings.base_to_lidar)
-        if self._tf_buffer is None or frame_id == settings.base_frame or not frame_id:
-            return fallback
-        try:
-            tf = self._tf_buffer.lookup_transform(
-                settings.base_frame, frame_id, rclpy.time.Time()
-            ).transform
-        except tf2_ros.TransformException:  # LookupException, ExtrapolationException, ...
-            now = time.monotonic()
-            if self._tf_wait_start is None:
-                self._tf_wait_start = now
-            if now - self._tf_wait_start < settings.tf_wait:
-                return None
-            self.get_logger().warning(
-                f'No tf2 transform {settings.base_frame}<-{frame_id} after {settings.tf_wait} s; '
-                f'using base_to_lidar={list(settings.base_to_lidar)}.'
-            )
-            return fallback
-        return transform_from_msg(tf)
 
     def _process(self, scan: _Scan, settings: NodeSettings) -> None:
         log = self.get_logger()
@@ -429,12 +443,10 @@ class KentRegNode(Node):
                     '(bag replayed? sensor restarted?): restarting the trajectory.'
                 )
                 self._reset('time went backwards')
-        if self._T_base_lidar is None:
-            T_base_lidar = self._sensor_in_base(scan.frame_id, settings)
-            if T_base_lidar is None:
-                self._counters.add('dropped_waiting_for_tf')
-                return
-            self._T_base_lidar = T_base_lidar
+        T_moving_lidar = self._frames.mount(scan.frame_id, settings, time.monotonic())
+        if T_moving_lidar is None:
+            self._counters.add('dropped_waiting_for_tf')
+            return
         with self._lock:
             self._frame_id = scan.frame_id
         self._last_stamp_ns = scan.stamp_ns
@@ -449,8 +461,8 @@ class KentRegNode(Node):
         self._counters.add(step.health)
         if step.searched:
             self._counters.add('searched')
-        assert self._T_base_lidar is not None  # set above
-        self._outputs.publish(step, self._T_base_lidar, prev_stamp, settings)
+        child = moving_frame(scan.frame_id, settings)
+        self._outputs.publish(step, T_moving_lidar, prev_stamp, settings, child)
         self._counters.add('published')
         latency_ms = (time.monotonic() - scan.received) * 1e3
         with self._lock:  # read by the diagnostics timer on the executor thread
@@ -499,9 +511,9 @@ class KentRegNode(Node):
         """Stop and join the worker (it finishes the scan in hand), then destroy the node.
 
         When the worker has not stopped within :attr:`WORKER_STOP_TIMEOUT_S` (a registration
-        still running), only the input side is destroyed (subscription, reset service,
-        diagnostics timer) and the reason is logged: the publishers and tf objects stay, since
-        the worker may still publish with them. It stops after that scan; its thread is a
+        still running), only the input side is destroyed (subscriptions, services, timers)
+        and the reason is logged: the publishers and tf objects stay, since the worker may
+        still publish with them. It stops after that scan; its thread is a
         daemon, so it does not keep the process alive.
         """
         with self._lock:
@@ -515,39 +527,14 @@ class KentRegNode(Node):
                 f'The worker did not stop within {self.WORKER_STOP_TIMEOUT_S:g} s (a scan still '
                 'in hand); leaving its publishers in place and destroying only the input side.'
             )
-            self.destroy_subscription(self._sub)
-            self.destroy_service(self._srv_reset)
-            self.destroy_timer(self._diag_timer)
+            for sub in (self._sub, self._sub_pose):
+                self.destroy_subscription(sub)
+            for srv in (self._srv_reset, self._srv_save):
+                self.destroy_service(srv)
+            for timer in (self._diag_timer, self._map_timer):
+                self.destroy_timer(timer)
             return
         super().destroy_node()
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The console script's own options (``--help``, ``--version``); ROS arguments are not
-    its business: rclpy reads them after ``--ros-args``."""
-    parser = ArgumentParser(
-        prog=NODE_NAME,
-        usage=f'{NODE_NAME} [-h] [--version] [--ros-args ...]',
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description=(
-            'LiDAR odometry by Kent mixture registration: subscribes to sensor_msgs/PointCloud2\n'
-            'on `points`; publishes nav_msgs/Odometry on `odom`, PoseStamped on `pose`, Path on\n'
-            '`path`, /tf, diagnostics and the map on ~/map.'
-        ),
-        epilog=(
-            'ROS arguments follow --ros-args, e.g.\n'
-            f'  {NODE_NAME} --ros-args -p name:=value --params-file FILE '
-            '-r points:=/velodyne_points\n'
-            '  ros2 run kentreg_ros kentreg_node --ros-args --params-file config/kentreg.yaml\n'
-            '\n'
-            'Parameters: every one, with its type, default, range and reason, in the README\n'
-            '(section Configuration: the parameter tables); the file with every default:\n'
-            '  python3 -m kentreg_ros.docs --parameter-file > kentreg.yaml\n'
-            'At run time: ros2 param describe /kentreg_node <name>.'
-        ),
-    )
-    parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
-    return parser
 
 
 def main(args: list[str] | None = None) -> int:

@@ -34,11 +34,7 @@ from numpy.typing import NDArray
 from scipy.special import logsumexp
 
 from kentreg_ros.core.geometry import rotation_angle
-from kentreg_ros.core.kent import (
-    MAX_BETA_RATIO,
-    fit_kent_moments,
-    kent_log_normalizer,
-)
+from kentreg_ros.core.kent import MAX_BETA_RATIO, fit_kent_moments, kent_log_normalizer
 from kentreg_ros.core.registration.rotations import (
     KentRotationProblem,
     average_rotations,
@@ -112,6 +108,142 @@ def _rotation_tolerance_reached(R_old: FloatArray, R_new: FloatArray, tol: float
     return rotation_angle(R_old.T @ R_new) < max(tol, 1e-12)
 
 
+@dataclass(frozen=True)
+class _ModelTerms:
+    """What the E-step needs of the model, fixed across passes: the bins' directions ``y``,
+    their mean resultants ``ym`` (a bin stands for its normals: ``y_m`` its mean resultant,
+    the kernel means' average), the clusters' bin offsets and the log mixture weights."""
+
+    y: FloatArray
+    ym: FloatArray
+    off: NDArray[np.intp]
+    log_pi: FloatArray
+
+    @classmethod
+    def of(cls, model: ModelClusters, outlier_weight: float) -> _ModelTerms:
+        y = model.bins.directions
+        vy = model.bins.weights
+        off = model.offsets
+        log_pi = np.empty(len(y))
+        for j in range(len(model)):
+            sl = slice(off[j], off[j + 1])
+            log_pi[sl] = np.log((1.0 - outlier_weight) * vy[sl] / max(vy[sl].sum(), 1e-300))
+        return cls(y, model.bins.resultants / model.bins.weights[:, None], off, log_pi)
+
+
+def _shared_e_step(
+    z: FloatArray,
+    observed: NormalBins,
+    fixed: _ModelTerms,
+    assign: NDArray[np.intp],
+    log_c: FloatArray,
+    kappa: FloatArray,
+    beta: FloatArray,
+    gamma: FloatArray,
+    log_out: float,
+) -> tuple[FloatArray, float, FloatArray, FloatArray]:
+    """E-step of :func:`shared_rotation_em` over the clusters (``z``: the rotated observed
+    directions, ``assign``: their clusters): the clusters' ``C_k``, the log-likelihood, and
+    the posterior mass of every observed bin, weighted and per normal.
+
+    For the observed bin ``n`` (weight ``w_n``) assigned to cluster ``k``::
+
+        tau_mn = w_n pi_m FB5(R x_n | y_m) / p(x_n),   pi_m = (1 - pi0) v_m / sum_m' v_m'
+
+    over the model bins ``m`` of cluster ``k`` (weights ``v_m``), and
+    ``C_k = kappa_k sum_mn tau_mn x_n y_m^T``.
+    """
+    k = len(kappa)
+    wx, resultants = observed.weights, observed.resultants
+    y, ym, off, log_pi = fixed.y, fixed.ym, fixed.off, fixed.log_pi
+    order = np.argsort(assign, kind='stable')
+    bounds = np.searchsorted(assign[order], np.arange(k + 1))
+    Cs = np.zeros((k, 3, 3))
+    loglik = 0.0
+    tn = np.zeros(len(z))
+    t_unit = np.zeros(len(z))  # posterior mass per normal of each bin
+    for j in range(k):
+        idx = order[bounds[j] : bounds[j + 1]]
+        ys = slice(off[j], off[j + 1])
+        if len(idx) == 0 or off[j + 1] == off[j]:
+            continue
+        zj, wj = z[idx], wx[idx]
+        g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
+        logits = (log_pi[ys] - log_c[j])[:, None] + kappa[j] * (y[ys] @ zj.T)
+        if beta[j] > 0.0:
+            logits += beta[j] * ((zj @ g1) ** 2 - (zj @ g2) ** 2)[None, :]
+        top = np.maximum(logits.max(axis=0), log_out)
+        ex = np.exp(logits - top)
+        total = ex.sum(axis=0) + np.exp(log_out - top)
+        loglik += float(np.dot(wj, top + np.log(total)))
+        # Posteriors per normal (constant across a bin), summed over the bin's normals
+        # through its exact moments: sum_i tau x_i = (tau / w) * resultant.
+        share = ex / total
+        t_n = share.sum(axis=0)  # posterior mass per normal of bin n
+        tn[idx] = t_n * wj
+        t_unit[idx] = t_n
+        Cs[j] = kappa[j] * (resultants[idx].T @ (share.T @ ym[ys]))
+    return Cs, loglik, tn, t_unit
+
+
+def _m_step(
+    observed: NormalBins,
+    Cs: FloatArray,
+    tn: FloatArray,
+    t_unit: FloatArray,
+    assign: NDArray[np.intp],
+    beta: FloatArray,
+    gamma: FloatArray,
+    R: FloatArray,
+    rotation: str,
+    kappa_m: FloatArray,
+    beta_m: FloatArray,
+) -> tuple[FloatArray, KentRotationProblem, FloatArray]:
+    """M-step of :func:`shared_rotation_em`: the rotation (shared, or per cluster and averaged),
+    then the clusters' Kent parameters from the rotated normals' moments (updated in place in
+    ``kappa_m``, ``beta_m`` and ``gamma``). Returns the rotation, its problem and the
+    clusters' posterior masses::
+
+        R = argmin_R sum_k beta_k tr(R^T A_k R B_k) - tr(R C),
+        A_k = g2 g2^T - g1 g1^T,  B_k = sum_n T_n x_n x_n^T,  C = sum_k C_k,
+        T_n = sum_m tau_mn,
+
+    then ``(kappa_k, beta_k, gamma_k)`` by Kent's (1982) moment estimate from the first and
+    second moments of the rotated normals ``R x_n`` assigned to cluster ``k``, weighted by
+    ``w_n`` (the formula is in :func:`~kentreg_ros.core.kent.fit_kent_moments_batch`). The
+    paper weights these moments by ``T_n``; that lets the estimate feed on itself (a sharper
+    kernel leaves fewer normals with posterior mass, whose moments are sharper still) and on
+    real pairs it drifted to 5 deg; the assigned normals' spread is what the kernel must
+    cover.
+    """
+    k = len(Cs)
+    n = len(tn)
+    C = Cs.sum(axis=0)
+    member = np.zeros((k, n))
+    member[assign, np.arange(n)] = 1.0
+    Bm = ((member * t_unit) @ observed.scatters.reshape(-1, 9)).reshape(k, 3, 3)
+    g1s, g2s = gamma[:, :, 1], gamma[:, :, 2]
+    A = beta[:, None, None] * (
+        g2s[:, :, None] * g2s[:, None, :] - g1s[:, :, None] * g1s[:, None, :]
+    )
+    problem = KentRotationProblem(A, Bm, C)
+    mass = np.asarray(np.bincount(assign, weights=tn, minlength=k), dtype=np.float64)
+    if rotation == 'shared':
+        R_new = _shared_m_step(problem, R)
+    else:
+        Rs = []
+        for j in range(k):
+            pj = KentRotationProblem(A[j : j + 1], Bm[j : j + 1], Cs[j])
+            Rs.append(solve_kent_rotation(pj, R)[0] if mass[j] > 0.0 else R)
+        R_new = average_rotations(np.array(Rs), mass + 1e-12)
+    # Kent parameters from the moments of the rotated normals assigned to each cluster.
+    has = mass > 1e-9 * max(float(observed.weights.sum()), 1.0)
+    if has.any():
+        kh, bh, gh = kent_moments_of_bins(observed, member[has], rotation=R_new)
+        kappa_m[has], beta_m[has], gamma[has] = kh, bh, gh
+    return R_new, problem, mass
+
+
 def shared_rotation_em(
     observed: NormalBins,
     model: ModelClusters,
@@ -143,9 +275,8 @@ def shared_rotation_em(
         ``beta [(g1 . R x)^2 - (g2 . R x)^2]`` acts on the observed normal itself, not on its
         deviation from ``y_m``: a cluster-wide prior pulling normals toward the cluster's major
         axis, which biased the rotation wherever a cluster's spread differs between the two
-        views (BALM sample bag, from identity: max error 4.9 deg with it, 0.5 deg without).
-        False (default) uses von Mises-Fisher kernels; ``beta`` is estimated and returned
-        either way.
+        views (BALM sample, from identity: max error 4.9 deg with it, 0.5 deg without). False
+        (default): von Mises-Fisher kernels; ``beta`` is estimated and returned either way.
     rotation : {'shared', 'averaged'}
         'averaged' solves each cluster's M-step alone and averages the rotations by the
         paper's eq. rot_avg, weighted by posterior mass (an ablation).
@@ -159,39 +290,15 @@ def shared_rotation_em(
 
     Notes
     -----
-    E-step, for the observed bin ``n`` (weight ``w_n``) assigned to cluster ``k``::
-
-        tau_mn = w_n pi_m FB5(R x_n | y_m) / p(x_n),   pi_m = (1 - pi0) v_m / sum_m' v_m'
-
-    over the model bins ``m`` of cluster ``k`` (weights ``v_m``). M-step::
-
-        R = argmin_R sum_k beta_k tr(R^T A_k R B_k) - tr(R C),
-        A_k = g2 g2^T - g1 g1^T,  B_k = sum_n T_n x_n x_n^T,  C = sum_k kappa_k sum_mn tau_mn
-        x_n y_m^T,  T_n = sum_m tau_mn,
-
-    then ``(kappa_k, beta_k, gamma_k)`` by Kent's (1982) moment estimate from the first and
-    second moments of the rotated normals ``R x_n`` assigned to cluster ``k``, weighted by
-    ``w_n`` (the formula is in :func:`~kentreg_ros.core.kent.fit_kent_moments_batch`). The
-    paper weights these moments by ``T_n``; that lets the estimate feed on itself (a sharper
-    kernel leaves fewer normals with posterior mass, whose moments are sharper still) and on
-    real pairs it drifted to 5 deg; the assigned normals' spread is what the kernel must
-    cover.
+    Each pass is :func:`_shared_e_step` (the posteriors of the observed bins over the model
+    bins of their cluster) and :func:`_m_step` (one rotation for all clusters, then every
+    cluster's Kent parameters by Kent's moment estimate); their docstrings give the formulas.
     """
     x = observed.directions
     wx = observed.weights
-    resultants = observed.resultants
-    scatters = observed.scatters
     k = len(model)
-    y = model.bins.directions
-    # A model bin stands for its normals: y_m its mean resultant (the kernel means' average).
-    ym = model.bins.resultants / model.bins.weights[:, None]
-    vy = model.bins.weights
-    off = model.offsets
+    fixed = _ModelTerms.of(model, outlier_weight)
     log_out = np.log(max(outlier_weight, 1e-300)) + LOG_UNIFORM_SPHERE
-    log_pi = np.empty(len(y))
-    for j in range(k):
-        sl = slice(off[j], off[j + 1])
-        log_pi[sl] = np.log((1.0 - outlier_weight) * vy[sl] / max(vy[sl].sum(), 1e-300))
     kappa_m, beta_m, gamma = model.kappa.copy(), model.beta.copy(), model.gamma.copy()
     R = np.array(R0, dtype=np.float64)
     cap = kappa_cap_start
@@ -209,57 +316,13 @@ def shared_rotation_em(
         log_c = np.asarray(kent_log_normalizer(kappa, beta), dtype=np.float64).reshape(k)
         z = x @ R.T
         assign = np.argmax(z @ model.centers.T, axis=1)
-        order = np.argsort(assign, kind='stable')
-        bounds = np.searchsorted(assign[order], np.arange(k + 1))
-        Cs = np.zeros((k, 3, 3))
-        loglik = 0.0
-        tn = np.zeros(len(x))
-        t_unit = np.zeros(len(x))  # posterior mass per normal of each bin
-        for j in range(k):
-            idx = order[bounds[j] : bounds[j + 1]]
-            ys = slice(off[j], off[j + 1])
-            if len(idx) == 0 or off[j + 1] == off[j]:
-                continue
-            zj, wj = z[idx], wx[idx]
-            g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
-            logits = (log_pi[ys] - log_c[j])[:, None] + kappa[j] * (y[ys] @ zj.T)
-            if beta[j] > 0.0:
-                logits += beta[j] * ((zj @ g1) ** 2 - (zj @ g2) ** 2)[None, :]
-            top = np.maximum(logits.max(axis=0), log_out)
-            ex = np.exp(logits - top)
-            total = ex.sum(axis=0) + np.exp(log_out - top)
-            loglik += float(np.dot(wj, top + np.log(total)))
-            # Posteriors per normal (constant across a bin), summed over the bin's normals
-            # through its exact moments: sum_i tau x_i = (tau / w) * resultant.
-            share = ex / total
-            t_n = share.sum(axis=0)  # posterior mass per normal of bin n
-            tn[idx] = t_n * wj
-            t_unit[idx] = t_n
-            Cs[j] = kappa[j] * (resultants[idx].T @ (share.T @ ym[ys]))
-        history.append(loglik)
-        C = Cs.sum(axis=0)
-        member = np.zeros((k, len(x)))
-        member[assign, np.arange(len(x))] = 1.0
-        Bm = ((member * t_unit) @ scatters.reshape(-1, 9)).reshape(k, 3, 3)
-        g1s, g2s = gamma[:, :, 1], gamma[:, :, 2]
-        A = beta[:, None, None] * (
-            g2s[:, :, None] * g2s[:, None, :] - g1s[:, :, None] * g1s[:, None, :]
+        Cs, loglik, tn, t_unit = _shared_e_step(
+            z, observed, fixed, assign, log_c, kappa, beta, gamma, log_out
         )
-        problem = KentRotationProblem(A, Bm, C)
-        mass = np.asarray(np.bincount(assign, weights=tn, minlength=k), dtype=np.float64)
-        if rotation == 'shared':
-            R_new = _shared_m_step(problem, R)
-        else:
-            Rs = []
-            for j in range(k):
-                pj = KentRotationProblem(A[j : j + 1], Bm[j : j + 1], Cs[j])
-                Rs.append(solve_kent_rotation(pj, R)[0] if mass[j] > 0.0 else R)
-            R_new = average_rotations(np.array(Rs), mass + 1e-12)
-        # Kent parameters from the moments of the rotated normals assigned to each cluster.
-        has = mass > 1e-9 * max(float(wx.sum()), 1.0)
-        if has.any():
-            kh, bh, gh = kent_moments_of_bins(observed, member[has], rotation=R_new)
-            kappa_m[has], beta_m[has], gamma[has] = kh, bh, gh
+        history.append(loglik)
+        R_new, problem, mass = _m_step(
+            observed, Cs, tn, t_unit, assign, beta, gamma, R, rotation, kappa_m, beta_m
+        )
         small_step = _rotation_tolerance_reached(R, R_new, tolerance)
         R = R_new
         at_final_cap = cap >= kappa_cap_end or cap >= float(kappa_m.max())

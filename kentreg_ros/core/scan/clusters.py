@@ -11,9 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.kent import (
-    kent_from_moments,
-)
+from kentreg_ros.core.kent import kent_from_moments
 from kentreg_ros.core.scan.voxels import argsort_keys
 
 FloatArray = NDArray[np.float64]
