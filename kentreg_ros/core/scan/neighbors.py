@@ -59,6 +59,11 @@ class NeighborIndex:
                 self._built = cKDTree(self._points)
         return self._built
 
+    def build(self) -> NeighborIndex:
+        """Build the tree now (it is otherwise built at the first query); returns ``self``."""
+        _ = self._tree
+        return self
+
     def __getstate__(self) -> dict[str, Any]:
         """Pickled as its points; the tree is rebuilt where it is used (the same tree)."""
         return {'n': self.n, 'backend': self.backend, '_points': self._points, '_built': None}
