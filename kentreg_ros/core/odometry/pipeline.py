@@ -130,6 +130,7 @@ class _Open:
     stamp: int
     worker: int  # the worker (by number) that holds it
     path: str = ''  # the file handing the scan over (the worker removes it when it reads it)
+    went: bool = False  # the worker was told the loop's inputs for it
 
 
 @dataclass
@@ -177,6 +178,9 @@ class PipelinedOdometry(Odometry):
         self._replies: Connection | None = None
         self._n_workers = 0
         self._closed = False
+        self._upkeep: threading.Thread | None = None
+        self._upkeep_ms = 0.0
+        self._upkeep_error: BaseException | None = None
         self.stats = PipelineStats()
         super().__init__(config, initial_pose=initial_pose, max_history=max_history)
         self._start_worker()
@@ -260,6 +264,9 @@ class PipelinedOdometry(Odometry):
 
     def close(self) -> None:
         """Stop the worker process (idempotent); the instance cannot step afterwards."""
+        upkeep, self._upkeep = self._upkeep, None
+        if upkeep is not None:
+            upkeep.join()
         with self._lock:
             if self._closed:
                 return
@@ -368,18 +375,47 @@ class PipelinedOdometry(Odometry):
         try:
             pending = self._begin(points, stamp, frame_id)
             item = self._take(points, point_times, stamp)
-            if item is not None:
+            if item is not None and not item.went:
                 self._go(item)
             t0 = time.perf_counter()
-            self.update_model()  # the last step's upkeep, while the worker prepares
-            model_ms = elapsed_ms(t0)
+            self.update_model()  # the last step's upkeep, if it is still running
+            wait_ms, upkeep_ms = elapsed_ms(t0), self._upkeep_ms
             prep = self._receive(item, points, point_times, stamp)
             step = self._step(pending, prep, defer=True)
         finally:
             with self._lock:
                 self._stepping = False
-        step.timings['model_previous'] = model_ms
+        with self._lock:  # the next scan's inputs are known now: its worker need not wait
+            following = self._open[0] if self._open else None
+        if following is not None and following.worker == self._n_workers:
+            self._go(following)
+        # The model moves on in a thread of this process while the caller publishes the pose
+        # and the worker prepares the next scan; the next step (or anything that reads the
+        # model) waits for it.
+        self._upkeep = threading.Thread(target=self._run_upkeep, name='kentreg_upkeep')
+        self._upkeep.start()
+        step.timings['model_previous'] = upkeep_ms
+        step.timings['model_wait'] = wait_ms
         return step
+
+    def _run_upkeep(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            Odometry.update_model(self)
+        except BaseException as exc:  # noqa: BLE001 - raised from the next update_model
+            self._upkeep_error = exc
+        self._upkeep_ms = elapsed_ms(t0)
+
+    def update_model(self) -> None:
+        """Wait for the last step's model upkeep (run in a thread after the step); an error it
+        raised is raised here, so from the next step."""
+        upkeep, self._upkeep = self._upkeep, None
+        if upkeep is not None:
+            upkeep.join()
+        error, self._upkeep_error = self._upkeep_error, None
+        if error is not None:
+            raise error
+        super().update_model()
 
     def _checked_stamp(self, stamp_ns: int) -> int:
         from kentreg_ros.core.odometry.loop import _as_stamp
@@ -403,6 +439,7 @@ class PipelinedOdometry(Odometry):
     def _go(self, item: _Open) -> None:
         """Tell the worker the twist and hint of this scan (the loop's, now known)."""
         with self._lock:
+            item.went = True
             self._send(('go', item.id, self.twist_for_next, self.voxel_size_hint))
 
     def _receive(
@@ -464,6 +501,10 @@ class PipelinedOdometry(Odometry):
     def reset(self, initial_pose: ArrayLike | None = None) -> None:
         """:meth:`Odometry.reset`; scans already handed to the worker are checked against
         the new trajectory's inputs when they are stepped (and prepared again if need be)."""
+        upkeep, self._upkeep = getattr(self, '_upkeep', None), None
+        if upkeep is not None:
+            upkeep.join()  # it moves the model being forgotten: let it finish first
+        self._upkeep_error = None
         super().reset(initial_pose)
 
     def reconfigure(self, config: KentRegConfig) -> None:
