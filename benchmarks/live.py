@@ -470,6 +470,8 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
                 'kiss_icp',
                 '--rounds',
                 str(options.per_scan_rounds),
+                '--long-steps',
+                '0',  # the memory run is per_scan.py's own business
                 '--out',
                 str(out),
             ],
@@ -545,6 +547,12 @@ def render(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
+def _relative(text: str) -> str:
+    """``text`` with the paths of this machine named relative to the repository
+    (``../shared/data/balm``, ``bags/balm_50``)."""
+    return text.replace(str(ROOT) + '/', '').replace(str(ROOT.parent) + '/', '../')
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--streams', nargs='+', default=['kitti_hdl64', 'balm_10hz'])
@@ -579,8 +587,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     doc = run(options)
     options.out.mkdir(parents=True, exist_ok=True)
-    (options.out / 'live.json').write_text(json.dumps(doc, indent=1) + '\n')
-    (options.out / 'live.md').write_text(render(doc))
+    (options.out / 'live.json').write_text(_relative(json.dumps(doc, indent=1)) + '\n')
+    (options.out / 'live.md').write_text(_relative(render(doc)))
     print(f'live: wrote {options.out / "live.json"} and live.md')
     return 0
 
