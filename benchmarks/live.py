@@ -350,23 +350,32 @@ def measure_throughput(
     config = KentRegConfig().with_updates({'odometry.model': model})
     times: dict[str, list[float]] = {'sequential': [], 'pipelined': []}
     poses: dict[str, list[FloatArray]] = {}
+    cpu: dict[str, list[float]] = {'sequential': [], 'main': [], 'worker': []}
+    n = len(scans)
     for _ in range(rounds):
         sequential = Odometry(config)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         poses['sequential'] = [
             sequential.step(p, s).T_world_lidar for p, s in zip(scans, stamps, strict=True)
         ]
-        times['sequential'].append(1e3 * (time.perf_counter() - t0) / len(scans))
+        times['sequential'].append(1e3 * (time.perf_counter() - t0) / n)
+        cpu['sequential'].append(1e3 * (time.process_time() - c0) / n)
         with PipelinedOdometry(config) as pipelined:
             time.sleep(SETTLE_S)
+            worker = pipelined.worker_pid
             got = []
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
+            w0 = _tree_cpu_s(worker) if worker else 0.0
             pipelined.prefetch(scans[0], stamps[0])
             for i, (p, s) in enumerate(zip(scans, stamps, strict=True)):
                 if i + 1 < len(scans):
                     pipelined.prefetch(scans[i + 1], stamps[i + 1])
                 got.append(pipelined.step(p, s).T_world_lidar)
-            times['pipelined'].append(1e3 * (time.perf_counter() - t0) / len(scans))
+            pipelined.update_model()
+            times['pipelined'].append(1e3 * (time.perf_counter() - t0) / n)
+            cpu['main'].append(1e3 * (time.process_time() - c0) / n)
+            w1 = _tree_cpu_s(worker) if worker else 0.0
+            cpu['worker'].append(1e3 * (w1 - w0) / n)
             poses['pipelined'] = got
     seq, pipe = (float(np.median(times[k])) for k in ('sequential', 'pipelined'))
     identical = all(
@@ -378,6 +387,11 @@ def measure_throughput(
         'speedup': round(seq / pipe, 2),
         'poses_identical': identical,
         'rounds_ms': {k: [round(v, 1) for v in vs] for k, vs in times.items()},
+        # CPU per scan (all threads of the process; the worker's from /proc): what each core
+        # would have to give, whatever else runs on the machine.
+        'sequential_cpu_ms': round(float(np.median(cpu['sequential'])), 1),
+        'main_cpu_ms': round(float(np.median(cpu['main'])), 1),
+        'worker_cpu_ms': round(float(np.median(cpu['worker'])), 1),
     }
 
 
@@ -527,15 +541,24 @@ def render(doc: dict[str, Any]) -> str:
                 f'{th["sequential_ms"]} / '
                 f'{th["pipelined_ms"]} | {th["speedup"]}x | {th["poses_identical"]} |'
             )
-        if {'previous_scan', 'local_map'} <= set(entry['stages']):
-            ratio = (
-                entry['stages']['local_map']['total'] / entry['stages']['previous_scan']['total']
-            )
-            lines.append('')
+    lines.append('')
+    for stream, entry in doc['streams'].items():
+        st = entry['stages']
+        if {'previous_scan', 'local_map'} <= set(st):
+            wall = st['local_map']['total'] / st['previous_scan']['total']
+            cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
             lines.append(
-                f'{stream}: local map / previous scan per scan (sequential) {ratio:.2f}x.'
+                f'- {stream}: local map / previous scan per scan (sequential, one thread): '
+                f'{cpu:.2f}x in CPU time, {wall:.2f}x in wall time.'
             )
-            lines.append('')
+        for model, th in entry['throughput'].items():
+            bound = max(th['main_cpu_ms'], th['worker_cpu_ms'], 1e-9)
+            lines.append(
+                f'- {stream}, {model}, fed at once: CPU per scan {th["sequential_cpu_ms"]} ms '
+                f'sequential; pipelined {th["main_cpu_ms"]} ms in the main process and '
+                f'{th["worker_cpu_ms"]} ms in the worker, so with two free cores one scan every '
+                f'{bound:.1f} ms at best ({th["sequential_cpu_ms"] / bound:.2f}x).'
+            )
     if 'per_scan_table' in doc:
         lines += [
             '',

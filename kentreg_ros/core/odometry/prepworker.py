@@ -72,13 +72,18 @@ def _worker_main(requests: Connection, results: Connection, parent: int) -> None
     config = KentRegConfig()
     generation = 0
     chain = 0.0  # voxel size of the last scan this worker prepared
+    # The last scan prepared and the hint it used: a scan the main process drops after it
+    # was prepared (a full queue) must not be the next one's hint, as the sequential loop
+    # never saw it (else every drop would make the next scan be prepared again, on the
+    # critical path, when the node is already behind).
+    last_done: tuple[int, float] | None = None
     jobs: deque[_Job] = deque()
     go: dict[int, tuple[FloatArray, float]] = {}
     discarded: set[int] = set()
     failed: dict[int, str] = {}  # scans whose file could not be read: the traceback
 
     def take(message: tuple[Any, ...]) -> bool:
-        nonlocal config, generation, chain
+        nonlocal config, generation, chain, last_done
         kind = message[0]
         if kind == 'job':
             job_id, path, has_times, field, stamp, hint = message[1:]
@@ -92,7 +97,10 @@ def _worker_main(requests: Connection, results: Connection, parent: int) -> None
             if jobs and message[1] >= jobs[0].id:  # else: a scan prepared before it came
                 go[message[1]] = (message[2], message[3])
         elif kind == 'discard':
-            discarded.add(message[1])
+            if last_done is not None and message[1] == last_done[0]:
+                chain, last_done = last_done[1], None
+            else:
+                discarded.add(message[1])
         elif kind == 'config':
             if message[2].preprocess != config.preprocess:
                 chain = 0.0  # as the sequential loop: the size was searched for other settings
@@ -156,7 +164,7 @@ def _worker_main(requests: Connection, results: Connection, parent: int) -> None
             hint = chain if hint is None else hint
             prep = prepare_sweep(job.sweep, twist, config, hint, t0=t0)
             if prep.scan is not None:
-                chain = prep.scan.voxel_size
+                last_done, chain = (job.id, hint), prep.scan.voxel_size
             answer: tuple[Any, ...] = ('result', job.id, generation, _strip(prep))
         except Exception:  # noqa: BLE001 - reported to the main process, which raises it
             answer = ('error', job.id, generation, traceback.format_exc())
