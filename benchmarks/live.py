@@ -41,7 +41,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -339,6 +339,29 @@ def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[s
     }
 
 
+def measure_model_ratio(scans: Scans, stamps: Sequence[int], *, rounds: int = 3) -> dict[str, Any]:
+    """CPU time per scan of the sequential loop with the previous scan and with the local map,
+    in alternating rounds (so a change of load lands on both), and their ratio."""
+    from kentreg_ros.core import KentRegConfig, Odometry
+
+    cpu: dict[str, list[float]] = {'previous_scan': [], 'local_map': []}
+    for _ in range(rounds):
+        for model in cpu:
+            odometry = Odometry(KentRegConfig().with_updates({'odometry.model': model}))
+            for i, (points, stamp) in enumerate(zip(scans, stamps, strict=True)):
+                c0 = time.process_time()
+                odometry.step(points, stamp)
+                if i:
+                    cpu[model].append(1e3 * (time.process_time() - c0))
+    prev, local = (float(np.median(cpu[m])) for m in ('previous_scan', 'local_map'))
+    return {
+        'rounds': rounds,
+        'previous_scan_cpu_ms': round(prev, 1),
+        'local_map_cpu_ms': round(local, 1),
+        'ratio': round(local / prev, 3),
+    }
+
+
 def measure_throughput(
     scans: Scans, stamps: Sequence[int], *, model: str, rounds: int = 2
 ) -> dict[str, Any]:
@@ -544,6 +567,13 @@ def render(doc: dict[str, Any]) -> str:
     lines.append('')
     for stream, entry in doc['streams'].items():
         st = entry['stages']
+        if 'model_ratio' in entry:
+            mr = entry['model_ratio']
+            lines.append(
+                f'- {stream}: local map / previous scan per scan, CPU time in {mr["rounds"]} '
+                f'alternating rounds: {mr["local_map_cpu_ms"]} / {mr["previous_scan_cpu_ms"]} ms '
+                f'= {mr["ratio"]:.2f}x (load {mr["load_before"]}).'
+            )
         if {'previous_scan', 'local_map'} <= set(st):
             wall = st['local_map']['total'] / st['previous_scan']['total']
             cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
@@ -594,13 +624,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         'on a shared machine, work at a higher niceness then takes the leftover CPU); the '
         'offline measurements run at 10',
     )
+    parser.add_argument(
+        '--add-ratio',
+        action='store_true',
+        help='only measure the local-map / previous-scan ratio (alternating rounds) and add it '
+        'to an existing live.json in --out',
+    )
     parser.add_argument('--out', type=Path, default=RESULTS)
     parser.add_argument('--child', nargs=4, help=argparse.SUPPRESS)  # one measurement
     options = parser.parse_args(argv)
     if options.child:
         kind, stream, n, kwargs = options.child
         scans, stamps, rate = load_stream(stream, int(n))
-        measure = {
+        measure: dict[str, Callable[..., dict[str, Any]]] = {
+            'ratio': measure_model_ratio,
             'live': measure_live,
             'stages': measure_stages,
             'throughput': measure_throughput,
@@ -608,7 +645,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         kw = json.loads(kwargs) | ({'rate_hz': rate} if kind == 'live' else {})
         print('RESULT' + json.dumps(measure[kind](scans, stamps, **kw)))
         return 0
-    doc = run(options)
+    if options.add_ratio:
+        doc = json.loads((options.out / 'live.json').read_text())
+        env = _node_env('shm', Path(tempfile.mkdtemp(prefix='kentreg_live_'))) | {
+            'OMP_NUM_THREADS': '1',
+            'OPENBLAS_NUM_THREADS': '1',
+            'MKL_NUM_THREADS': '1',
+        }
+        for stream in options.streams:
+            load = _load()[0]
+            ratio = _in_child('ratio', stream, options.scans, {}, env)
+            doc['streams'][stream]['model_ratio'] = ratio | {'load_before': round(load, 2)}
+            print(f'live: {stream} local map / previous scan {ratio["ratio"]}x (load {load:.2f})')
+    else:
+        doc = run(options)
     options.out.mkdir(parents=True, exist_ok=True)
     (options.out / 'live.json').write_text(_relative(json.dumps(doc, indent=1)) + '\n')
     (options.out / 'live.md').write_text(_relative(render(doc)))
