@@ -64,7 +64,7 @@ from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.odometry.deskew import PointTimes
 from kentreg_ros.core.odometry.handover import PARENT_CHECK_S, write_scan_file
 from kentreg_ros.core.odometry.loop import Odometry
-from kentreg_ros.core.odometry.stages import Preparation
+from kentreg_ros.core.odometry.preparation import Preparation
 from kentreg_ros.core.odometry.step import OdometryStep
 from kentreg_ros.core.scan.prepared import elapsed_ms
 

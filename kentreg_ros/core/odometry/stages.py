@@ -18,7 +18,6 @@ model        :class:`PreviousScanModel` | :class:`LocalMapModel`: the only thing
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -40,7 +39,6 @@ from kentreg_ros.core.odometry.step import Health
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import Candidate, FitGates, choose_pose
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
-from kentreg_ros.core.scan.prepared import elapsed_ms
 from kentreg_ros.core.scan.voxels import as_points
 
 logger = logging.getLogger(__name__)
@@ -198,74 +196,6 @@ def prepare(
     """
     points = sweep.points if sweep.times is None else deskew(sweep.points, sweep.times, twist)
     return prepare_scan(points, config=config, voxel_size_hint=voxel_size_hint)
-
-
-@dataclass(frozen=True, eq=False)
-class Preparation:
-    """What the prepare stage hands the registration: the sweep and the prepared scan, or why
-    the cloud was rejected.
-
-    Attributes
-    ----------
-    sweep : Sweep or None
-        The points and their times (None when the cloud was rejected before they were read).
-    scan : PreparedScan or None
-        None: rejected (``rejected`` says why).
-    rejected : str
-        The :class:`~kentreg_ros.core.errors.InvalidPointCloudError` message, '' when prepared.
-    ms : float
-        Milliseconds the stage took.
-    twist : ndarray, shape (6,), or None
-        The twist the sweep was deskewed with (None: it has no times, the twist did not enter).
-    voxel_size_hint : float
-        Where the voxel-size search started.
-    """
-
-    sweep: Sweep | None
-    scan: PreparedScan | None
-    rejected: str = ''
-    ms: float = 0.0
-    twist: FloatArray | None = None
-    voxel_size_hint: float = 0.0
-
-
-def prepare_input(
-    points: ArrayLike,
-    point_times: ArrayLike | PointTimes | None,
-    stamp: int,
-    config: KentRegConfig,
-    twist: FloatArray,
-    voxel_size_hint: float,
-) -> Preparation:
-    """The prepare stage: :func:`read_sweep`, then :func:`prepare` with ``twist`` (used only
-    when the sweep has times) and ``voxel_size_hint``. A pure function of its inputs, so the
-    stage can run in another process with the same result; an unusable cloud is a
-    :class:`Preparation` with ``rejected`` set, not an exception."""
-    t0 = time.perf_counter()
-    try:
-        sweep = read_sweep(points, point_times, stamp, config)
-    except InvalidPointCloudError as exc:
-        return Preparation(None, None, str(exc), elapsed_ms(t0), None, voxel_size_hint)
-    return prepare_sweep(sweep, twist, config, voxel_size_hint, t0=t0)
-
-
-def prepare_sweep(
-    sweep: Sweep,
-    twist: FloatArray,
-    config: KentRegConfig,
-    voxel_size_hint: float,
-    *,
-    t0: float | None = None,
-) -> Preparation:
-    """The second half of :func:`prepare_input`, on a sweep already read (``t0``: when the
-    stage started, a ``time.perf_counter()`` reading; default now)."""
-    start = time.perf_counter() if t0 is None else t0
-    used = np.array(twist, dtype=np.float64) if sweep.times is not None else None
-    try:
-        scan = prepare(sweep, twist, config, voxel_size_hint)
-    except InvalidPointCloudError as exc:
-        return Preparation(sweep, None, str(exc), elapsed_ms(start), None, voxel_size_hint)
-    return Preparation(sweep, scan, '', elapsed_ms(start), used, voxel_size_hint)
 
 
 # ------------------------------------------------------------------------------------------------
