@@ -6,8 +6,9 @@ process itself (``conftest.py`` applies them in ``pytest_configure``, before any
 ``env={**os.environ, **ros_env()}`` when building an environment by hand).
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` and ``FASTRTPS_DEFAULT_PROFILES_FILE`` (the
-  profile in ``test/fastdds_localhost.xml`` whitelists 127.0.0.1 and turns the built-in
-  transports off): no DDS traffic leaves this machine.
+  profile in ``test/fastdds_localhost.xml``: shared memory plus UDP whitelisted to 127.0.0.1,
+  the built-in transports off, as ``config/fastdds_shm.xml`` ships it): no DDS traffic leaves
+  this machine, and MB-sized clouds go through shared memory.
 - ``ROS_DOMAIN_ID``: one value per test session in ``[DOMAIN_ID_MIN, DOMAIN_ID_MAX]``, derived
   from the process id, so test runs of several people or CI jobs on one machine rarely share
   a domain (tests also use unique topic names, so a shared domain does not break them). Fast

@@ -285,3 +285,22 @@ def test_translation_stage_matches_numpy(
     assert compiled.sigma2 == pytest.approx(reference.sigma2, rel=1e-9)
     assert compiled.inlier_fraction == reference.inlier_fraction
     assert np.abs(reference.t - T_true[:3, 3]).max() < 0.01  # the stage itself works
+
+
+def test_normal_bins_are_the_same_with_and_without_kernels(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bins' moments agree with numpy's (summed in another order than ``add.reduceat``'s
+    vectorised loop: to rounding, ~1e-14 of sums of at most a few hundred unit vectors)."""
+    from kentreg_ros.core.scan.clusters import NormalBins
+
+    normals = estimate_normals(cloud, 15).normals
+    labels = np.argmax(np.abs(normals), axis=1)
+    compiled, reference = both(
+        lambda: NormalBins.from_normals(normals, 0.05 + 0.01 * labels, labels), monkeypatch
+    )
+    assert len(reference) > 10
+    assert np.array_equal(compiled.weights, reference.weights)
+    for name in ('directions', 'resultants', 'scatters'):
+        got, want = getattr(compiled, name), getattr(reference, name)
+        assert np.allclose(got, want, rtol=0.0, atol=1e-12 * max(1.0, float(want.max()))), name

@@ -332,3 +332,48 @@ def test_local_map_keeps_tracking_with_raw_outliers_and_skipped_frames(repo_root
     assert not failed_pairs(e_R, e_t).any()
     # Clean consecutive pairs are good to ~0.04 deg / 4 mm (the reference's own level).
     assert np.median(e_R) < 0.2 and np.median(e_t) < 0.02
+
+
+@pytest.mark.parametrize('cap', [1, 3])
+def test_voxel_map_key_order_kept_through_inserts_and_crops_is_a_stable_sort(cap: int) -> None:
+    """The key order the map keeps up to date (instead of sorting every merge) is at every
+    step the stable argsort of its points' keys, so merges find the same points as before."""
+    rng = np.random.default_rng(4)
+    vmap = VoxelMap(0.3, max_points_per_voxel=cap, with_normals=True, average=True)
+    for i in range(12):
+        pts = rng.uniform(-3.0, 3.0, (800, 3)) + [0.4 * i, 0.0, 0.0]
+        nrm = rng.normal(size=(800, 3))
+        vmap.insert(pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True))
+        vmap.crop([0.4 * i, 0.0, 0.0], 3.5)
+        keys = vmap.keys_of(np.asarray(vmap._sums / vmap._merged[:, None]))
+        assert np.array_equal(vmap._order, np.argsort(vmap._keys, kind='stable'))
+        assert np.array_equal(vmap._sorted_keys, vmap._keys[vmap._order])
+        # Averaging keeps every point in the voxel it was first put in.
+        assert np.array_equal(keys, vmap._keys)
+
+
+def test_local_map_target_neighbours_are_exact_against_brute_force(repo_root: Path) -> None:
+    """After incremental insertions and crops, the target's neighbour answers (what the
+    registration queries: nearest two within a gate) are those of a brute-force search over
+    the map points in the target frame."""
+    pytest.importorskip('rosbags', reason='rosbags is not installed (pip install -e .[io])')
+    from kentreg_ros.io import open_scan_source
+
+    source = open_scan_source(repo_root / 'bags' / 'balm_50')
+    sample_scans = [s.points for _, s in zip(range(4), source, strict=False)]
+    lmap = LocalMap(0.2, max_points_per_voxel=1)
+    T = np.eye(4)
+    for i, points in enumerate(sample_scans):
+        T[:3, 3] = [0.05 * i, 0.0, 0.0]
+        lmap.insert_scan(prepare_scan(points, config=LOCAL_MAP), T, radius=15.0)
+    target = lmap.target(T, config=LOCAL_MAP)
+    rng = np.random.default_rng(1)
+    queries = target.points[rng.choice(len(target), 300)] + rng.normal(0.0, 0.1, (300, 3))
+    gate = 0.3
+    dist, idx = target.tree.query(queries, k=2, distance_upper_bound=gate)
+    brute = np.linalg.norm(queries[:, None, :] - target.points[None, :, :], axis=2)
+    order = np.argsort(brute, axis=1)[:, :2]
+    want = np.take_along_axis(brute, order, axis=1)
+    within = want <= gate
+    assert np.allclose(np.where(within, want, np.inf), dist, rtol=0, atol=1e-12)
+    assert np.array_equal(np.where(within, order, len(target)), idx)

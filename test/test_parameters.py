@@ -109,8 +109,10 @@ def test_node_settings_validate_on_construction_like_the_config() -> None:
 
 def test_parameters_fixed_at_start_up_are_declared_read_only() -> None:
     """The node reads these once (timer period, subscription QoS, the voxel and the bound of
-    the map of the run, which a change would have to throw away)."""
+    the map of the run, which a change would have to throw away, and the pipeline, whose
+    worker process starts with the node)."""
     read_only = {p.name for p in PARAMETERS if p.read_only}
     assert read_only == {
         'diagnostics_period', 'qos_reliability', 'qos_depth', 'map_voxel_size', 'map_max_points',
+        'pipeline',
     }  # fmt: skip

@@ -39,6 +39,8 @@ from kentreg_ros.core.odometry import (
     LocalMap,
     Odometry,
     OdometryStep,
+    PipelinedOdometry,
+    PipelineError,
     PointTimes,
     VoxelMap,
 )
@@ -67,6 +69,8 @@ __all__ = [
     'Model',
     'Odometry',
     'OdometryStep',
+    'PipelineError',
+    'PipelinedOdometry',
     'PointTimes',
     'PreparedScan',
     'RegistrationResult',

@@ -130,6 +130,13 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
 # The product surface
 
 
+class PipelineMode(StrEnum):
+    """How the node's odometry uses the cores."""
+
+    PROCESS = 'process'
+    SEQUENTIAL = 'sequential'
+
+
 class QosReliability(StrEnum):
     """Reliability of the input subscription."""
 
@@ -252,6 +259,15 @@ class NodeSettings(Section):
         'Scans waiting for the worker at most; when full the oldest is dropped (and counted), '
         'so the odometry never lags the sensor: 1 keeps only the newest.',
         range=(1, 1000),
+    )
+    pipeline: PipelineMode = _param(
+        PipelineMode.PROCESS,
+        'How the odometry uses the cores: process prepares each scan (deskew, voxels, '
+        'normals, clusters) in a worker process while the node registers the scan before, '
+        'and moves the local map after the pose is out: the same poses as sequential, on two '
+        'cores (a 10 Hz 64-beam LiDAR needs both to keep up). sequential runs every stage in '
+        "the node's worker thread, on one core.",
+        read_only=True,
     )
     qos_reliability: QosReliability = _param(
         QosReliability.BEST_EFFORT,

@@ -73,7 +73,7 @@ from kentreg_ros.cli.common import (
     CliError,
     interrupt_through_rclpy,
 )
-from kentreg_ros.core import KentRegConfig, Odometry, PointTimes
+from kentreg_ros.core import KentRegConfig, PointTimes
 from kentreg_ros.io import names
 from kentreg_ros.io.params import NODE_NAME, NodeSettings
 from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
@@ -89,6 +89,7 @@ from kentreg_ros.ros.outputs import (
     qos_override_errors,
 )
 from kentreg_ros.ros.parameters import StartupError
+from kentreg_ros.ros.pipeline import close_odometry, create_odometry, discard, prefetch
 from kentreg_ros.ros.usage import build_parser
 
 __all__ = ['KentRegNode', 'StartupError', 'main']
@@ -167,7 +168,7 @@ class KentRegNode(Node):
         # Worker state: only the worker thread reads or writes these after start-up. Changes
         # from the executor thread (parameters, reset) reach it under the lock as pending
         # values or through the settings it copies before each scan.
-        self._odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY)
+        self._odometry = create_odometry(self._config, self._settings, ODOMETRY_HISTORY)
         self._frame_id: str | None = None
         self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
         self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped with
@@ -299,10 +300,11 @@ class KentRegNode(Node):
             n_nonfinite=cloud.n_dropped,
             point_times=point_time_field(cloud.extras),
         )
+        prefetch(self._odometry, scan.points, scan.stamp_ns, scan.point_times)
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
                 self._counters.add('dropped_queue')  # the oldest: latest wins
-                self._queue.popleft()
+                discard(self._odometry, self._queue.popleft().points)
             self._queue.append(scan)
             self._lock.notify()
 
@@ -518,6 +520,7 @@ class KentRegNode(Node):
             self._stop = True
             self._lock.notify_all()
         self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
+        close_odometry(self._odometry, self._worker)
         self._log_handler.detach()
         if self._worker.is_alive():
             self.get_logger().error(

@@ -8,7 +8,8 @@ each pass is a chain of whole-array operations whose temporaries cost more than 
 compiled loop does the same operations in one pass. ``benchmarks/per_scan.py`` measures what it
 pays. Without numba (or with ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both
 give the same results (the kernels repeat numpy's operations in numpy's order, except the
-Gauss-Newton normal equations, summed in another order than BLAS's: poses agree to ~1e-14;
+Gauss-Newton normal equations, summed in another order than BLAS's, and the moments of the
+normal bins, summed in another order than ``add.reduceat``'s: poses agree to ~1e-14;
 ``test/test_kernels.py``).
 
 numba is imported, and every kernel compiled (cached on disk after the first run: ~3 s the first
@@ -252,6 +253,16 @@ def warm_up() -> bool:
     return enabled()
 
 
+def bin_moments(
+    normals: FloatArray, order: NDArray[np.intp], starts: NDArray[np.intp]
+) -> tuple[FloatArray, FloatArray]:
+    """Sums of the normals (B, 3) and of their outer products (B, 9) over each run
+    ``starts`` of ``order`` (the moments of :class:`~kentreg_ros.core.scan.clusters.NormalBins`:
+    one pass instead of an (N, 3, 3) temporary and two ``reduceat``)."""
+    sums, scatters = _run('bin_moments', normals, order, starts)
+    return sums, scatters
+
+
 def _compile_all() -> None:
     """Run every kernel once on a tiny input (numba compiles at the first call)."""
     rng = np.random.default_rng(0)
@@ -263,6 +274,7 @@ def _compile_all() -> None:
     labels, _ = assign_and_sum(unit, np.ascontiguousarray(unit.T), unit[:2])
     certified_distances(pts, pts, np.ones(8), labels, pts, 1.0)
     cluster_moments(unit, labels, 2)
+    bin_moments(unit, np.arange(8, dtype=np.intp), np.array([0, 3], dtype=np.intp))
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
     order = np.argsort(keys, kind='stable')
     voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)

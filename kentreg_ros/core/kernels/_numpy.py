@@ -200,3 +200,14 @@ def offset_normal_equations(
     nq = np.take(target_normals, idx[ok], axis=0)
     nw = nq * w[:, None]
     return nw.T @ nq, nw.T @ r, float(np.sum(w * r * r)), float(np.sum(w))
+
+
+def bin_moments(
+    normals: FloatArray, order: NDArray[np.intp], starts: NDArray[np.intp]
+) -> tuple[FloatArray, FloatArray]:
+    """Per run ``starts`` of ``order``: the sum of the normals (B, 3) and of their outer
+    products (B, 9, row-major)."""
+    ordered = normals[order]
+    sums = np.add.reduceat(ordered, starts, axis=0)
+    outer = (ordered[:, :, None] * ordered[:, None, :]).reshape(-1, 9)
+    return sums, np.add.reduceat(outer, starts, axis=0)

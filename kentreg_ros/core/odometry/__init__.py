@@ -4,6 +4,7 @@ the local map, deskewing and the chained covariance."""
 from kentreg_ros.core.odometry.deskew import PointTimes
 from kentreg_ros.core.odometry.localmap import LocalMap, VoxelMap
 from kentreg_ros.core.odometry.loop import Odometry
+from kentreg_ros.core.odometry.pipeline import PipelinedOdometry, PipelineError
 from kentreg_ros.core.odometry.step import ACCEPTED, HEALTHS, Health, OdometryStep
 
 __all__ = [
@@ -13,6 +14,8 @@ __all__ = [
     'LocalMap',
     'Odometry',
     'OdometryStep',
+    'PipelineError',
+    'PipelinedOdometry',
     'PointTimes',
     'VoxelMap',
 ]

@@ -106,6 +106,10 @@ class VoxelMap:
         self._points = np.zeros((0, 3))
         self._normals = np.zeros((0, 3))
         self._keys = np.zeros(0, dtype=np.int64)
+        # The points in key order (a stable argsort of _keys, kept up to date by insert and
+        # crop instead of sorted again for every merge) and their keys in that order.
+        self._order = np.zeros(0, dtype=np.intp)
+        self._sorted_keys = np.zeros(0, dtype=np.int64)
         # average=True: per point, the sums of the positions and normals merged into it and
         # their count (the point is sums / count).
         self._sums = np.zeros((0, 3))
@@ -149,6 +153,8 @@ class VoxelMap:
             self._sums,
             self._normal_sums,
             self._merged,
+            self._order,
+            self._sorted_keys,
         )
         return int(sum(a.nbytes for a in arrays))
 
@@ -234,8 +240,16 @@ class VoxelMap:
             fresh = ~present & (added > 0)
             self._voxel_keys = np.insert(self._voxel_keys, pos[fresh], new_voxels[fresh])
             self._voxel_counts = np.insert(self._voxel_counts, pos[fresh], added[fresh])
+            # The new points' keys are ascending (chosen follows the stable sort of the keys);
+            # after the map's points of equal key, in index order: the order a stable argsort
+            # of all keys gives.
+            fresh_keys = keys[chosen]
+            at = np.searchsorted(self._sorted_keys, fresh_keys, side='right')
+            indices = len(self._points) + np.arange(len(chosen), dtype=np.intp)
+            self._order = np.insert(self._order, at, indices)
+            self._sorted_keys = np.insert(self._sorted_keys, at, fresh_keys)
             self._points = np.concatenate([self._points, pts[chosen]])
-            self._keys = np.concatenate([self._keys, keys[chosen]])
+            self._keys = np.concatenate([self._keys, fresh_keys])
             if self.with_normals:
                 self._normals = np.concatenate([self._normals, nrm[chosen]])
             if self.average:
@@ -255,8 +269,8 @@ class VoxelMap:
         """Average points landing in full voxels into the nearest point of their voxel."""
         # The map's points grouped by voxel: the points of the voxel of key k are
         # order[first:first + count] with first = searchsorted(sorted keys, k).
-        order = argsort_keys(self._keys)
-        first = np.searchsorted(self._keys[order], keys)
+        order = self._order
+        first = np.searchsorted(self._sorted_keys, keys)
         if self.max_points_per_voxel == 1:
             target = order[first]
         else:
@@ -306,6 +320,9 @@ class VoxelMap:
             if self.with_normals:
                 self._normals = self._normals[inside]
             self._keys = self._keys[inside]
+            kept = inside[self._order]
+            self._order = (np.cumsum(inside) - 1)[self._order[kept]]
+            self._sorted_keys = self._sorted_keys[kept]
             if self.average:
                 self._sums = self._sums[inside]
                 self._merged = self._merged[inside]
@@ -346,7 +363,8 @@ class LocalMap:
       seeded k-means++ restarts; the Kent frames and normal bins of the clusters are then
       rebuilt (moments over all map normals, linear in the map size).
     - the neighbour index of the map points is rebuilt every step (the target's points are in
-      the frame of the last pose).
+      the frame of the last pose); the points' key order is kept up to date by every insertion
+      and crop (a merge into the map needs it), not sorted again.
     """
 
     def __init__(self, voxel_size: float, *, max_points_per_voxel: int) -> None:
@@ -415,7 +433,9 @@ class LocalMap:
         self._centers = centers_f @ R.T
         timings = {'clustering': elapsed_ms(t0)}
         t1 = time.perf_counter()
-        tree = NeighborIndex(points)
+        # Built now, with the rest of the map's upkeep (which a pipeline runs while the next
+        # scan is prepared), not at the first query of the next registration.
+        tree = NeighborIndex(points).build()
         timings['tree'] = elapsed_ms(t1)
         timings['total'] = elapsed_ms(t0)
         return PreparedScan(

@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,11 +35,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig, Model
-from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
+from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform, invert_transform
 from kentreg_ros.core.odometry.covariance import prediction_covariance, propagate_covariance
 from kentreg_ros.core.odometry.deskew import PointTimes
 from kentreg_ros.core.odometry.localmap import LocalMap
+from kentreg_ros.core.odometry.preparation import Preparation, prepare_input
 from kentreg_ros.core.odometry.stages import (
     Deskewer,
     LocalMapModel,
@@ -49,8 +51,6 @@ from kentreg_ros.core.odometry.stages import (
     Sweep,
     Verifier,
     predict,
-    prepare,
-    read_sweep,
 )
 from kentreg_ros.core.odometry.step import HEALTHS, Health, OdometryStep
 from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
@@ -170,6 +170,8 @@ class Odometry:
         self._fits: deque[float] = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
         self._warned: set[str] = set()
+        #: The last step's model upkeep, when it was deferred (see update_model).
+        self._deferred: Callable[[], None] | None = None
 
     def _new_model(self, current: ModelStrategy) -> ModelStrategy:
         """The model strategy the configuration asks for, continuing from ``current``."""
@@ -193,6 +195,7 @@ class Odometry:
         The model keeps the preprocessing it was prepared with; the next scan is prepared with
         the new settings and registered against it, so the trajectory continues without a gap.
         """
+        self.update_model()  # the last step's upkeep runs with the settings it was taken with
         previous = self._config.preprocess
         self._set_config(config)
         self._fits = deque(self._fits, maxlen=config.odometry.fit_window)
@@ -243,11 +246,13 @@ class Odometry:
 
         Owned by this instance: read it from the thread that calls :meth:`step`.
         """
+        self.update_model()
         return self._model.map if isinstance(self._model, LocalMapModel) else None
 
     @property
     def has_model(self) -> bool:
         """True once a scan has been accepted as the model."""
+        self.update_model()
         return self._model.scan is not None
 
     # ----------------------------------------------------------------------------------------
@@ -294,29 +299,62 @@ class Odometry:
         """
         stamp = _as_stamp(stamp_ns)
         pending = self._begin(points, stamp, frame_id)
+        self.update_model()
+        return self._step(pending, self._prepare_here(points, point_times, stamp))
+
+    def _prepare_here(
+        self, points: ArrayLike, point_times: ArrayLike | PointTimes | None, stamp: int
+    ) -> Preparation:
+        """The prepare stage in this thread, with the inputs the loop gives it now."""
+        return prepare_input(
+            points, point_times, stamp, self._config, self.twist_for_next, self._voxel_size_hint
+        )
+
+    @property
+    def twist_for_next(self) -> FloatArray:
+        """The twist the next scan is deskewed with: the last accepted motion's, or zero."""
+        return self._motion.twist() if self._motion is not None else np.zeros(6)
+
+    @property
+    def voxel_size_hint(self) -> float:
+        """Where the next scan's voxel-size search starts: the last prepared scan's size
+        (0: search from the scan's own extent). Part of the prepare stage's inputs."""
+        return self._voxel_size_hint
+
+    def update_model(self) -> None:
+        """Move the model on with the last step's scan, when :meth:`_step` deferred it.
+
+        A pipeline defers the model's upkeep (the local map's insertion and target) past the
+        publication of the step's pose and runs it while the next scan is prepared; the next
+        step needs it, so :meth:`step` calls this first. Without a deferred update it does
+        nothing.
+        """
+        deferred, self._deferred = self._deferred, None
+        if deferred is not None:
+            deferred()
+
+    def _step(self, pending: _Pending, prep: Preparation, *, defer: bool = False) -> OdometryStep:
+        """The stages after preparation: register, verify, deskew again, chain, model."""
+        stamp = pending.stamp_ns
         # 1. predict: the last pose moved by the last accepted motion.
         T_world_pred = self._predict(stamp)
         pending.T_model_pred = invert_transform(self._model.T_world) @ T_world_pred
-        # 2. prepare the scan once, deskewed with the predicted motion.
-        t0 = time.perf_counter()
-        twist = self._motion.twist() if self._motion is not None else np.zeros(6)
-        try:
-            sweep = read_sweep(points, point_times, stamp, self._config)
-            if sweep.warning:
-                self._warn_once(sweep.warning_kind, sweep.warning)
-            scan = prepare(sweep, twist, self._config, self._voxel_size_hint)
-        except InvalidPointCloudError as exc:
-            pending.timings['preprocess'] = elapsed_ms(t0)
-            rejected = f'Rejected the scan: {exc} The pose is the prediction.'
+        # 2. the scan prepared once, deskewed with the predicted motion (prepare_input).
+        pending.timings['preprocess'] = prep.ms
+        sweep, scan = prep.sweep, prep.scan
+        if sweep is not None and sweep.warning:
+            self._warn_once(sweep.warning_kind, sweep.warning)
+        if scan is None:
+            rejected = f'Rejected the scan: {prep.rejected} The pose is the prediction.'
             outcome = Outcome(None, np.eye(4), float('nan'), Health.REJECTED, rejected)
-            return self._finish(pending, T_world_pred, outcome, None, None)
-        pending.timings['preprocess'] = elapsed_ms(t0)
+            return self._finish(pending, T_world_pred, outcome, None, None, defer)
         self._voxel_size_hint = scan.voxel_size
         if self._model.scan is None:
             first = Outcome(
                 None, np.eye(4), float('nan'), Health.FIRST, 'First scan: it becomes the model.'
             )
-            return self._finish(pending, T_world_pred, first, scan, sweep)
+            return self._finish(pending, T_world_pred, first, scan, sweep, defer)
+        assert sweep is not None  # a prepared scan has its sweep
         # 3. register from the prediction, and 4. verify: the only place a pose is chosen.
         t0 = time.perf_counter()
         gap = stamp - self._model.stamp_ns
@@ -325,11 +363,12 @@ class Odometry:
         )
         # 5. deskew again with the registered motion while that moves the points.
         if sweep.times is not None and outcome.accepted:
+            twist = prep.twist if prep.twist is not None else self.twist_for_next
             scan, outcome = self._deskewer.iterate(sweep, scan, outcome, twist, self._model, gap)
         pending.timings['register'] = elapsed_ms(t0)
         # 6. chain the pose; the model moves on.
         T_world = T_world_pred if not outcome.accepted else self._model.T_world @ outcome.T
-        return self._finish(pending, T_world, outcome, scan, sweep)
+        return self._finish(pending, T_world, outcome, scan, sweep, defer)
 
     def _begin(self, points: ArrayLike, stamp: int, frame_id: str | None) -> _Pending:
         """Check the stamp's order and the frame; what is known of the step before it runs."""
@@ -369,8 +408,10 @@ class Odometry:
         outcome: Outcome,
         scan: PreparedScan | None,
         sweep: Sweep | None,
+        defer: bool = False,
     ) -> OdometryStep:
-        """Append the pose, feed the motion and the fits, move the model, build the step."""
+        """Append the pose, feed the motion and the fits, move the model (or, ``defer``, leave
+        that to :meth:`update_model`), build the step."""
         model = self._model
         health = outcome.health
         if health == Health.FELL_BACK:
@@ -397,9 +438,15 @@ class Odometry:
             invert_transform(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
         )
         timed = sweep if sweep is not None and sweep.times is not None else None
-        model.update(
-            scan, health, T_world_curr, covariance, pending.stamp_ns, pending.index, timed
-        )
+        stamp, index = pending.stamp_ns, pending.index
+
+        def move_model() -> None:
+            model.update(scan, health, T_world_curr, covariance, stamp, index, timed)
+
+        if defer:
+            self._deferred = move_model
+        else:
+            move_model()
         self._poses.append(T_world_curr.copy())
         self._stamps.append(pending.stamp_ns)
         self._counts[health] += 1

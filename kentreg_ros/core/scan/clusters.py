@@ -249,10 +249,8 @@ class NormalBins:
         ordered = flat[order]
         starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
         counts = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
-        sorted_normals = normals[order]
-        sums = np.add.reduceat(sorted_normals, starts, axis=0)
-        outer = (sorted_normals[:, :, None] * sorted_normals[:, None, :]).reshape(-1, 9)
-        scatters = np.add.reduceat(outer, starts, axis=0).reshape(-1, 3, 3)
+        sums, outer = kernels.bin_moments(normals, order, starts)
+        scatters = outer.reshape(-1, 3, 3)
         norms = np.linalg.norm(sums, axis=1)
         keep = norms > 1e-12 * counts  # opposite normals in one cell cancel: drop them
         return cls(

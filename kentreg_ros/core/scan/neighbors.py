@@ -13,6 +13,7 @@ and neighbour queries are the largest cost of preparing and registering a scan
 from __future__ import annotations
 
 import importlib.util
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,14 +40,33 @@ class NeighborIndex:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         self.n = len(pts)
         self.backend = backend or ('small_gicp' if HAVE_SMALL_GICP else 'scipy')
-        if self.backend == 'small_gicp':
-            import small_gicp  # compiled, optional: imported only when used
-
-            self._tree = small_gicp.KdTree(pts, num_threads=1)
-        elif self.backend == 'scipy':
-            self._tree = cKDTree(pts)
-        else:
+        if self.backend not in ('small_gicp', 'scipy'):
             raise ValueError(f"Expected backend 'small_gicp' or 'scipy', got {self.backend!r}.")
+        self._points = pts
+        self._built: Any = None
+
+    @property
+    def _tree(self) -> Any:
+        """The tree, built on first use: a scan prepared in another process arrives without
+        one (small_gicp's tree does not pickle), and a scan that is never queried (the local
+        map's scans, which enter the map and are not targets) never pays for it."""
+        if self._built is None:
+            if self.backend == 'small_gicp':
+                import small_gicp  # compiled, optional: imported only when used
+
+                self._built = small_gicp.KdTree(self._points, num_threads=1)
+            else:
+                self._built = cKDTree(self._points)
+        return self._built
+
+    def build(self) -> NeighborIndex:
+        """Build the tree now (it is otherwise built at the first query); returns ``self``."""
+        _ = self._tree
+        return self
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled as its points; the tree is rebuilt where it is used (the same tree)."""
+        return {'n': self.n, 'backend': self.backend, '_points': self._points, '_built': None}
 
     def neighbor_indices(self, x: FloatArray, k: int) -> NDArray[np.intp]:
         """Indices of the ``k <= n`` nearest points of every row of ``x``, shape (M, k),

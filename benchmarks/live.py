@@ -1,0 +1,670 @@
+"""Live at sensor rate: ``kentreg_node`` fed a recording at its real rate over loopback DDS.
+
+What a new user gets: the node started as ``kentreg_node`` (its own process, its defaults but
+the model and the pipeline under test), a 10 Hz stream of raw scans published by this process at
+the recorded rate, nothing waiting for the node, Fast DDS with the shipped shared-memory profile
+(``config/fastdds_shm.xml``) or UDP on loopback only. Streams:
+
+``kitti_hdl64``
+    ``../shared/data/kitti_raw_hdl64``: 50 street frames of a 10 Hz Velodyne HDL-64E, 122k-124k
+    points (no per-point times).
+``balm_10hz``
+    ``../shared/data/balm``: the 50 raw BALM scans (72k-90k points) published at 10 Hz, five
+    times their recorded rate (the motion per scan is the recording's).
+
+Per run (:func:`measure_live`): scans published, odometry messages received and dropped (no
+odometry for the scan's stamp), the latency from publishing a cloud to receiving its odometry
+(p50 / p95 / max: an upper bound of the node's receipt-to-publication latency, which it also
+reports in ``diagnostics``, mean and max), and the CPU use of each core and of the node's
+processes over the stream. Beside it, per scan on this machine: the stage times of the
+sequential loop (:func:`measure_stages`) and the time per scan of the sequential and the
+pipelined loop fed as fast as they take it (:func:`measure_throughput`); and the per-scan table
+against GICP and KISS-ICP (``benchmarks/per_scan.py``, one thread each), from the same run.
+
+Usage::
+
+    python3 benchmarks/live.py                       # everything, ~10 min
+    python3 benchmarks/live.py --streams kitti_hdl64 --models local_map --no-per-scan
+
+Writes ``benchmarks/results/live.json`` and ``live.md``. The measuring functions take the scans
+and stamps and return a result dict, so a harness can run them on any recording.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.common import RESULTS, SHARED_DATA, git_describe, machine_info  # noqa: E402
+
+FloatArray = NDArray[np.float64]
+Scans = Sequence[NDArray[Any]]
+
+#: The shipped profile: shared memory plus UDP on 127.0.0.1.
+SHM_PROFILE = ROOT / 'config' / 'fastdds_shm.xml'
+#: UDP on loopback only (the tests' profile before shared memory), written where it is used.
+UDP_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors><transport_descriptor>
+    <transport_id>loopback_udp</transport_id><type>UDPv4</type>
+    <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
+  </transport_descriptor></transport_descriptors>
+  <participant profile_name="loopback_only" is_default_profile="true"><rtps>
+    <userTransports><transport_id>loopback_udp</transport_id></userTransports>
+    <useBuiltinTransports>false</useBuiltinTransports>
+  </rtps></participant>
+</profiles>
+"""
+#: Seconds the node gets after start-up before the stream (its worker process imports and
+#: loads the compiled kernels; a sensor does not wait for it, but a user starts the node first).
+SETTLE_S = 4.0
+#: Seconds after the last scan to wait for its odometry.
+DRAIN_S = 3.0
+
+
+# ------------------------------------------------------------------------------------------------
+# data
+
+
+def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int], float]:
+    """The first ``n`` scans of a stream as float32 (N, 3), their stamps (ns) and its rate."""
+    from kentreg_ros.io import read_scan
+
+    if name == 'kitti_hdl64':
+        files = sorted((SHARED_DATA / 'kitti_raw_hdl64').glob('*.bin'))[:n]
+    elif name == 'balm_10hz':
+        files = [SHARED_DATA / 'balm' / f'full{i}.pcd' for i in range(n)]
+    else:
+        raise ValueError(f'unknown stream {name!r}')
+    scans = [np.asarray(read_scan(f).points, dtype=np.float32) for f in files]
+    rate = 10.0
+    stamps = [1_700_000_000 * 10**9 + int(i * 1e9 / rate) for i in range(len(scans))]
+    return scans, stamps, rate
+
+
+# ------------------------------------------------------------------------------------------------
+# CPU
+
+
+def _cpu_times() -> list[tuple[int, int]]:
+    """(busy, total) jiffies of every core (/proc/stat)."""
+    out = []
+    with open('/proc/stat') as f:
+        for line in f:
+            if line.startswith('cpu') and line[3].isdigit():
+                v = [int(x) for x in line.split()[1:]]
+                idle = v[3] + v[4]
+                out.append((sum(v) - idle, sum(v)))
+    return out
+
+
+def _tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of ``pid`` and its descendants so far."""
+    parents: dict[int, int] = {}
+    times: dict[int, float] = {}
+    tick = os.sysconf('SC_CLK_TCK')
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        parents[int(entry.name)] = int(fields[1])
+        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick
+    mine, grew = {pid}, True
+    while grew:
+        more = {p for p, pp in parents.items() if pp in mine} - mine
+        grew = bool(more)
+        mine |= more
+    return sum(times.get(p, 0.0) for p in mine)
+
+
+# ------------------------------------------------------------------------------------------------
+# the node, live
+
+
+def _node_env(profile: str, tmp: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if profile == 'shm':
+        env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(SHM_PROFILE)
+    else:
+        path = tmp / 'fastdds_udp.xml'
+        path.write_text(UDP_PROFILE)
+        env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
+    env.setdefault('ROS_DOMAIN_ID', os.environ.get('KENTREG_TEST_ROS_DOMAIN_ID', '77'))
+    env['PYTHONPATH'] = os.pathsep.join(p for p in (str(ROOT), env.get('PYTHONPATH')) if p)
+    return env
+
+
+def measure_live(
+    scans: Scans,
+    stamps: Sequence[int],
+    *,
+    rate_hz: float,
+    model: str,
+    pipeline: str,
+    profile: str = 'shm',
+) -> dict[str, Any]:
+    """Publish ``scans`` at ``rate_hz`` to a ``kentreg_node`` subprocess; what came back.
+
+    The benchmark process must run with the DDS environment of ``profile`` (see :func:`main`,
+    which runs each measurement in a child process with it).
+    """
+    import rclpy
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry as OdometryMsg
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Header
+
+    from kentreg_ros.io import names
+    from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
+
+    ns = f'/live_{uuid.uuid4().hex[:8]}'
+    cmd = [
+        sys.executable,
+        '-m',
+        'kentreg_ros.ros.node',
+        '--ros-args',
+        '-r',
+        f'__ns:={ns}',
+        '-r',
+        f'{names.DIAGNOSTICS}:={ns}/diagnostics',
+        '-p',
+        f'model:={model}',
+        '-p',
+        f'pipeline:={pipeline}',
+        '-p',
+        'diagnostics_period:=1.0',
+    ]
+    log = tempfile.TemporaryFile()
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
+    rclpy.init()
+    node = rclpy.create_node(f'live_bench_{uuid.uuid4().hex[:8]}')
+    received: dict[int, float] = {}
+    diagnostics: list[dict[str, str]] = []
+
+    def on_odom(msg: Any) -> None:
+        received.setdefault(
+            msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, time.monotonic()
+        )
+
+    def on_diag(msg: Any) -> None:
+        for status in msg.status:
+            diagnostics.append({kv.key: kv.value for kv in status.values})
+
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        factory = rclpy_factory(PointCloud2, PointField, Header, Time)
+        messages = [
+            array_to_pointcloud2(p, frame_id='lidar', stamp_ns=s, factory=factory)
+            for p, s in zip(scans, stamps, strict=True)
+        ]
+        pub = node.create_publisher(PointCloud2, f'{ns}/{names.POINTS}', qos_profile_sensor_data)
+        odom_topic = f'{ns}/{names.ODOMETRY}'
+        node.create_subscription(OdometryMsg, odom_topic, on_odom, 50)
+        node.create_subscription(DiagnosticArray, f'{ns}/diagnostics', on_diag, 50)
+        deadline = time.monotonic() + 60.0
+        while pub.get_subscription_count() == 0 or node.count_publishers(odom_topic) == 0:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError(f'kentreg_node did not come up:\n{_log_text(log)}')
+            time.sleep(0.05)
+        time.sleep(SETTLE_S)
+        cpu0, node0, t0 = _cpu_times(), _tree_cpu_s(proc.pid), time.monotonic()
+        sent: dict[int, float] = {}
+        period = 1.0 / rate_hz
+        for i, (msg, stamp) in enumerate(zip(messages, stamps, strict=True)):
+            due = t0 + i * period
+            time.sleep(max(0.0, due - time.monotonic()))
+            sent[stamp] = time.monotonic()
+            pub.publish(msg)
+        stream_s = time.monotonic() - t0
+        cpu1, node1 = _cpu_times(), _tree_cpu_s(proc.pid)
+        time.sleep(DRAIN_S)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        proc.send_signal(2)  # Ctrl-C, as a user stops it
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
+    cores = [
+        round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
+        for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)
+    ]
+    last = diagnostics[-1] if diagnostics else {}
+    return {
+        'model': model,
+        'pipeline': pipeline,
+        'dds': profile,
+        'rate_hz': rate_hz,
+        'published': len(sent),
+        'processed': int(len(latency)),
+        'dropped': len(sent) - int(len(latency)),
+        'dropped_pct': round(100.0 * (len(sent) - len(latency)) / max(len(sent), 1), 1),
+        'latency_ms': _quantiles(latency),
+        'node_diagnostics': {
+            k: last.get(k, '')
+            for k in (
+                'total.received',
+                'total.published',
+                'total.dropped_queue',
+                'total.errors',
+                'total.fell_back',
+            )
+        },
+        'node_latency_ms_mean_max': [
+            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
+        ],
+        'cpu_pct_per_core': cores,
+        'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
+        'exit_code': proc.returncode,
+    }
+
+
+def _log_text(log: Any) -> str:
+    log.seek(0)
+    return log.read().decode(errors='replace')[-3000:]
+
+
+def _quantiles(values: NDArray[Any]) -> dict[str, float]:
+    if not len(values):
+        return {'p50': float('nan'), 'p95': float('nan'), 'max': float('nan')}
+    return {
+        'p50': round(float(np.percentile(values, 50)), 1),
+        'p95': round(float(np.percentile(values, 95)), 1),
+        'max': round(float(np.max(values)), 1),
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# the loop offline
+
+
+def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[str, Any]:
+    """Median stage times per scan of the sequential loop, the first excluded: wall times of
+    the stages and the CPU time of the whole step (run it with one BLAS thread, as
+    :func:`main` does, for a one-thread figure)."""
+    from kentreg_ros.core import KentRegConfig, Odometry
+
+    odometry = Odometry(KentRegConfig().with_updates({'odometry.model': model}))
+    rows: dict[str, list[float]] = {}
+    for points, stamp in zip(scans, stamps, strict=True):
+        t0, c0 = time.perf_counter(), time.process_time()
+        step = odometry.step(points, stamp)
+        wall, cpu = 1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)
+        if step.index == 0:
+            continue
+        pre, reg = step.timings.get('preprocess', 0.0), step.timings.get('register', 0.0)
+        for key, value in (
+            ('prepare', pre),
+            ('register', reg),
+            ('model', wall - pre - reg),
+            ('total', wall),
+            # CPU time of the step: what the step costs, whatever else shares the core.
+            ('cpu', cpu),
+        ):
+            rows.setdefault(key, []).append(value)
+    return {k: round(float(np.median(v)), 1) for k, v in rows.items()} | {
+        'total_p95': round(float(np.percentile(rows['total'], 95)), 1),
+        'cpu_p95': round(float(np.percentile(rows['cpu'], 95)), 1),
+    }
+
+
+def measure_model_ratio(scans: Scans, stamps: Sequence[int], *, rounds: int = 3) -> dict[str, Any]:
+    """CPU time per scan of the sequential loop with the previous scan and with the local map,
+    in alternating rounds (so a change of load lands on both), and their ratio."""
+    from kentreg_ros.core import KentRegConfig, Odometry
+
+    cpu: dict[str, list[float]] = {'previous_scan': [], 'local_map': []}
+    for _ in range(rounds):
+        for model in cpu:
+            odometry = Odometry(KentRegConfig().with_updates({'odometry.model': model}))
+            for i, (points, stamp) in enumerate(zip(scans, stamps, strict=True)):
+                c0 = time.process_time()
+                odometry.step(points, stamp)
+                if i:
+                    cpu[model].append(1e3 * (time.process_time() - c0))
+    prev, local = (float(np.median(cpu[m])) for m in ('previous_scan', 'local_map'))
+    return {
+        'rounds': rounds,
+        'previous_scan_cpu_ms': round(prev, 1),
+        'local_map_cpu_ms': round(local, 1),
+        'ratio': round(local / prev, 3),
+    }
+
+
+def measure_throughput(
+    scans: Scans, stamps: Sequence[int], *, model: str, rounds: int = 2
+) -> dict[str, Any]:
+    """Milliseconds per scan of the sequential and the pipelined loop, fed as fast as they take
+    the scans (the next scan handed over before each step), in alternating rounds; and whether
+    their poses are identical."""
+    from kentreg_ros.core import KentRegConfig, Odometry, PipelinedOdometry
+
+    config = KentRegConfig().with_updates({'odometry.model': model})
+    times: dict[str, list[float]] = {'sequential': [], 'pipelined': []}
+    poses: dict[str, list[FloatArray]] = {}
+    cpu: dict[str, list[float]] = {'sequential': [], 'main': [], 'worker': []}
+    n = len(scans)
+    for _ in range(rounds):
+        sequential = Odometry(config)
+        t0, c0 = time.perf_counter(), time.process_time()
+        poses['sequential'] = [
+            sequential.step(p, s).T_world_lidar for p, s in zip(scans, stamps, strict=True)
+        ]
+        times['sequential'].append(1e3 * (time.perf_counter() - t0) / n)
+        cpu['sequential'].append(1e3 * (time.process_time() - c0) / n)
+        with PipelinedOdometry(config) as pipelined:
+            time.sleep(SETTLE_S)
+            worker = pipelined.worker_pid
+            got = []
+            t0, c0 = time.perf_counter(), time.process_time()
+            w0 = _tree_cpu_s(worker) if worker else 0.0
+            pipelined.prefetch(scans[0], stamps[0])
+            for i, (p, s) in enumerate(zip(scans, stamps, strict=True)):
+                if i + 1 < len(scans):
+                    pipelined.prefetch(scans[i + 1], stamps[i + 1])
+                got.append(pipelined.step(p, s).T_world_lidar)
+            pipelined.update_model()
+            times['pipelined'].append(1e3 * (time.perf_counter() - t0) / n)
+            cpu['main'].append(1e3 * (time.process_time() - c0) / n)
+            w1 = _tree_cpu_s(worker) if worker else 0.0
+            cpu['worker'].append(1e3 * (w1 - w0) / n)
+            poses['pipelined'] = got
+    seq, pipe = (float(np.median(times[k])) for k in ('sequential', 'pipelined'))
+    identical = all(
+        np.array_equal(a, b) for a, b in zip(poses['sequential'], poses['pipelined'], strict=True)
+    )
+    return {
+        'sequential_ms': round(seq, 1),
+        'pipelined_ms': round(pipe, 1),
+        'speedup': round(seq / pipe, 2),
+        'poses_identical': identical,
+        'rounds_ms': {k: [round(v, 1) for v in vs] for k, vs in times.items()},
+        # CPU per scan (all threads of the process; the worker's from /proc): what each core
+        # would have to give, whatever else runs on the machine.
+        'sequential_cpu_ms': round(float(np.median(cpu['sequential'])), 1),
+        'main_cpu_ms': round(float(np.median(cpu['main'])), 1),
+        'worker_cpu_ms': round(float(np.median(cpu['worker'])), 1),
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# running and writing
+
+
+def _in_child(
+    kind: str,
+    stream: str,
+    n: int,
+    kwargs: dict[str, Any],
+    env: dict[str, str],
+    niceness: int = 10,
+) -> Any:
+    """Run one measurement in a fresh process (its own DDS environment, no state carried)."""
+    out = subprocess.run(
+        ['nice', '-n', str(niceness), sys.executable, __file__, '--child', kind, stream, str(n)]
+        + [json.dumps(kwargs)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
+    for line in out.stdout.splitlines():
+        if line.startswith('RESULT'):
+            return json.loads(line[len('RESULT') :])
+    raise RuntimeError(f'{kind} {stream} {kwargs} failed:\n{out.stderr[-3000:]}')
+
+
+def _load() -> tuple[float, float, float]:
+    return os.getloadavg()
+
+
+def run(options: argparse.Namespace) -> dict[str, Any]:
+    """Every measurement of the options; the result document."""
+    tmp = Path(tempfile.mkdtemp(prefix='kentreg_live_'))
+    doc: dict[str, Any] = {
+        'benchmark': 'live',
+        'commit': git_describe(),
+        'machine': machine_info(),
+        'scans': options.scans,
+        'live_niceness': options.live_nice,
+        'streams': {},
+    }
+    for stream in options.streams:
+        entry: dict[str, Any] = {'live': [], 'stages': {}, 'throughput': {}}
+        for model in options.models:
+            print(f'live: {stream} {model} stages/throughput (load {_load()[0]:.2f})', flush=True)
+            entry['stages'][model] = _in_child(
+                'stages', stream, options.scans, {'model': model}, _node_env('shm', tmp)
+            )
+            entry['throughput'][model] = _in_child(
+                'throughput', stream, options.scans, {'model': model}, _node_env('shm', tmp)
+            )
+            for profile in options.dds:
+                for pipeline in options.pipelines:
+                    for r in range(options.rounds):
+                        load = _load()[0]
+                        res = _in_child(
+                            'live',
+                            stream,
+                            options.scans,
+                            {'model': model, 'pipeline': pipeline, 'profile': profile},
+                            _node_env(profile, tmp),
+                            niceness=options.live_nice,
+                        )
+                        res['round'], res['load_before'] = r, round(load, 2)
+                        res['load_after'] = round(_load()[0], 2)
+                        entry['live'].append(res)
+                        print(
+                            f'live: {stream} {model} {pipeline} {profile}: dropped '
+                            f'{res["dropped"]}/{res["published"]}, latency p50 '
+                            f'{res["latency_ms"]["p50"]} p95 {res["latency_ms"]["p95"]} ms, cores '
+                            f'{res["cpu_pct_per_core"]} (load {load:.2f})',
+                            flush=True,
+                        )
+        doc['streams'][stream] = entry
+    if options.per_scan:
+        out = tmp / 'per_scan'
+        print('live: per_scan.py kentreg gicp kiss_icp', flush=True)
+        subprocess.run(
+            [
+                'nice',
+                sys.executable,
+                str(ROOT / 'benchmarks' / 'per_scan.py'),
+                '--methods',
+                'kentreg',
+                'gicp',
+                'kiss_icp',
+                '--rounds',
+                str(options.per_scan_rounds),
+                '--long-steps',
+                '0',  # the memory run is per_scan.py's own business
+                '--out',
+                str(out),
+            ],
+            check=True,
+        )
+        doc['per_scan'] = json.loads((out / 'per_scan.json').read_text())
+        doc['per_scan_table'] = (out / 'per_scan.md').read_text()
+    doc['load_end'] = [round(x, 2) for x in _load()]
+    return doc
+
+
+def render(doc: dict[str, Any]) -> str:
+    """The Markdown report of a result document."""
+    lines = [
+        '# Live at sensor rate',
+        '',
+        f'`benchmarks/live.py` at {doc["commit"]}: `kentreg_node` (its own process) fed each '
+        'stream at 10 Hz by a publisher that does not wait for it, over Fast DDS on loopback '
+        '(shm: `config/fastdds_shm.xml`, shared memory plus loopback UDP; udp: loopback UDP '
+        f'only); {doc["scans"]} scans per run. Latency: from publishing a cloud to receiving '
+        "its odometry (an upper bound of the node's receipt-to-publication latency). CPU: "
+        'each core over the stream (the machine is shared: the load average is the 1-minute '
+        "one before each run), and the node's processes (100 % = one core).",
+        '',
+        '| stream | model | pipeline | DDS | dropped | latency p50 / p95 / max (ms) | '
+        'cores busy (%) | node CPU (%) | load |',
+        '|---|---|---|---|---|---|---|---|---|',
+    ]
+    for stream, entry in doc['streams'].items():
+        for r in entry['live']:
+            lat = r['latency_ms']
+            lines.append(
+                f'| {stream} | {r["model"]} | {r["pipeline"]} | {r["dds"]} | '
+                f'{r["dropped"]}/{r["published"]} ({r["dropped_pct"]} %) | '
+                f'{lat["p50"]} / {lat["p95"]} / {lat["max"]} | '
+                f'{" / ".join(str(c) for c in r["cpu_pct_per_core"])} | {r["node_cpu_pct"]} | '
+                f'{r["load_before"]} |'
+            )
+    lines += [
+        '',
+        '## Per scan on this machine (one thread; sequential loop stages, median ms)',
+        '',
+        '| stream | model | prepare | register | model upkeep | total p50 / p95 | CPU p50 / p95 | '
+        'sequential / pipelined fed at once (ms/scan) | speed-up | poses identical |',
+        '|---|---|---|---|---|---|---|---|---|---|',
+    ]
+    for stream, entry in doc['streams'].items():
+        for model, st in entry['stages'].items():
+            th = entry['throughput'][model]
+            lines.append(
+                f'| {stream} | {model} | {st["prepare"]} | {st["register"]} | {st["model"]} | '
+                f'{st["total"]} / {st["total_p95"]} | {st["cpu"]} / {st["cpu_p95"]} | '
+                f'{th["sequential_ms"]} / '
+                f'{th["pipelined_ms"]} | {th["speedup"]}x | {th["poses_identical"]} |'
+            )
+    lines.append('')
+    for stream, entry in doc['streams'].items():
+        st = entry['stages']
+        if 'model_ratio' in entry:
+            mr = entry['model_ratio']
+            lines.append(
+                f'- {stream}: local map / previous scan per scan, CPU time in {mr["rounds"]} '
+                f'alternating rounds: {mr["local_map_cpu_ms"]} / {mr["previous_scan_cpu_ms"]} ms '
+                f'= {mr["ratio"]:.2f}x (load {mr["load_before"]}).'
+            )
+        if {'previous_scan', 'local_map'} <= set(st):
+            wall = st['local_map']['total'] / st['previous_scan']['total']
+            cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
+            lines.append(
+                f'- {stream}: local map / previous scan per scan (sequential, one thread): '
+                f'{cpu:.2f}x in CPU time, {wall:.2f}x in wall time.'
+            )
+        for model, th in entry['throughput'].items():
+            bound = max(th['main_cpu_ms'], th['worker_cpu_ms'], 1e-9)
+            lines.append(
+                f'- {stream}, {model}, fed at once: CPU per scan {th["sequential_cpu_ms"]} ms '
+                f'sequential; pipelined {th["main_cpu_ms"]} ms in the main process and '
+                f'{th["worker_cpu_ms"]} ms in the worker, so with two free cores one scan every '
+                f'{bound:.1f} ms at best ({th["sequential_cpu_ms"] / bound:.2f}x).'
+            )
+    if 'per_scan_table' in doc:
+        lines += [
+            '',
+            '## Per raw scan against GICP and KISS-ICP (`benchmarks/per_scan.py`, same run)',
+            '',
+        ]
+        lines += [ln for ln in doc['per_scan_table'].splitlines() if not ln.startswith('# ')]
+    lines += ['', f'Load average at the end: {doc["load_end"]}.', '']
+    return '\n'.join(lines)
+
+
+def _relative(text: str) -> str:
+    """``text`` with the paths of this machine named relative to the repository
+    (``../shared/data/balm``, ``bags/balm_50``)."""
+    return text.replace(str(ROOT) + '/', '').replace(str(ROOT.parent) + '/', '../')
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--streams', nargs='+', default=['kitti_hdl64', 'balm_10hz'])
+    parser.add_argument('--models', nargs='+', default=['previous_scan', 'local_map'])
+    parser.add_argument('--pipelines', nargs='+', default=['process', 'sequential'])
+    parser.add_argument('--dds', nargs='+', default=['shm'], choices=['shm', 'udp'])
+    parser.add_argument('--scans', type=int, default=50)
+    parser.add_argument('--rounds', type=int, default=1)
+    parser.add_argument('--no-per-scan', dest='per_scan', action='store_false')
+    parser.add_argument('--per-scan-rounds', type=int, default=2)
+    parser.add_argument(
+        '--live-nice',
+        type=int,
+        default=0,
+        help='niceness of the live runs (node and publisher; default 0, as a user runs them: '
+        'on a shared machine, work at a higher niceness then takes the leftover CPU); the '
+        'offline measurements run at 10',
+    )
+    parser.add_argument(
+        '--add-ratio',
+        action='store_true',
+        help='only measure the local-map / previous-scan ratio (alternating rounds) and add it '
+        'to an existing live.json in --out',
+    )
+    parser.add_argument('--out', type=Path, default=RESULTS)
+    parser.add_argument('--child', nargs=4, help=argparse.SUPPRESS)  # one measurement
+    options = parser.parse_args(argv)
+    if options.child:
+        kind, stream, n, kwargs = options.child
+        scans, stamps, rate = load_stream(stream, int(n))
+        measure: dict[str, Callable[..., dict[str, Any]]] = {
+            'ratio': measure_model_ratio,
+            'live': measure_live,
+            'stages': measure_stages,
+            'throughput': measure_throughput,
+        }
+        kw = json.loads(kwargs) | ({'rate_hz': rate} if kind == 'live' else {})
+        print('RESULT' + json.dumps(measure[kind](scans, stamps, **kw)))
+        return 0
+    if options.add_ratio:
+        doc = json.loads((options.out / 'live.json').read_text())
+        env = _node_env('shm', Path(tempfile.mkdtemp(prefix='kentreg_live_'))) | {
+            'OMP_NUM_THREADS': '1',
+            'OPENBLAS_NUM_THREADS': '1',
+            'MKL_NUM_THREADS': '1',
+        }
+        for stream in options.streams:
+            load = _load()[0]
+            ratio = _in_child('ratio', stream, options.scans, {}, env)
+            doc['streams'][stream]['model_ratio'] = ratio | {'load_before': round(load, 2)}
+            print(f'live: {stream} local map / previous scan {ratio["ratio"]}x (load {load:.2f})')
+    else:
+        doc = run(options)
+    options.out.mkdir(parents=True, exist_ok=True)
+    (options.out / 'live.json').write_text(_relative(json.dumps(doc, indent=1)) + '\n')
+    (options.out / 'live.md').write_text(_relative(render(doc)))
+    print(f'live: wrote {options.out / "live.json"} and live.md')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
