@@ -40,18 +40,9 @@ from kentreg_ros.core.geometry import check_transform, invert_transform
 from kentreg_ros.core.odometry.covariance import prediction_covariance, propagate_covariance
 from kentreg_ros.core.odometry.deskew import PointTimes
 from kentreg_ros.core.odometry.localmap import LocalMap
+from kentreg_ros.core.odometry.models import LocalMapModel, ModelStrategy, PreviousScanModel
 from kentreg_ros.core.odometry.preparation import Preparation, prepare_input
-from kentreg_ros.core.odometry.stages import (
-    Deskewer,
-    LocalMapModel,
-    ModelStrategy,
-    Motion,
-    Outcome,
-    PreviousScanModel,
-    Sweep,
-    Verifier,
-    predict,
-)
+from kentreg_ros.core.odometry.stages import Deskewer, Motion, Outcome, Sweep, Verifier, predict
 from kentreg_ros.core.odometry.step import HEALTHS, Health, OdometryStep
 from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
 

@@ -10,8 +10,8 @@ prepare      :func:`prepare`: the scan once (crop, voxels, normals, clusters); a
 register     :func:`~kentreg_ros.core.registration.register`, from the prediction
 verify       :class:`Verifier`: doubt, the start-free search and the choice between the
              candidate poses (the only place a pose is chosen)
-model        :class:`PreviousScanModel` | :class:`LocalMapModel`: the only thing that moves the
-             model the next scan is registered against
+model        :mod:`~kentreg_ros.core.odometry.models` (the previous scan | a local map): the
+             only thing that moves the model the next scan is registered against
 ============ ===============================================================================
 """
 
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -34,12 +34,14 @@ from kentreg_ros.core.odometry.deskew import (
     sweep_times,
     twist_of,
 )
-from kentreg_ros.core.odometry.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.odometry.step import Health
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import Candidate, FitGates, choose_pose
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
 from kentreg_ros.core.scan.voxels import as_points
+
+if TYPE_CHECKING:  # models imports this module
+    from kentreg_ros.core.odometry.models import ModelStrategy
 
 logger = logging.getLogger(__name__)
 
@@ -456,158 +458,3 @@ class Deskewer:
 
 # ------------------------------------------------------------------------------------------------
 # model
-
-
-class ModelStrategy(Protocol):
-    """What each scan is registered against, and the only thing that moves it.
-
-    ``scan`` is the model in its own frame, posed at ``T_world`` (with covariance ``cov``),
-    taken at ``stamp_ns`` from scan number ``index``; None before the first scan.
-    """
-
-    scan: PreparedScan | None
-    T_world: FloatArray
-    cov: FloatArray
-    stamp_ns: int
-    index: int
-
-    def update(
-        self,
-        scan: PreparedScan | None,
-        outcome: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        """Take the step's scan (None: rejected) with its pose and health."""
-
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        """The model, with the first scan deskewed by ``twist`` if it was prepared before any
-        motion was known (its sweep moved like the current one: constant velocity)."""
-
-
-class PreviousScanModel:
-    """The previous scan is the model (the design card's odometry): every prepared scan moves
-    the model on, including one that fell back (its predicted pose is the best estimate, and
-    the next registration then bridges one scan gap, not two); a rejected one does not."""
-
-    def __init__(self, T_world: FloatArray) -> None:
-        self.scan: PreparedScan | None = None
-        self.T_world = T_world.copy()
-        self.cov = np.zeros((6, 6))
-        self.stamp_ns = 0
-        self.index = -1
-        # Raw points and times of a first scan prepared before any motion was known.
-        self._first_sweep: Sweep | None = None
-
-    @classmethod
-    def like(cls, other: ModelStrategy, config: KentRegConfig) -> PreviousScanModel:
-        """This strategy continuing from ``other``'s model."""
-        out = cls(other.T_world)
-        out.scan, out.cov, out.stamp_ns, out.index = (
-            other.scan,
-            other.cov,
-            other.stamp_ns,
-            other.index,
-        )
-        return out
-
-    def update(
-        self,
-        scan: PreparedScan | None,
-        health: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        if scan is None:
-            return
-        self._move(scan, T_world_scan, cov, stamp_ns, index)
-        self._first_sweep = sweep if health == Health.FIRST and sweep is not None else None
-
-    def _move(
-        self, scan: PreparedScan, T_world: FloatArray, cov: FloatArray, stamp_ns: int, index: int
-    ) -> None:
-        self.scan, self.T_world, self.cov = scan, T_world.copy(), cov
-        self.stamp_ns, self.index = stamp_ns, index
-
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        assert self.scan is not None
-        if self._first_sweep is not None:
-            self.scan = prepare(self._first_sweep, twist, config, self.scan.voxel_size)
-            self._first_sweep = None
-        return self.scan
-
-
-class LocalMapModel(PreviousScanModel):
-    """A bounded voxel map of the accepted scans (:class:`LocalMap`, world frame, the normals
-    each scan brought), expressed in the frame of the last accepted pose. Only an accepted step
-    (or the first scan) enters the map and moves the model; one that fell back or was rejected
-    leaves both as they were, so the next scan is registered from the last accepted pose."""
-
-    def __init__(self, T_world: FloatArray, config: KentRegConfig) -> None:
-        super().__init__(T_world)
-        self.config = config
-        self.map: LocalMap | None = None
-
-    @classmethod
-    def like(cls, other: ModelStrategy, config: KentRegConfig) -> LocalMapModel:
-        out = cls(other.T_world, config)
-        out.scan, out.cov, out.stamp_ns, out.index = (
-            other.scan,
-            other.cov,
-            other.stamp_ns,
-            other.index,
-        )
-        return out
-
-    def update(
-        self,
-        scan: PreparedScan | None,
-        health: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        if scan is None:
-            return
-        if self.scan is not None and self.map is not None and not health.accepted:
-            return  # a fall-back stays out of the map
-        super().update(
-            self._insert(scan, T_world_scan), health, T_world_scan, cov, stamp_ns, index, sweep
-        )
-
-    def _insert(self, scan: PreparedScan, T_world_scan: FloatArray) -> PreparedScan:
-        """Insert ``scan`` (posed at ``T_world_scan``) into the map, drop what lies beyond the
-        map radius, and return the map in the scan's frame as the next model."""
-        odo = self.config.odometry
-        if (
-            self.map is None
-            or self.map.voxels.max_points_per_voxel != odo.map_points_per_voxel
-            or (odo.map_voxel_size > 0.0 and self.map.voxel_size != odo.map_voxel_size)
-        ):
-            voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
-            self.map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
-        radius = odo.map_radius or float(np.sqrt(np.max(np.sum(scan.points**2, axis=1))))
-        self.map.insert_scan(scan, T_world_scan, radius=radius)
-        try:
-            return self.map.target(T_world_scan, config=self.config)
-        except InvalidPointCloudError as exc:
-            # Too few map points survive the radius: register against the scan itself.
-            logger.warning('The local map cannot be a target (%s); using the scan itself.', exc)
-            return scan
-
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        assert self.scan is not None
-        if self._first_sweep is not None and self.map is not None:
-            first = prepare(self._first_sweep, twist, config, self.scan.voxel_size)
-            self.map.clear()  # the map holds only the first scan yet
-            self.scan = self._insert(first, self.T_world)
-            self._first_sweep = None
-        return self.scan
