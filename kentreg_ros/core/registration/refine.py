@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.geometry import exp_so3, hat, project_to_so3
+from kentreg_ros.core.geometry import exp_so3, hat, make_transform, project_to_so3
 from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.registration.translation import geman_mcclure_weights, robust_scale
 from kentreg_ros.core.scan.neighbors import NeighborIndex
@@ -37,7 +37,7 @@ MIN_CORRESPONDENCES = 12
 #: floor: a few iterations of a wide basin, then precision (0.7^6 ~ 1/8).
 GATE_SHRINK = 0.7
 #: Consecutive steps whose (metric-weighted) directions agree to this cosine are a creep and get
-#: lengthened (see :func:`refine_joint`).
+#: lengthened (see :func:`_step_scale`).
 CREEP_COSINE = 0.9
 
 
@@ -135,18 +135,8 @@ def refine_joint(
         stage's); the nearest neighbours are exact either way.
     max_step_scale : float
         Largest factor by which consecutive steps in the same direction are lengthened once
-        the gate is at ``min_distance`` (1 disables it; see Notes).
-
-    Notes
-    -----
-    Step control. Nearest-neighbour correspondences make Gauss-Newton alternate between two
-    correspondence sets, or creep: converge linearly, by many small steps in one direction,
-    along weakly constrained directions (on the real small_gicp pair ~0.15 mrad per iteration
-    for 100+ iterations). When consecutive steps reverse, the step is halved, so a cycle
-    collapses onto its midpoint; when they keep their direction (cosine > CREEP_COSINE, rotations
-    weighted by the RMS radius of the source so both parts count as displacements), it is
-    doubled, up to ``max_step_scale``. A fixed tolerance on the step then stops close to the
-    fixed point instead of at an arbitrary point of a creep.
+        the gate is at ``min_distance`` (1 disables it; the step control is
+        :func:`_step_scale`'s).
     """
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
@@ -159,9 +149,7 @@ def refine_joint(
     converged = False
     prev_delta: FloatArray | None = None
     step_scale = 1.0
-    centred = source - source.mean(axis=0)
-    radius = float(np.sqrt(np.einsum('ij,ij->', centred, centred) / max(len(source), 1)))
-    step_metric = np.array([radius] * 3 + [1.0] * 3)  # (omega, v) -> displacement
+    step_metric = _displacement_metric(source)
     it = 0
     for it in range(1, max_iterations + 1):
         x = source @ R.T + t
@@ -171,33 +159,19 @@ def refine_joint(
         )
         if len(ok) < MIN_CORRESPONDENCES:
             break
-        sigma = robust_scale(r_plane, noise_floor)
-        w = geman_mcclure_weights(r_plane, sigma)
+        w = geman_mcclure_weights(r_plane, robust_scale(r_plane, noise_floor))
         if normal_weight:
-            resid = np.maximum(1.0 - cos, 0.0)
-            kappa_n = float(
-                np.clip(1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9), *kappa_range)
-            )
-            w = w * np.exp(kappa_n * (cos - 1.0))
-        # J = d e / d delta = [hat(x), -I] for the left perturbation delta = (omega, v).
-        if method == 'plane_to_plane':
-            H, g, sigma2 = _plane_to_plane_equations(
-                x, idx, ok, target, target_normals, source_normals, R, w
-            )
-        else:
-            H, g, wrr, wsum = kernels.plane_normal_equations(
-                x, idx, ok, target_normals, r_plane, w
-            )
-            sigma2 = wrr / max(wsum, 1e-12)
+            w, kappa_n = _normal_weighted(w, cos, kappa_range)
+        H, g, sigma2 = _normal_equations(
+            method, x, idx, ok, target, target_normals, source_normals, R, r_plane, w
+        )
         delta = -_solve_spd(H, g)
         # Step control (see Notes): halve on reversal, lengthen while creeping.
         if prev_delta is not None:
-            if float(delta @ prev_delta) < 0.0:
-                step_scale *= 0.5
-            elif gate <= min_distance and step_scale < max_step_scale:
-                a, b = delta * step_metric, prev_delta * step_metric
-                if float(a @ b) > CREEP_COSINE * float(np.linalg.norm(a) * np.linalg.norm(b)):
-                    step_scale = min(2.0 * step_scale, max_step_scale)
+            at_floor = gate <= min_distance
+            step_scale = _step_scale(
+                delta, prev_delta, step_scale, step_metric, at_floor, max_step_scale
+            )
         prev_delta = delta
         delta = step_scale * delta
         dR = exp_so3(delta[:3])
@@ -205,18 +179,12 @@ def refine_joint(
         t = dR @ t + delta[3:]
         inlier = len(ok) / len(source)
         gate = max(gate * GATE_SHRINK, min_distance)
-        if (
-            np.linalg.norm(delta[:3]) < tolerance
-            and np.linalg.norm(delta[3:]) < tolerance
-            and gate <= min_distance
-        ):
+        small = max(np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:])) < tolerance
+        if small and gate <= min_distance:
             converged = True
             break
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
     return RefineResult(
-        T=T,
+        T=make_transform(R, t),
         hessian=H,
         sigma2=sigma2,
         iterations=it,
@@ -224,6 +192,78 @@ def refine_joint(
         inlier_fraction=inlier,
         kappa_normal=kappa_n,
     )
+
+
+def _normal_weighted(
+    w: FloatArray, cos: FloatArray, kappa_range: tuple[float, float]
+) -> tuple[FloatArray, float]:
+    """The weights times the Kent (von Mises-Fisher) likelihood of the normals' agreement,
+    ``exp(kappa_n (cos - 1))``, with ``kappa_n`` the inverse of the weighted mean of
+    ``1 - cos`` (clipped to ``kappa_range``)."""
+    resid = np.maximum(1.0 - cos, 0.0)
+    kappa_n = float(
+        np.clip(1.0 / max(float(np.average(resid, weights=w + 1e-12)), 1e-9), *kappa_range)
+    )
+    return w * np.exp(kappa_n * (cos - 1.0)), kappa_n
+
+
+def _displacement_metric(source: FloatArray) -> FloatArray:
+    """Weights that turn a step ``(omega, v)`` into displacements: the source's RMS radius for
+    the rotation, 1 for the translation."""
+    centred = source - source.mean(axis=0)
+    radius = float(np.sqrt(np.einsum('ij,ij->', centred, centred) / max(len(source), 1)))
+    return np.array([radius] * 3 + [1.0] * 3)
+
+
+def _step_scale(
+    delta: FloatArray,
+    prev_delta: FloatArray,
+    scale: float,
+    metric: FloatArray,
+    at_floor: bool,
+    max_scale: float,
+) -> float:
+    """The step's scale: halved when the step reverses the last one; doubled (up to
+    ``max_scale``) while the gate is at its floor and the step continues the last one's
+    direction (cosine above :data:`CREEP_COSINE` in the displacement metric).
+
+    Nearest-neighbour correspondences make Gauss-Newton alternate between two correspondence
+    sets, or creep: converge linearly, by many small steps in one direction, along weakly
+    constrained directions (on the real small_gicp pair ~0.15 mrad per iteration for 100+
+    iterations). Halving on a reversal collapses a cycle onto its midpoint; doubling while the
+    direction holds (rotations weighted by the RMS radius of the source, ``metric``, so both
+    parts count as displacements) shortens a creep. A fixed tolerance on the step then stops
+    close to the fixed point instead of at an arbitrary point of a creep.
+    """
+    if float(delta @ prev_delta) < 0.0:
+        return scale * 0.5
+    if at_floor and scale < max_scale:
+        a, b = delta * metric, prev_delta * metric
+        if float(a @ b) > CREEP_COSINE * float(np.linalg.norm(a) * np.linalg.norm(b)):
+            return min(2.0 * scale, max_scale)
+    return scale
+
+
+def _normal_equations(
+    method: str,
+    x: FloatArray,
+    idx: NDArray[np.intp],
+    ok: NDArray[np.intp],
+    target: FloatArray,
+    target_normals: FloatArray,
+    source_normals: FloatArray,
+    R: FloatArray,
+    r_plane: FloatArray,
+    w: FloatArray,
+) -> tuple[FloatArray, FloatArray, float]:
+    """Gauss-Newton's ``H``, ``g`` and the weighted mean squared residual of one iteration.
+
+    ``J = d e / d delta = [hat(x), -I]`` for the left perturbation ``delta = (omega, v)``.
+    """
+    if method == 'plane_to_plane':
+        return _plane_to_plane_equations(x, idx, ok, target, target_normals, source_normals, R, w)
+    H, g, wrr, wsum = kernels.plane_normal_equations(x, idx, ok, target_normals, r_plane, w)
+    return H, g, wrr / max(wsum, 1e-12)
 
 
 def _plane_to_plane_equations(

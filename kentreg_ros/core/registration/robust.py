@@ -17,7 +17,7 @@ from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.geometry import make_transform, rotation_angle
 from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.registration.em import EMResult, shared_rotation_em
-from kentreg_ros.core.registration.refine import refine_joint
+from kentreg_ros.core.registration.refine import RefineResult, refine_joint
 from kentreg_ros.core.registration.result import (
     RegistrationResult,
     finish_result,
@@ -137,6 +137,97 @@ def _rotation_stage(
     )
 
 
+@dataclass(frozen=True)
+class _Translation:
+    """What the translation stage found: ``t``, its normal matrix and residual variance (None
+    and 0 for the centroid translation), the gate it ended at (where the refinement goes on),
+    its inlier share (None: the centroid's, the EM's stands) and its iterations."""
+
+    t: FloatArray
+    hessian: FloatArray | None
+    sigma2: float
+    refine_gate: float
+    inlier: float | None
+    iterations: int
+
+
+def _translation_stage(
+    full: PreparedScan,
+    src: PreparedScan,
+    tgt: PreparedScan,
+    R: FloatArray,
+    T0: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    neighbors: NearestNeighborCache,
+    stages: dict[str, FloatArray],
+) -> _Translation:
+    """Translation with ``R`` fixed: the paper's centroids (every point of ``full``), or the
+    plane-offset cross-correlation (recorded in ``stages``) and robust point-to-plane."""
+    tr_cfg = cfg.translation
+    if tr_cfg.method == 'centroid':
+        t = centroid_translation(R, full.points, tgt.points)
+        return _Translation(t, None, 0.0, gates.max_gate, None, 0)
+    t = T0[:3, 3].copy()
+    if tr_cfg.cross_correlation:
+        t, _ = plane_offset_translation(
+            R,
+            t,
+            src.points,
+            src.normals,
+            tgt.points,
+            tgt.normals,
+            tgt.centers,
+            bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
+            max_shift=tr_cfg.max_shift,
+        )
+        stages['cross_correlation'] = make_transform(R, t)
+    tres = point_to_plane_translation(
+        R,
+        t,
+        src.points,
+        tgt.points,
+        tgt.normals,
+        tgt.tree,
+        max_iterations=tr_cfg.max_iterations,
+        max_distance=max(tr_cfg.max_correspondence_distance, gates.min_gate),
+        min_distance=gates.min_gate,
+        noise_floor=gates.noise_floor,
+        degeneracy_ratio=tr_cfg.degeneracy_ratio,
+        tolerance=tr_cfg.tolerance,
+        neighbors=neighbors,
+    )
+    # One gate schedule across both stages: the translation stage has shrunk the gate while it
+    # placed the source; the refinement goes on from there instead of re-opening it to
+    # max_gate (paired on the 49 sample pairs: same errors, ~10 % less registration time).
+    refine_gate = min(gates.max_gate, max(tres.gate, gates.min_gate))
+    return _Translation(
+        tres.t, tres.hessian, tres.sigma2, refine_gate, tres.inlier_fraction, tres.iterations
+    )
+
+
+def _refined_covariance(ref: RefineResult) -> tuple[FloatArray, FloatArray]:
+    """Covariance (x, y, z, roll, pitch, yaw) and translation normal matrix of a refinement."""
+    # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
+    perm = [3, 4, 5, 0, 1, 2]
+    info = ref.hessian[np.ix_(perm, perm)]
+    return max(ref.sigma2, 1e-12) * information_to_covariance(info), info[:3, :3]
+
+
+def _stage_covariance(
+    em: EMResult, trans: _Translation, src: PreparedScan
+) -> tuple[FloatArray, FloatArray]:
+    """Covariance and translation normal matrix without a refinement: the EM's rotation block,
+    the translation stage's (or the points' spread over their number, for the centroids)."""
+    covariance = np.zeros((6, 6))
+    covariance[3:, 3:] = information_to_covariance(em.hessian)
+    if trans.hessian is not None:
+        covariance[:3, :3] = max(trans.sigma2, 1e-12) * information_to_covariance(trans.hessian)
+        return covariance, trans.hessian
+    covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
+    return covariance, np.eye(3)
+
+
 def _local(
     src: PreparedScan,
     tgt: PreparedScan,
@@ -163,59 +254,21 @@ def _local(
     stages['rotation'] = make_transform(R, T0[:3, 3])
     full = src
     src = sample if sample is not None else position_sample(src, cfg.refine.max_cluster_points)
-    iterations = em.iterations
-    t0 = time.perf_counter()
-    tr_cfg = cfg.translation
-    H_t: FloatArray | None = None
-    sigma2_t = 0.0
-    refine_gate = gates.max_gate
     # One correspondence cache for the translation and refinement loops (same source points,
     # same target tree): points that moved less than their certified radius skip the query.
     neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
-    inlier = em.inlier_fraction
-    if tr_cfg.method == 'centroid':
-        t = centroid_translation(R, full.points, tgt.points)
-    else:
-        t = T0[:3, 3].copy()
-        if tr_cfg.cross_correlation:
-            t, _ = plane_offset_translation(
-                R,
-                t,
-                src.points,
-                src.normals,
-                tgt.points,
-                tgt.normals,
-                tgt.centers,
-                bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
-                max_shift=tr_cfg.max_shift,
-            )
-            stages['cross_correlation'] = make_transform(R, t)
-        tres = point_to_plane_translation(
-            R,
-            t,
-            src.points,
-            tgt.points,
-            tgt.normals,
-            tgt.tree,
-            max_iterations=tr_cfg.max_iterations,
-            max_distance=max(tr_cfg.max_correspondence_distance, gates.min_gate),
-            min_distance=gates.min_gate,
-            noise_floor=gates.noise_floor,
-            degeneracy_ratio=tr_cfg.degeneracy_ratio,
-            tolerance=tr_cfg.tolerance,
-            neighbors=neighbors,
-        )
-        t, H_t, sigma2_t = tres.t, tres.hessian, tres.sigma2
-        # One gate schedule across both stages: the translation stage has shrunk the gate while
-        # it placed the source; the refinement goes on from there instead of re-opening it to
-        # max_gate (paired on the 49 sample pairs: same errors, ~10 % less registration time).
-        refine_gate = min(refine_gate, max(tres.gate, gates.min_gate))
-        inlier = tres.inlier_fraction
-        iterations += tres.iterations
+    t0 = time.perf_counter()
+    trans = _translation_stage(full, src, tgt, R, T0, cfg, gates, neighbors, stages)
     timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
-    T = make_transform(R, t)
+    T = make_transform(R, trans.t)
     stages['translation'] = T
-    converged = em.converged
+    iterations, converged, inlier = (
+        em.iterations + trans.iterations,
+        em.converged,
+        em.inlier_fraction,
+    )
+    if trans.inlier is not None:
+        inlier = trans.inlier
     t0 = time.perf_counter()
     refined = refine and cfg.refine.method != 'none'
     if refined:
@@ -229,7 +282,7 @@ def _local(
             method=cfg.refine.method,
             normal_weight=cfg.refine.normal_weight,
             max_iterations=cfg.refine.max_iterations,
-            max_distance=refine_gate,
+            max_distance=trans.refine_gate,
             min_distance=gates.min_gate,
             tolerance=cfg.refine.tolerance,
             noise_floor=gates.noise_floor,
@@ -241,19 +294,9 @@ def _local(
         iterations += ref.iterations
         converged = ref.converged
         inlier = ref.inlier_fraction
-        # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
-        perm = [3, 4, 5, 0, 1, 2]
-        info = ref.hessian[np.ix_(perm, perm)]
-        covariance = max(ref.sigma2, 1e-12) * information_to_covariance(info)
-        H_trans = info[:3, :3]
+        covariance, H_trans = _refined_covariance(ref)
     else:
-        covariance = np.zeros((6, 6))
-        covariance[3:, 3:] = information_to_covariance(em.hessian)
-        if H_t is not None:
-            covariance[:3, :3] = max(sigma2_t, 1e-12) * information_to_covariance(H_t)
-        else:
-            covariance[:3, :3] = np.eye(3) * float(np.var(src.points)) / len(src)
-        H_trans = H_t if H_t is not None else np.eye(3)
+        covariance, H_trans = _stage_covariance(em, trans, src)
     timings['refine'] = timings.get('refine', 0.0) + elapsed_ms(t0)
     t0 = time.perf_counter()
     fit = balanced_fit(

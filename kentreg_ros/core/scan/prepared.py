@@ -20,7 +20,7 @@ from kentreg_ros.core.scan.clusters import (
 )
 from kentreg_ros.core.scan.neighbors import NeighborIndex
 from kentreg_ros.core.scan.normals import estimate_normals, normal_inlier_mask, planar_mask
-from kentreg_ros.core.scan.voxels import as_points, crop_range, downsample
+from kentreg_ros.core.scan.voxels import VoxelChoice, as_points, crop_range, downsample
 
 logger = logging.getLogger(__name__)
 
@@ -131,47 +131,17 @@ def prepare_scan(
     floor = 1
     if normals is None:
         t0 = time.perf_counter()
-        pts = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
-        cropped = pts  # its extent only explains an error: measured there (~7 ms a scan)
-        pts, grid = downsample(
-            pts,
-            voxel_size=cfg.preprocess.voxel_size,
-            target_points=cfg.preprocess.target_points,
-            voxel_size_hint=voxel_size_hint,
-            min_voxel_points=cfg.preprocess.min_voxel_points,
-        )
+        pts, grid = _downsampled(pts, cfg, vp, voxel_size_hint)
         voxel, n_isolated, floor = grid.size, grid.n_isolated, grid.min_points
         timings['downsample'] = elapsed_ms(t0)
-        if len(pts) < max(k, MIN_POINTS):
-            extent = float(np.max(np.ptp(cropped, axis=0))) if len(cropped) else 0.0
-            raise InvalidPointCloudError(
-                f'Expected at least {max(k, MIN_POINTS)} points after preprocessing '
-                f'(k_neighbors={k}), got {len(pts)} (from {n_input} input points, '
-                f'{len(cropped)} within preprocess.min_range/max_range, spanning {extent:.4g} m, '
-                f'in voxels of {voxel:.4g} m).'
-            )
         t0 = time.perf_counter()
         tree = NeighborIndex(pts)
         est = estimate_normals(pts, k, viewpoint=vp, tree=tree)
         nrm, flat, nbrs = est.normals, est.flatness, est.neighbors
         timings['normals'] = elapsed_ms(t0)
     else:
-        nrm = as_points(normals, 'normals')
-        if nrm.shape != pts.shape:
-            raise InvalidPointCloudError(
-                f'Expected `normals` to have the shape of `points` {pts.shape}, got {nrm.shape}.'
-            )
-        lengths = np.linalg.norm(nrm, axis=1)
-        if np.any(lengths < 1e-9):
-            raise InvalidPointCloudError('`normals` contains zero-length vectors.')
-        nrm = nrm / lengths[:, None]
-        if len(pts) < max(k, MIN_POINTS):
-            raise InvalidPointCloudError(
-                f'Expected at least {max(k, MIN_POINTS)} points, got {len(pts)}.'
-            )
         t0 = time.perf_counter()
-        tree = NeighborIndex(pts)
-        _, nbrs = tree.query(pts, k=k)
+        nrm, tree, nbrs = _given_normals(pts, normals, k)
         flat = np.zeros(len(pts))  # given normals are trusted
         timings['normals'] = elapsed_ms(t0)
     t0 = time.perf_counter()
@@ -207,6 +177,66 @@ def prepare_scan(
         n_normal_outliers=n_out,
         timings=timings,
     )
+
+
+def _downsampled(
+    pts: FloatArray, cfg: KentRegConfig, vp: FloatArray, voxel_size_hint: float
+) -> tuple[FloatArray, VoxelChoice]:
+    """The points cropped and downsampled (see :func:`prepare_scan`).
+
+    Raises
+    ------
+    InvalidPointCloudError
+        Too few left for the neighbourhood size.
+    """
+    n_input = len(pts)
+    k = cfg.normals.k_neighbors
+    cropped = crop_range(pts, cfg.preprocess.min_range, cfg.preprocess.max_range, vp)
+    out, grid = downsample(
+        cropped,
+        voxel_size=cfg.preprocess.voxel_size,
+        target_points=cfg.preprocess.target_points,
+        voxel_size_hint=voxel_size_hint,
+        min_voxel_points=cfg.preprocess.min_voxel_points,
+    )
+    if len(out) < max(k, MIN_POINTS):
+        # The extent only explains the error: measured here (~7 ms a scan).
+        extent = float(np.max(np.ptp(cropped, axis=0))) if len(cropped) else 0.0
+        raise InvalidPointCloudError(
+            f'Expected at least {max(k, MIN_POINTS)} points after preprocessing '
+            f'(k_neighbors={k}), got {len(out)} (from {n_input} input points, '
+            f'{len(cropped)} within preprocess.min_range/max_range, spanning {extent:.4g} m, '
+            f'in voxels of {grid.size:.4g} m).'
+        )
+    return out, grid
+
+
+def _given_normals(
+    pts: FloatArray, normals: ArrayLike, k: int
+) -> tuple[FloatArray, NeighborIndex, NDArray[np.intp]]:
+    """Given normals checked and normalised, the points' index and their ``k`` neighbours.
+
+    Raises
+    ------
+    InvalidPointCloudError
+        Normals of another shape or of zero length, or too few points.
+    """
+    nrm = as_points(normals, 'normals')
+    if nrm.shape != pts.shape:
+        raise InvalidPointCloudError(
+            f'Expected `normals` to have the shape of `points` {pts.shape}, got {nrm.shape}.'
+        )
+    lengths = np.linalg.norm(nrm, axis=1)
+    if np.any(lengths < 1e-9):
+        raise InvalidPointCloudError('`normals` contains zero-length vectors.')
+    nrm = nrm / lengths[:, None]
+    if len(pts) < max(k, MIN_POINTS):
+        raise InvalidPointCloudError(
+            f'Expected at least {max(k, MIN_POINTS)} points, got {len(pts)}.'
+        )
+    tree = NeighborIndex(pts)
+    _, nbrs = tree.query(pts, k=k)
+    return nrm, tree, nbrs
 
 
 def as_prepared(
