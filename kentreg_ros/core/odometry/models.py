@@ -69,13 +69,17 @@ class PreviousScanModel:
     def like(cls, other: ModelStrategy, config: KentRegConfig) -> PreviousScanModel:
         """This strategy continuing from ``other``'s model."""
         out = cls(other.T_world)
-        out.scan, out.cov, out.stamp_ns, out.index = (
+        out._take_over(other)
+        return out
+
+    def _take_over(self, other: ModelStrategy) -> None:
+        """Continue from ``other``'s model: its scan, covariance, stamp and index."""
+        self.scan, self.cov, self.stamp_ns, self.index = (
             other.scan,
             other.cov,
             other.stamp_ns,
             other.index,
         )
-        return out
 
     def update(
         self,
@@ -120,12 +124,7 @@ class LocalMapModel(PreviousScanModel):
     @classmethod
     def like(cls, other: ModelStrategy, config: KentRegConfig) -> LocalMapModel:
         out = cls(other.T_world, config)
-        out.scan, out.cov, out.stamp_ns, out.index = (
-            other.scan,
-            other.cov,
-            other.stamp_ns,
-            other.index,
-        )
+        out._take_over(other)
         return out
 
     def update(
