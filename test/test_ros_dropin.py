@@ -178,6 +178,7 @@ def test_an_initial_pose_moves_the_next_pose_and_the_path(
     np.testing.assert_allclose(T_next, P @ np.linalg.inv(T_wl[1]) @ T_wl[2], atol=1e-9)
     assert np.linalg.norm(T_next[:3, 3] - P[:3, 3]) < 0.1
     # The path was redrawn: its pose of scan 1 is now P.
+    assert node._outputs.publish_path(node._settings, force=True)
     poses = [pose_from_msg(p.pose) for p in paths[-1].poses]
     assert len(poses) == 3
     np.testing.assert_allclose(poses[1], P, atol=1e-9)

@@ -36,6 +36,7 @@ from kentreg_ros.core import (  # noqa: E402
 )
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
+from kentreg_ros.ros import outputs as outputs_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_covariance_in_base  # noqa: E402
 
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
@@ -192,14 +193,15 @@ def test_an_integer_for_a_double_parameter_is_taken_as_a_number(make_node: Any) 
 def test_path_length_changes_reach_the_path_through_the_worker_only(
     make_node: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The worker appends to the path and publishes it without the lock, so no other thread may
-    touch it: a path_length change is handed over and applied by the worker."""
+    """The worker appends to the path (the map's timer publishes it): a path_length change is
+    handed over and applied by the worker, not by the thread that set the parameter."""
     node = make_node(parameter_overrides=[Parameter('path_length', value=5)])
     paths: list[Any] = []
     monkeypatch.setattr(node._outputs.path, 'publish', paths.append)
     for k in range(3):
         feed(node, k)
         assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+        assert node._outputs.publish_path(node._settings, force=True)
     path = node._outputs._poses
     # From this thread, as the executor thread runs `ros2 param set`.
     (result,) = node.set_parameters([Parameter('path_length', value=2)])
@@ -207,9 +209,35 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     assert node._outputs._poses is path and path.maxlen == 5, 'the parameter thread touched it'
     feed(node, 3)
     assert wait_until(lambda: total(node, 'processed') == 4)
+    assert node._outputs.publish_path(node._settings, force=True)
+    assert not node._outputs.publish_path(node._settings, force=True), 'nothing new to send'
     assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
     assert [stamp_ns(p.header.stamp) for p in paths[-1].poses] == [3 * 10**9, 4 * 10**9]
     assert total(node, 'errors') == 0
+
+
+def test_the_path_goes_out_on_the_timer_not_with_every_scan(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Path carries every pose, so its cost grows with the run: the worker only appends, and
+    the map's timer sends it at most every PATH_PERIOD_S, when it grew."""
+    node = make_node()
+    paths: list[Any] = []
+    monkeypatch.setattr(node._outputs.path, 'publish', paths.append)
+    for k in range(2):
+        feed(node, k)
+        assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+    assert paths == [], 'the worker published the path'
+    assert node._outputs.publish_path(node._settings)  # the first is due at once
+    assert [len(p.poses) for p in paths] == [2]
+    feed(node, 2)
+    assert wait_until(lambda: total(node, 'processed') == 3)
+    assert not node._outputs.publish_path(node._settings), 'sent before PATH_PERIOD_S passed'
+    monkeypatch.setattr(outputs_module, 'PATH_PERIOD_S', 0.0)
+    assert node._outputs.publish_path(node._settings)
+    assert not node._outputs.publish_path(node._settings), 'sent again without a new pose'
+    assert [len(p.poses) for p in paths] == [2, 3]
+    assert stamp_ns(paths[-1].header.stamp) == 3 * 10**9
 
 
 def test_diagnostics_report_the_model_in_use_and_the_pending_one(

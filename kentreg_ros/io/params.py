@@ -236,7 +236,9 @@ class NodeSettings(Section):
         'base_to_lidar (scans that arrive meanwhile are dropped and counted).',
         range=(0.0, 60.0),
     )
-    publish_path: bool = _param(True, 'Publish nav_msgs/Path after every scan.')
+    publish_path: bool = _param(
+        True, 'Publish nav_msgs/Path (the last path_length poses) once a second when it grew.'
+    )
     path_length: int = _param(
         1000,
         'Most recent poses kept in the published path (bounded memory).',

@@ -235,7 +235,7 @@ class KentRegNode(Node):
         self._diag_timer = self.create_timer(
             settings.diagnostics_period, self._publish_diagnostics, clock=steady
         )
-        self._map_timer = self.create_timer(MAP_TICK_S, self._publish_map, clock=steady)
+        self._map_timer = self.create_timer(MAP_TICK_S, self._publish_map_and_path, clock=steady)
 
     # ----------------------------------------------------------------------------------------
     # Parameters
@@ -340,10 +340,11 @@ class KentRegNode(Node):
             f'{settings.odom_frame} from the next scan on.'
         )
 
-    def _publish_map(self) -> None:
+    def _publish_map_and_path(self) -> None:
         with self._lock:
             settings = self._settings
         self._outputs.publish_map(settings)
+        self._outputs.publish_path(settings)
 
     # ----------------------------------------------------------------------------------------
     # Worker thread
