@@ -52,7 +52,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.common import RESULTS, SHARED_DATA, git_describe, machine_info  # noqa: E402
+from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
+from benchmarks.harness.report import RESULTS, git_describe, machine_info  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 Scans = Sequence[NDArray[Any]]
@@ -85,15 +86,10 @@ DRAIN_S = 3.0
 
 def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int], float]:
     """The first ``n`` scans of a stream as float32 (N, 3), their stamps (ns) and its rate."""
-    from kentreg_ros.io import read_scan
-
-    if name == 'kitti_hdl64':
-        files = sorted((SHARED_DATA / 'kitti_raw_hdl64').glob('*.bin'))[:n]
-    elif name == 'balm_10hz':
-        files = [SHARED_DATA / 'balm' / f'full{i}.pcd' for i in range(n)]
-    else:
+    loaders = {'kitti_hdl64': load_kitti_hdl64, 'balm_10hz': load_balm}
+    if name not in loaders:
         raise ValueError(f'unknown stream {name!r}')
-    scans = [np.asarray(read_scan(f).points, dtype=np.float32) for f in files]
+    scans = [np.asarray(s.points, dtype=np.float32) for s in loaders[name]().scans[:n]]
     rate = 10.0
     stamps = [1_700_000_000 * 10**9 + int(i * 1e9 / rate) for i in range(len(scans))]
     return scans, stamps, rate

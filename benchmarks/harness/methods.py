@@ -1,32 +1,15 @@
-"""One registry of registration methods for the benchmarks: same input, same budget, same API.
+"""The pair-registration methods: same input, same budget, one API (``prepare``, ``register``).
 
 Every method gets the same voxel-downsampled clouds (:func:`voxel_downsample`, voxel centroids)
-and is wrapped as a :class:`Method` with two callables:
-
-- ``prepare(points) -> prep``: the per-scan work an odometry would cache (normals, covariances,
-  KD-trees, NDT grids, kentreg's :class:`~kentreg_ros.core.PreparedScan`). Each scan is
-  prepared once and used as source of one pair and target of the next.
-- ``register(source_prep, target_prep, init) -> T_target_source`` (4x4, maps source points into
-  the target frame).
-
-Shared settings, derived from the voxel edge ``v`` and never tuned per data set:
-
-- correspondence gate ``4 v`` for every method that has one (Open3D ICP, small_gicp GICP,
-  KISS-ICP, kentreg robust's translation and refinement gates); 1.0 m at the 0.25 m voxels that
-  give the paper's ~10,000 points on a BALM scan, which is kentreg's own default;
-- every method iterates until its own convergence test stops it; :data:`MAX_ITERATIONS`
-  (500, KISS-ICP's default) only guards against non-convergence (Open3D, small_gicp, KISS-ICP,
-  kentreg's refinement, each NDT level). A cap of 50 measured as a handicap: point-to-point
-  ICP and KISS-ICP's robust-kernel steps need 100+ iterations on BALM's 20-29 deg pairs, and
-  failed 3 and 10 of 49 pairs under it against 0 of the 9 such pairs checked with 500;
-- CICP ends when its kernel width has decayed below a tenth of the voxel (or converged);
-- :data:`NORMAL_NEIGHBORS` (15, the paper's) neighbours for normals and covariances;
-- NDT and CICP use the paper's own settings (grids 2/4/2/1 m; sigma 1 m decaying by 0.96).
-
-Libraries are imported inside the factories: a missing library removes only its methods (with a
-logged reason), and a process can load just one library. ``threads`` pins the process (CPU
-affinity, OpenMP/BLAS environment, Open3D's and small_gicp's thread counts); see
-:func:`limit_threads`.
+and is a :class:`Method`: ``prepare(points) -> prep`` (the per-scan work an odometry caches:
+normals, covariances, trees, grids, kentreg's ``prepare_scan``) and
+``register(source_prep, target_prep, init) -> T_target_source``. Shared settings derive from the
+voxel edge ``v``, never tuned per data set: gate ``4 v``, :data:`NORMAL_NEIGHBORS` neighbours,
+iterate to each method's own convergence test (:data:`MAX_ITERATIONS` only guards: a cap of 50
+measured as a handicap for point-to-point ICP and KISS-ICP on BALM's 20-29 deg pairs); CICP ends
+below a tenth of the voxel; NDT and CICP use the paper's settings (benchmarks/README.md).
+:func:`at_defaults` wraps a method for raw scans (kentreg: its own automatic preprocessing).
+Libraries are imported inside the factories, so a missing one removes only its methods.
 """
 
 from __future__ import annotations
@@ -322,13 +305,13 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
 def _baseline_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
     out = []
     if 'ndt' in names:
-        from benchmarks.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
+        from benchmarks.harness.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
 
         run_ndt = functools.partial(ndt_register, max_iterations=MAX_ITERATIONS)
         params = {**NDT_DEFAULTS, 'max_iterations': MAX_ITERATIONS}
         out.append(Method('ndt', 'baseline', ndt_prepare, run_ndt, params))
     if 'cicp' in names:
-        from benchmarks.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
+        from benchmarks.harness.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
 
         min_sigma = CICP_MIN_SIGMA_VOXELS * voxel
         run_cicp = functools.partial(
@@ -445,3 +428,105 @@ def make_methods(
             continue
         built.update({m.name: m for m in methods})
     return [built[n] for n in wanted if n in built]
+
+
+@dataclass
+class RawMethod:
+    """A method as a user runs it: raw scan in, ``T_target_source`` and what it reports out.
+
+    Attributes
+    ----------
+    name : str
+    prepare : callable
+        ``prepare(raw points (N, 3)) -> prep``: the method's own preprocessing of a raw scan.
+    register : callable
+        ``register(source_prep, target_prep, init (4, 4) or None) -> (T_target_source, info)``;
+        info holds what the method reports (kentreg: its status).
+    voxel : callable
+        ``voxel(prep) -> float``: the voxel edge the preprocessing used.
+    params : dict
+        Settings, for the JSON.
+    """
+
+    name: str
+    prepare: Callable[[FloatArray], Any]
+    register: Callable[[Any, Any, FloatArray | None], tuple[FloatArray, dict[str, Any]]]
+    voxel: Callable[[Any], float]
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def kentreg_at_defaults() -> RawMethod:
+    """kentreg with ``KentRegConfig()`` on raw scans (its automatic preprocessing)."""
+    cfg = KentRegConfig()
+
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        result = register(source, target, init=init, config=cfg)
+        info = {'status': result.status, 'fit': result.fit, 'ambiguous': result.ambiguous}
+        return np.array(result.T_target_source, dtype=np.float64), info
+
+    params = {
+        'config': 'KentRegConfig() defaults',
+        'mode': cfg.mode,
+        'preprocess.voxel_size': cfg.preprocess.voxel_size,
+        'preprocess.target_points': cfg.preprocess.target_points,
+        'input': 'raw scans',
+    }
+    return RawMethod(
+        'kentreg',
+        lambda points: prepare_scan(points, config=cfg),
+        run,
+        lambda prep: float(prep.voxel_size),
+        params,
+    )
+
+
+def at_fixed_voxel(method: Method, voxel: float) -> RawMethod:
+    """A registry method on the raw scan downsampled at the data set's fixed ``voxel``."""
+
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        return method.register(source, target, np.eye(4) if init is None else init), {}
+
+    return RawMethod(
+        method.name,
+        lambda points: method.prepare(voxel_downsample(points, voxel)),
+        run,
+        lambda prep: voxel,
+        {'library': method.library, 'voxel_m': voxel, **method.params},
+    )
+
+
+def at_defaults(names: Sequence[str], voxel: float, threads: int) -> list[RawMethod]:
+    """``kentreg`` (:func:`kentreg_at_defaults`) and registry methods at ``voxel``, in the
+    order of ``names``; a method whose library is missing is left out."""
+    peers = {
+        m.name: m
+        for m in make_methods([n for n in names if n != 'kentreg'], voxel=voxel, threads=threads)
+    }
+    return [
+        kentreg_at_defaults() if n == 'kentreg' else at_fixed_voxel(peers[n], voxel)
+        for n in names
+        if n == 'kentreg' or n in peers
+    ]
+
+
+THREAD_ENV = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+PINNED_ENV = 'KENTREG_BENCH_THREADS'
+
+
+def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
+    """Make this process run on at most ``threads`` cores, re-executing ``script`` with ``argv``
+    once so that the BLAS/OpenMP variables apply before numpy loads; the second call (marked
+    by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity."""
+    import sys
+
+    if os.environ.get(PINNED_ENV) != str(threads):
+        env = dict(os.environ)
+        env.update({name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)})
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, [sys.executable, str(script), *argv], env)
+    os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
