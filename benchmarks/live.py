@@ -178,22 +178,7 @@ def measure_live(
     from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
 
     ns = f'/live_{uuid.uuid4().hex[:8]}'
-    cmd = [
-        sys.executable,
-        '-m',
-        'kentreg_ros.ros.node',
-        '--ros-args',
-        '-r',
-        f'__ns:={ns}',
-        '-r',
-        f'{names.DIAGNOSTICS}:={ns}/diagnostics',
-        '-p',
-        f'model:={model}',
-        '-p',
-        f'pipeline:={pipeline}',
-        '-p',
-        'diagnostics_period:=1.0',
-    ]
+    cmd = _node_command(ns, names.DIAGNOSTICS, model, pipeline)
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
@@ -245,44 +230,58 @@ def measure_live(
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
-        proc.send_signal(2)  # Ctrl-C, as a user stops it
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        _stop_node(proc)
     latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
     cores = [
         round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
         for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)
     ]
-    last = diagnostics[-1] if diagnostics else {}
     return {
         'model': model,
         'pipeline': pipeline,
         'dds': profile,
         'rate_hz': rate_hz,
-        'published': len(sent),
-        'processed': int(len(latency)),
-        'dropped': len(sent) - int(len(latency)),
-        'dropped_pct': round(100.0 * (len(sent) - len(latency)) / max(len(sent), 1), 1),
-        'latency_ms': _quantiles(latency),
-        'node_diagnostics': {
-            k: last.get(k, '')
-            for k in (
-                'total.received',
-                'total.published',
-                'total.dropped_queue',
-                'total.errors',
-                'total.fell_back',
-            )
-        },
-        'node_latency_ms_mean_max': [
-            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
-        ],
+        **_delivery(len(sent), latency, diagnostics),
         'cpu_pct_per_core': cores,
         'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
         'exit_code': proc.returncode,
+    }
+
+
+def _node_command(ns: str, diagnostics: str, model: str, pipeline: str) -> list[str]:
+    """``kentreg_node`` in namespace ``ns`` with the model and pipeline under test."""
+    remap = ['-r', f'__ns:={ns}', '-r', f'{diagnostics}:={ns}/diagnostics']
+    params = [f'model:={model}', f'pipeline:={pipeline}', 'diagnostics_period:=1.0']
+    node = [sys.executable, '-m', 'kentreg_ros.ros.node', '--ros-args', *remap]
+    return node + [arg for p in params for arg in ('-p', p)]
+
+
+def _stop_node(proc: subprocess.Popen[bytes]) -> None:
+    """Ctrl-C, as a user stops it; killed after 20 s."""
+    proc.send_signal(2)
+    try:
+        proc.wait(20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _delivery(
+    n_sent: int, latency: NDArray[Any], diagnostics: list[dict[str, str]]
+) -> dict[str, Any]:
+    """Published, processed and dropped scans, the latency and the node's own diagnostics."""
+    last = diagnostics[-1] if diagnostics else {}
+    keys = ('received', 'published', 'dropped_queue', 'errors', 'fell_back')
+    return {
+        'published': n_sent,
+        'processed': int(len(latency)),
+        'dropped': n_sent - int(len(latency)),
+        'dropped_pct': round(100.0 * (n_sent - len(latency)) / max(n_sent, 1), 1),
+        'latency_ms': _quantiles(latency),
+        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
+        'node_latency_ms_mean_max': [
+            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
+        ],
     }
 
 

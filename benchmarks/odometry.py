@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import logging
 import os
 import sys
@@ -44,6 +43,11 @@ logger = logging.getLogger('benchmarks.odometry')
 
 FloatArray = NDArray[np.float64]
 METHODS = pipelines.ODOMETRY
+TIMING = (
+    'wall time of everything a pipeline does with one scan (preprocessing included, reading '
+    'excluded), every scan including the first, after an untimed two-scan warm-up; per scan the '
+    'median over --rounds rounds, which run the pipelines in rotated order'
+)
 COLOURS = {
     'kentreg': 'tab:blue',
     'kentreg_local_map': 'tab:purple',
@@ -240,46 +244,22 @@ def plot(path: Path, aligned: dict[str, FloatArray], T_gt: FloatArray, errors: d
     report.plot_panels(path, [[top, pos], [rot, trans]], size=(13, 9))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        '--input',
-        type=Path,
-        default=datasets.SAMPLE_BAG,
-        metavar='PATH',
-        help='bag with /ground_truth, or scan folder with its pose file',
-    )
-    parser.add_argument('--topic', help='PointCloud2 topic, when the bag has several')
-    parser.add_argument('--threads', type=int, default=1, help='threads for every library')
-    parser.add_argument('--methods', nargs='+', choices=METHODS, default=list(METHODS))
-    parser.add_argument(
-        '--kiss-max-range',
-        type=float,
-        metavar='M',
-        help="KISS-ICP's data.max_range (default: its own 100 m)",
-    )
-    parser.add_argument('--config', type=Path, help="kentreg parameter file (the node's YAML)")
-    parser.add_argument(
-        '--set',
-        dest='overrides',
-        action='append',
-        default=[],
-        metavar='KEY=VALUE',
-        help='override one kentreg parameter (repeatable)',
-    )
-    parser.add_argument('--rounds', type=int, default=3, help='runs per pipeline (default 3)')
-    parser.add_argument('--max-scans', type=int, metavar='N', help='use the first N scans only')
-    parser.add_argument(
-        '--strides',
-        type=int,
-        nargs='*',
-        default=[2, 3, 4],
-        metavar='N',
-        help='also every N-th scan, one round (default 2 3 4; none: --strides)',
-    )
-    parser.add_argument('--out', type=Path, default=report.RESULTS)
-    parser.add_argument('--table', type=Path, metavar='JSON', help='only print its tables')
-    return parser
+OPTIONS: list[report.Option] = [
+    ('--input', {'type': Path, 'default': datasets.SAMPLE_BAG, 'metavar': 'PATH',
+                 'help': 'bag with /ground_truth, or scan folder with its pose file'}),
+    ('--topic', {'help': 'PointCloud2 topic, when the bag has several'}),
+    ('--threads', {'type': int, 'default': 1, 'help': 'threads for every library'}),
+    ('--methods', {'nargs': '+', 'choices': METHODS, 'default': list(METHODS)}),
+    ('--kiss-max-range', {'type': float, 'metavar': 'M',
+                          'help': "KISS-ICP's data.max_range (default: its own 100 m)"}),
+    ('--config', {'type': Path, 'help': "kentreg parameter file (the node's YAML)"}),
+    ('--set', {'dest': 'overrides', 'action': 'append', 'default': [], 'metavar': 'KEY=VALUE',
+               'help': 'override one kentreg parameter (repeatable)'}),
+    ('--rounds', {'type': int, 'default': 3, 'help': 'runs per pipeline (default 3)'}),
+    ('--max-scans', {'type': int, 'metavar': 'N', 'help': 'use the first N scans only'}),
+    ('--strides', {'type': int, 'nargs': '*', 'default': [2, 3, 4], 'metavar': 'N',
+                   'help': 'also every N-th scan, one round (default 2 3 4; none: --strides)'}),
+]  # fmt: skip
 
 
 def _evaluate_all(
@@ -314,12 +294,7 @@ def _evaluate_all(
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    if args.table is not None:
-        print(markdown(json.loads(args.table.read_text())), end='')
-        return 0
+def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if args.threads < 1 or args.rounds < 1 or any(n < 1 for n in args.strides):
         raise SystemExit('--threads, --rounds and --strides must be >= 1')
     methods.pin_threads(args.threads, argv, __file__)
@@ -328,54 +303,48 @@ def main(argv: Sequence[str] | None = None) -> int:
     seq = datasets.load_recording(args.input, topic=args.topic)
     scans, T_gt = seq.scans[: args.max_scans], np.asarray(seq.T_world)[: args.max_scans]
     voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
-    doc: dict[str, Any] = {
-        'benchmark': 'odometry',
-        'command': ['python3', 'benchmarks/odometry.py', *argv],
-        'date': datetime.datetime.now().isoformat(timespec='seconds'),
-        'machine': report.machine_info(),
-        'threads': args.threads,
-        'thread_pinning': {
-            'env': {name: os.environ.get(name) for name in methods.THREAD_ENV},
-            'cpu_affinity': sorted(os.sched_getaffinity(0)),
-        },
-        'input': {
-            'path': str(args.input),
-            'description': seq.description,
-            'n_scans': len(scans),
-            'points_per_scan': metrics.summarize([len(s.points) for s in scans]),
-            'ground_truth': seq.note,
-        },
-        'ms_per_scan_measures': 'wall time of everything a pipeline does with one scan '
-        '(preprocessing included, reading excluded), every scan including the first, after an '
-        'untimed two-scan warm-up; per scan the median over --rounds rounds, which run the '
-        'pipelines in rotated order',
-        'rounds': args.rounds,
+    pinning = {
+        'env': {name: os.environ.get(name) for name in methods.THREAD_ENV},
+        'cpu_affinity': sorted(os.sched_getaffinity(0)),
     }
+    points = metrics.summarize([len(s.points) for s in scans])
+    doc: dict[str, Any] = {
+        'benchmark': 'odometry', 'command': ['python3', 'benchmarks/odometry.py', *argv],
+        'date': datetime.datetime.now().isoformat(timespec='seconds'),
+        'machine': report.machine_info(), 'threads': args.threads, 'thread_pinning': pinning,
+        'input': {'path': str(args.input), 'description': seq.description, 'n_scans': len(scans),
+                  'points_per_scan': points, 'ground_truth': seq.note},
+        'ms_per_scan_measures': TIMING, 'rounds': args.rounds,
+    }  # fmt: skip
     runs = runners_for(scans, cfg, voxel, args)
+    doc['reference_T_world_lidar'] = T_gt
     doc['methods'] = _evaluate_all(args.methods, runs, T_gt, args.rounds)
     alive = [n for n in args.methods if 'error' not in doc['methods'][n]]
     doc['strides'] = {}
     for n in args.strides:
         batch = perturb.stride(n)(scans)
-        block = _evaluate_all(
-            alive, runners_for(batch, cfg, voxel, args), T_gt[::n], 1, combine=False
-        )
+        block = _evaluate_all(alive, runners_for(batch, cfg, voxel, args), T_gt[::n], 1, False)
         for entry in block.values():
             entry.pop('settings', None)
             entry.pop('poses_T_world_lidar', None)
         doc['strides'][str(n)] = {'n_scans': len(batch), **block}
     report.finish_machine(doc['machine'])
-    report.write_results(args.out, 'odometry', doc, markdown(doc))
+    return doc
+
+
+def plot_run(doc: dict[str, Any], path: Path) -> None:
+    """:func:`plot` of a results file: each trajectory aligned onto the reference by its ATE
+    alignment."""
+    T_gt = np.asarray(doc['reference_T_world_lidar'])
     ok = {n: e['metrics'] for n, e in doc['methods'].items() if 'metrics' in e}
     aligned = {
-        n: np.asarray(m['ate']['T_gt_est']) @ doc['methods'][n]['poses_T_world_lidar']
+        n: np.asarray(m['ate']['T_gt_est']) @ np.asarray(doc['methods'][n]['poses_T_world_lidar'])
         for n, m in ok.items()
         if m['ate'] is not None
     }
     if aligned:
-        plot(args.out / 'odometry.png', aligned, T_gt, ok)
-    return 0
+        plot(path, aligned, T_gt, ok)
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    raise SystemExit(report.experiment_main(__doc__, 'odometry', OPTIONS, run, markdown, plot_run))

@@ -17,7 +17,6 @@ Writes ``outliers.json``, ``outliers.md`` and ``outliers.png`` in ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -194,47 +193,36 @@ def plot(results: dict[str, Any], path: Path) -> None:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        '--methods', nargs='+', default=list(methods.BASE_METHODS), choices=methods.ALL_METHODS
-    )
-    parser.add_argument('--levels', nargs='+', type=float, default=list(LEVELS))
-    parser.add_argument('--trials', type=int, default=100)
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--voxel', type=float, default=0.0, help='0: ~10,000 points per scan')
-    parser.add_argument('--threads', type=int, default=1)
-    parser.add_argument('--out', type=Path, default=report.RESULTS)
-    parser.add_argument('--table', type=Path, metavar='JSON', help='only print its tables')
-    args = parser.parse_args(argv)
-    if args.table is not None:
-        print(markdown(json.loads(args.table.read_text())), end='')
-        return 0
+OPTIONS: list[report.Option] = [
+    ('--methods', {'nargs': '+', 'default': list(methods.BASE_METHODS),
+                   'choices': methods.ALL_METHODS}),
+    ('--levels', {'nargs': '+', 'type': float, 'default': list(LEVELS)}),
+    ('--trials', {'type': int, 'default': 100}),
+    ('--seed', {'type': int, 'default': 0}),
+    ('--voxel', {'type': float, 'default': 0.0, 'help': '0: ~10,000 points per scan'}),
+    ('--threads', {'type': int, 'default': 1}),
+]  # fmt: skip
+
+
+def run_experiment(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     logging.basicConfig(level=logging.INFO, format='%(message)s')
     seq = datasets.load_dataset('balm')
     voxel = args.voxel or methods.paper_voxel(seq.raw(0))
     built = methods.make_methods(args.methods, voxel=voxel, threads=args.threads)
     trial_pairs = perturb.draw_trials(seq.n_pairs, args.trials, args.seed)
-    argv_text = ' '.join(argv if argv is not None else sys.argv[1:])
     t0 = time.perf_counter()
     levels = run(seq, built, args.levels, trial_pairs, voxel, args.seed)
     meta = {
-        'command': f'python3 benchmarks/outliers.py {argv_text}'.strip(),
-        'trials': args.trials,
-        'seed': args.seed,
-        'voxel_m': voxel,
-        'start': 'constant_velocity',
-        'threads': args.threads,
-        'trial_pairs': trial_pairs,
-        'wall_s': time.perf_counter() - t0,
-        'machine': report.machine_info(),
+        'command': ' '.join(['python3 benchmarks/outliers.py', *argv]), 'trials': args.trials,
+        'seed': args.seed, 'voxel_m': voxel, 'start': 'constant_velocity',
+        'threads': args.threads, 'trial_pairs': trial_pairs,
+        'wall_s': time.perf_counter() - t0, 'machine': report.machine_info(),
         'method_params': {m.name: {'library': m.library, **m.params} for m in built},
-    }
-    results = {'meta': meta, 'levels': levels}
-    report.write_results(args.out, 'outliers', results, markdown(results))
-    plot(results, args.out / 'outliers.png')
-    return 0
+    }  # fmt: skip
+    return {'meta': meta, 'levels': levels}
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    raise SystemExit(
+        report.experiment_main(__doc__, 'outliers', OPTIONS, run_experiment, markdown, plot)
+    )

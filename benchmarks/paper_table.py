@@ -18,7 +18,6 @@ Writes ``paper_table.json`` and ``paper_table.md`` in ``--out`` (default benchma
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from collections.abc import Sequence
@@ -172,27 +171,23 @@ def markdown(results: dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--methods', nargs='+', default=list(methods.ALL_METHODS), metavar='NAME')
-    parser.add_argument('--pairs', type=int, help='evenly spread pairs per data set (default all)')
-    parser.add_argument('--starts', nargs='+', default=list(STARTS), choices=STARTS)
-    parser.add_argument('--datasets', nargs='+', default=['balm', 'small_gicp_pair'])
-    parser.add_argument('--eth', type=Path, default=None, help='ETH sequence folder')
-    parser.add_argument('--voxel', type=float, default=0.0, help='0: ~10,000 points per scan')
-    parser.add_argument('--threads', type=int, default=1)
-    parser.add_argument('--out', type=Path, default=report.RESULTS)
-    parser.add_argument('--table', type=Path, metavar='JSON', help='only print its tables')
-    args = parser.parse_args(argv)
-    if args.table is not None:
-        print(markdown(json.loads(args.table.read_text())), end='')
-        return 0
+OPTIONS: list[report.Option] = [
+    ('--methods', {'nargs': '+', 'default': list(methods.ALL_METHODS), 'metavar': 'NAME'}),
+    ('--pairs', {'type': int, 'help': 'evenly spread pairs per data set (default all)'}),
+    ('--starts', {'nargs': '+', 'default': list(STARTS), 'choices': STARTS}),
+    ('--datasets', {'nargs': '+', 'default': ['balm', 'small_gicp_pair']}),
+    ('--eth', {'type': Path, 'help': 'ETH sequence folder'}),
+    ('--voxel', {'type': float, 'default': 0.0, 'help': '0: ~10,000 points per scan'}),
+    ('--threads', {'type': int, 'default': 1}),
+]  # fmt: skip
+
+
+def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     logging.basicConfig(level=logging.INFO, format='%(message)s')
     names = list(args.datasets) + ([f'eth:{args.eth}'] if args.eth is not None else [])
-    argv_text = ' '.join(argv if argv is not None else sys.argv[1:])
     table1 = {k: {'name': v[0], 'e_R_deg': v[1], 'e_t_m': v[2]} for k, v in PAPER_TABLE1.items()}
     meta = {
-        'command': f'python3 benchmarks/paper_table.py {argv_text}'.strip(),
+        'command': ' '.join(['python3 benchmarks/paper_table.py', *argv]),
         'threads': args.threads,
         'machine': report.machine_info(),
         'paper_table1': table1,
@@ -206,9 +201,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         block = run_sequence(seq, built, pairs, args.starts, voxel)
         block['method_params'] = {m.name: {'library': m.library, **m.params} for m in built}
         results['datasets'][seq.name] = block
-    report.write_results(args.out, 'paper_table', results, markdown(results))
-    return 0
+    return results
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    raise SystemExit(report.experiment_main(__doc__, 'paper_table', OPTIONS, run, markdown))

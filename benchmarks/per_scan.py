@@ -26,7 +26,6 @@ import sys
 import tempfile
 import time
 import tracemalloc
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -191,36 +190,23 @@ def _long_run(method: str, scans_file: Path, steps: int) -> dict[str, Any]:
     }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
-    parser.add_argument('--scans', type=int, default=50, help='scans from the start (>= 2)')
-    parser.add_argument('--rounds', type=int, default=2)
-    parser.add_argument('--out', type=Path, default=report.RESULTS)
-    parser.add_argument(
-        '--long-steps',
-        type=int,
-        default=LONG_STEPS,
-        help='steps of the memory run per method (0: none)',
-    )
-    parser.add_argument(
-        '--merge',
-        type=int,
-        default=1,
-        help='denser scans: each joined with its K-1 predecessors (K=2: ~150-180k '
-        'points; default 1, the raw scans)',
-    )
-    parser.add_argument('--table', type=Path, metavar='JSON', help='only print its table')
-    parser.add_argument('--worker', nargs=4, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+OPTIONS: list[report.Option] = [
+    ('--methods', {'nargs': '+', 'default': list(METHODS), 'choices': METHODS}),
+    ('--scans', {'type': int, 'default': 50, 'help': 'scans from the start (>= 2)'}),
+    ('--rounds', {'type': int, 'default': 2}),
+    ('--long-steps', {'type': int, 'default': LONG_STEPS,
+                      'help': 'steps of the memory run per method (0: none)'}),
+    ('--merge', {'type': int, 'default': 1, 'help': 'denser scans: each joined with its K-1 '
+                 'predecessors (K=2: ~150-180k points; default 1, the raw scans)'}),
+    ('--worker', {'nargs': 4, 'help': argparse.SUPPRESS}),
+]  # fmt: skip
+
+
+def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if args.worker:
         out, method, scans_file, steps = args.worker
-        result = run_worker(method, Path(scans_file), int(steps))
-        Path(out).write_text(json.dumps(result))
-        return 0
-    if args.table is not None:
-        print(markdown(json.loads(args.table.read_text())), end='')
-        return 0
+        Path(out).write_text(json.dumps(run_worker(method, Path(scans_file), int(steps))))
+        raise SystemExit(0)
     seq = datasets.load_balm()
     scans = seq.scans[: args.scans]
     truth = np.asarray(seq.T_world)[: len(scans)]
@@ -269,10 +255,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         },
         'methods': results,
     }
-    stem = 'per_scan' if args.merge <= 1 else f'per_scan_merge{args.merge}'
-    report.write_results(args.out, stem, doc, markdown(doc))
-    return 0
+    return doc
+
+
+def _stem(args: argparse.Namespace) -> str:
+    return 'per_scan' if args.merge <= 1 else f'per_scan_merge{args.merge}'
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    raise SystemExit(report.experiment_main(__doc__, _stem, OPTIONS, run, markdown))

@@ -567,13 +567,13 @@ OPTIONS: list[report.Option] = [
 
 
 def _run_test(
-    test: str, args: argparse.Namespace, data: datasets.Sequence, methods: list[methods.RawMethod]
+    test: str, args: argparse.Namespace, data: datasets.Sequence, built: list[methods.RawMethod]
 ) -> dict:
     """One test's JSON block (without the common metadata)."""
     n_pairs = data.n_pairs
     if test == 'strides':
         max_input = QUICK['max_input_scans'] if args.quick else None
-        body = run_strides(data, methods, args.strides, max_input)
+        body = run_strides(data, built, args.strides, max_input)
         return {
             'meta': {
                 'n_input_scans': len(data.scans[:max_input]),
@@ -582,11 +582,9 @@ def _run_test(
             },
             'strides': body,
         }
-    count = getattr(args, f'{test}_pairs') or (
-        QUICK[f'{test}_pairs']
-        if args.quick
-        else {'outliers': OUTLIER_PAIRS}.get(test, TURNED_PAIRS)
-    )
+    key = 'outlier_pairs' if test == 'outliers' else 'turned_pairs'
+    full = OUTLIER_PAIRS if test == 'outliers' else TURNED_PAIRS
+    count = getattr(args, key) or (QUICK[key] if args.quick else full)
     pairs = perturb.draw_pairs(n_pairs, count, args.seed, 2 if test == 'outliers' else 3)
     meta = {
         'n_pairs': len(pairs),
@@ -595,11 +593,11 @@ def _run_test(
         'pair_draw': 'without replacement, seeded',
     }
     if test == 'outliers':
-        body = run_outliers(data, methods, args.levels, pairs, args.seed, args.shell_share)
+        body = run_outliers(data, built, args.levels, pairs, args.seed, args.shell_share)
         offset = {'degrees': START_OFFSET_DEG, 'metres': START_OFFSET_M}
         meta |= {'shell_share': args.shell_share, 'start_offset': offset}
         return {'meta': meta, 'levels': body}
-    body = run_turned(data, methods, args.angles, pairs, args.seed)
+    body = run_turned(data, built, args.angles, pairs, args.seed)
     return {'meta': meta | {'start': 'identity'}, 'angles': body}
 
 

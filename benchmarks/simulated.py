@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import json
 import logging
 import sys
 import time
@@ -216,40 +215,20 @@ def format_table(doc: dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--input', type=Path, default=DEFAULT_INPUT, help='scene to re-simulate')
-    parser.add_argument('--steps', type=float, nargs='+', default=[0.15, 0.3, 0.6], metavar='M')
-    parser.add_argument(
-        '--outliers',
-        type=float,
-        nargs='+',
-        default=[0.0, 0.4],
-        metavar='SHARE',
-        help='raw outlier shares, each a run of every step (default 0 0.4)',
-    )
-    parser.add_argument(
-        '--sweep',
-        type=float,
-        default=0.1,
-        metavar='S',
-        help='also every step with sweeps of S seconds (0: none)',
-    )
-    parser.add_argument('--seeds', type=int, default=5, help='sequences per step (default 5)')
-    parser.add_argument(
-        '--methods', nargs='+', choices=pipelines.ODOMETRY, default=list(pipelines.ODOMETRY)
-    )
-    parser.add_argument('--out', type=Path, default=report.RESULTS)
-    parser.add_argument('--table', type=Path, metavar='JSON', help='only print its table')
-    return parser
+OPTIONS: list[report.Option] = [
+    ('--input', {'type': Path, 'default': DEFAULT_INPUT, 'help': 'scene to re-simulate'}),
+    ('--steps', {'type': float, 'nargs': '+', 'default': [0.15, 0.3, 0.6], 'metavar': 'M'}),
+    ('--outliers', {'type': float, 'nargs': '+', 'default': [0.0, 0.4], 'metavar': 'SHARE',
+                    'help': 'raw outlier shares, each a run of every step (default 0 0.4)'}),
+    ('--sweep', {'type': float, 'default': 0.1, 'metavar': 'S',
+                 'help': 'also every step with sweeps of S seconds (0: none)'}),
+    ('--seeds', {'type': int, 'default': 5, 'help': 'sequences per step (default 5)'}),
+    ('--methods', {'nargs': '+', 'choices': pipelines.ODOMETRY,
+                   'default': list(pipelines.ODOMETRY)}),
+]  # fmt: skip
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    if args.table is not None:
-        print(format_table(json.loads(args.table.read_text())), end='')
-        return 0
+def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if args.seeds < 1 or any(s <= 0 for s in args.steps):
         raise SystemExit('--seeds must be >= 1 and --steps > 0')
     if any(not 0.0 <= f < 1.0 for f in args.outliers) or 'kentreg' not in args.methods:
@@ -260,17 +239,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     world = build_world(args.input, WORLD_VOXEL)
     sensor, cfg = Sensor(), KentRegConfig()
     doc: dict[str, Any] = {
-        'benchmark': 'simulated',
-        'command': ['python3', 'benchmarks/simulated.py', *argv],
+        'benchmark': 'simulated', 'command': ['python3', 'benchmarks/simulated.py', *argv],
         'date': datetime.datetime.now().isoformat(timespec='seconds'),
-        'machine': report.machine_info(),
-        'input': str(args.input),
+        'machine': report.machine_info(), 'input': str(args.input),
         'world': {'voxel_m': WORLD_VOXEL, 'points': len(world.points), 'period_s': world.period},
-        'sensor': dataclasses.asdict(sensor),
-        'seeds': args.seeds,
-        'methods': args.methods,
+        'sensor': dataclasses.asdict(sensor), 'seeds': args.seeds, 'methods': args.methods,
         'steps': [],
-    }
+    }  # fmt: skip
     conditions = [(share, sensor) for share in args.outliers]
     if args.sweep > 0.0:
         conditions.append((0.0, dataclasses.replace(sensor, sweep_period=args.sweep)))
@@ -281,9 +256,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     doc['seconds'] = time.perf_counter() - t_start
     report.finish_machine(doc['machine'])
-    report.write_results(args.out, 'simulated', doc, format_table(doc))
-    return 0
+    return doc
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    raise SystemExit(report.experiment_main(__doc__, 'simulated', OPTIONS, run, format_table))

@@ -1,15 +1,10 @@
-"""The datasets registry: a name (or a path) in, scans with stamps and reference poses out.
+"""The datasets registry: a name (or a path) in; raw scans, stamps and reference poses out.
 
-A :class:`Sequence` holds raw scans (:class:`kentreg_ros.io.Scan`: non-finite points dropped,
-every per-point field kept) and one reference ``T_world_lidar`` per scan when the data set has
-them. Its pairs are consecutive scans ``(i, i + 1)``; the true motion of pair ``i`` is
-``T_i^-1 T_{i+1}`` (target = scan ``i``, source = scan ``i + 1``, as in odometry).
-
-Names (:data:`DATASETS`): ``balm`` (``../shared/data/balm``, the 50 raw BALM scans),
-``balm_50`` (the sample bag ``bags/balm_50``), ``balm_or_sample`` (the first when present),
+:func:`load_dataset` names: ``balm`` (``../shared/data/balm``, 50 raw BALM scans), ``balm_50``
+(the sample bag ``bags/balm_50``), ``balm_or_sample`` (the first when present),
 ``small_gicp_pair``, ``kitti_raw_hdl64`` (no poses), ``eth:<folder>`` (Pomerleau et al. 2012,
-local-frame CSV), ``simulated:<step>:<seed>`` (``benchmarks/simulate.py``, exact poses) and any
-path that ``kentreg_replay`` reads (a bag with ``/ground_truth`` or a scan folder with poses).
+local-frame CSV), ``simulated:<step>:<seed>`` (``harness/simulator.py``, exact poses), and any
+path ``kentreg_replay`` reads (a bag with ``/ground_truth``, a scan folder with a pose file).
 """
 
 from __future__ import annotations
@@ -18,13 +13,14 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import drop_nonfinite, project_to_so3
 from kentreg_ros.eval import GroundTruth, associate, orthonormalize
-from kentreg_ros.io import Trajectory, list_scans, read_poses, read_scan
+from kentreg_ros.io import list_scans, read_poses, read_scan
 from kentreg_ros.io.sources import Scan
 
 FloatArray = NDArray[np.float64]
@@ -36,24 +32,10 @@ SAMPLE_BAG = ROOT / 'bags' / 'balm_50'
 
 @dataclass
 class Sequence:
-    """Scans and reference poses of one data set.
-
-    Attributes
-    ----------
-    name : str
-    scans : list of Scan
-        Raw scans in the sensor frame with their stamps (ns) and extra fields.
-    T_world : ndarray, shape (N, 4, 4) or None
-        Reference ``T_world_lidar`` per scan (rotations on SO(3)); None without poses.
-    note : str
-        Where the reference comes from.
-    description : str
-        What was read (for the report).
-    pair_truth : dict of int to ndarray (4, 4)
-        True ``T_target_source`` of pairs that override the poses (single-pair data sets).
-    paths : list of Path
-        The scan files, when the data set is a folder of them.
-    """
+    """Raw scans (sensor frame, non-finite points dropped, extra fields kept) and reference
+    ``T_world_lidar`` (N, 4, 4) per scan, or None. Pair ``i`` is target scan ``i``, source scan
+    ``i + 1``; ``pair_truth`` overrides the poses of some pairs (single-pair data sets).
+    ``note`` says where the reference comes from, ``description`` what was read."""
 
     name: str
     scans: list[Scan]
@@ -78,36 +60,30 @@ class Sequence:
         return np.asarray(np.linalg.inv(self.T_world[target]) @ self.T_world[source])
 
     def truth(self, pair: int) -> FloatArray:
-        """True ``T_target_source`` of pair ``pair`` (source ``pair + 1``, target ``pair``)."""
-        if pair in self.pair_truth:
-            return self.pair_truth[pair]
-        return self.relative(pair, pair + 1)
+        """True ``T_target_source`` of pair ``pair``."""
+        return self.pair_truth[pair] if pair in self.pair_truth else self.relative(pair, pair + 1)
 
     def constant_velocity(self, pair: int) -> FloatArray:
         """The previous pair's true motion (a constant-velocity prior); identity for pair 0."""
-        if pair == 0 or self.T_world is None:
-            return np.eye(4)
-        return self.truth(pair - 1)
+        return np.eye(4) if pair == 0 or self.T_world is None else self.truth(pair - 1)
 
 
 def _file_scans(paths: list[Path], period_s: float = 0.1) -> list[Scan]:
-    """Scans read from files, stamped every ``period_s`` from 0."""
-    out = []
-    for i, path in enumerate(paths):
-        points, _ = drop_nonfinite(read_scan(path, fields=()).points)
-        out.append(Scan(int(round(i * period_s * 1e9)), 'lidar', points, {}))
-    return out
+    """Scans read from files (x, y, z; non-finite points dropped), stamped every ``period_s``."""
+    return [
+        Scan(
+            int(round(i * period_s * 1e9)),
+            'lidar',
+            drop_nonfinite(read_scan(p, fields=()).points)[0],
+            {},
+        )
+        for i, p in enumerate(paths)
+    ]
 
 
 def load_recording(path: Path, *, name: str | None = None, topic: str | None = None) -> Sequence:
-    """Every scan of a bag or scan folder and its reference pose, associated by stamp as
-    ``kentreg_replay`` does (:func:`kentreg_ros.io.recordings.open_recording`).
-
-    Raises
-    ------
-    ValueError
-        No reference poses, or a scan without one.
-    """
+    """Every scan of a bag or scan folder, each with its reference pose associated by stamp,
+    as ``kentreg_replay`` reads them (:func:`kentreg_ros.io.recordings.open_recording`)."""
     from kentreg_ros.io.recordings import open_recording
 
     source, reference, origin = open_recording(path, topic=topic, fields=None)
@@ -147,16 +123,10 @@ def load_kitti_hdl64(folder: Path = SHARED_DATA / 'kitti_raw_hdl64') -> Sequence
 
 
 def load_eth(folder: Path) -> Sequence:
-    """An ETH "challenging data sets" sequence in its local-frame CSV form.
+    """An ETH "challenging data sets" sequence: ``Hokuyo_<i>.csv`` scans (natural order) and
+    ``pose_scanner_leica.csv`` (``poseId, timestamp, T00..T33`` per scan, ``T_world_scanner``).
 
-    ``Hokuyo_<i>.csv`` scans (header row naming x, y, z) ordered naturally, and
-    ``pose_scanner_leica.csv`` (``poseId, timestamp, T00..T33``, one row per scan,
-    ``T_world_scanner``).
-
-    Raises
-    ------
-    ValueError
-        No Hokuyo scans, no pose file, or scan and pose counts differ.
+    Raises ``ValueError`` without Hokuyo scans or pose file, or when their counts differ.
     """
     folder = Path(folder)
     pose_file = folder / 'pose_scanner_leica.csv'
@@ -174,28 +144,23 @@ def load_eth(folder: Path) -> Sequence:
         raise ValueError(
             f'{folder}: {len(paths)} Hokuyo scans but {len(poses)} poses in {pose_file.name}.'
         )
-    note = 'ETH local-frame scans, Leica-tracked poses'
     T = np.asarray(poses, dtype=np.float64)
+    note = 'ETH local-frame scans, Leica-tracked poses'
     return Sequence(f'eth:{folder.name}', _file_scans(paths), T, note, str(folder), paths=paths)
 
 
+_WORLDS: dict[float, Any] = {}
+
+
 def load_simulated(step: float, seed: int, *, sweep_s: float = 0.0) -> Sequence:
-    """The sample's scene re-simulated at ``step`` m per scan (``benchmarks/simulate.py``)."""
+    """The sample's scene re-simulated at ``step`` m per scan (exact poses)."""
     from .simulator import WORLD_VOXEL, Sensor, build_world, simulate
 
-    world = _world(WORLD_VOXEL, build_world)
-    scans, gt = simulate(world, step, seed, Sensor(sweep_period=sweep_s))
+    if WORLD_VOXEL not in _WORLDS:
+        _WORLDS[WORLD_VOXEL] = build_world(SAMPLE_BAG, WORLD_VOXEL)
+    scans, gt = simulate(_WORLDS[WORLD_VOXEL], step, seed, Sensor(sweep_period=sweep_s))
     T = np.asarray(gt.trajectory.T_world_sensor, dtype=np.float64)
     return Sequence(f'simulated:{step}:{seed}', scans, T, gt.origin, 'simulated')
-
-
-_WORLDS: dict[float, object] = {}
-
-
-def _world(voxel: float, build: Callable[[Path, float], object]) -> object:
-    if voxel not in _WORLDS:
-        _WORLDS[voxel] = build(SAMPLE_BAG, voxel)
-    return _WORLDS[voxel]
 
 
 def default_balm() -> Path:
@@ -214,17 +179,11 @@ DATASETS: dict[str, Callable[[], Sequence]] = {
 
 
 def load_dataset(name: str | Path) -> Sequence:
-    """The data set of a registry name, ``eth:<folder>``, ``simulated:<step>:<seed>`` or a path.
-
-    Raises
-    ------
-    ValueError
-        An unknown name that is no readable path either.
-    """
+    """The data set of a registry name, ``eth:<folder>``, ``simulated:<step>:<seed>`` or a path."""
     text = str(name)
+    kind, _, rest = text.partition(':')
     if text in DATASETS:
         return DATASETS[text]()
-    kind, _, rest = text.partition(':')
     if kind == 'eth':
         return load_eth(Path(rest))
     if kind == 'simulated':
@@ -233,10 +192,3 @@ def load_dataset(name: str | Path) -> Sequence:
     if Path(text).exists():
         return load_recording(Path(text))
     raise ValueError(f'Unknown data set {text!r}; names: {sorted(DATASETS)}, eth:, simulated:.')
-
-
-def trajectory(seq: Sequence) -> Trajectory:
-    """The reference poses of ``seq`` stamped like its scans (for the replay's evaluation)."""
-    if seq.T_world is None:
-        raise ValueError(f'{seq.name}: no reference poses.')
-    return Trajectory(np.array([s.stamp_ns for s in seq.scans], dtype=np.int64), seq.T_world)

@@ -83,22 +83,10 @@ _ALLOWED_CPUS: tuple[int, ...] = (
 
 @dataclass(frozen=True)
 class Method:
-    """A registration method behind the benchmark API.
-
-    Attributes
-    ----------
-    name : str
-        e.g. ``'gicp'``, ``'kentreg_robust'``, ``'kentreg_robust-no_refine'``.
-    library : str
-        ``'open3d'``, ``'small_gicp'``, ``'kiss_icp'``, ``'kentreg'`` or ``'baseline'``
-        (this folder's own NDT and CICP).
-    prepare : callable
-        ``prepare(points (N, 3)) -> prep``, the per-scan work an odometry caches.
-    register : callable
-        ``register(source_prep, target_prep, init (4, 4)) -> T_target_source (4, 4)``.
-    params : dict
-        The settings used (for the results JSON).
-    """
+    """A pair-registration method: ``prepare(points (N, 3)) -> prep`` (the per-scan work an
+    odometry caches) and ``register(source_prep, target_prep, init (4, 4)) -> T_target_source``;
+    ``library`` is 'open3d', 'small_gicp', 'kiss_icp', 'kentreg' or 'baseline' (NDT, CICP here);
+    ``params`` the settings, for the results JSON."""
 
     name: str
     library: str
@@ -108,53 +96,48 @@ class Method:
 
 
 def voxel_downsample(points: FloatArray, voxel: float) -> FloatArray:
-    """The one downsampling every method gets: the centroid of each occupied voxel.
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-    voxel : float
-        Voxel edge (m), > 0.
-
-    Returns
-    -------
-    ndarray, shape (M, 3)
-        float64 voxel centroids (kentreg_ros.core.voxel_downsample; the grid is anchored at the
-        origin, so downsampling the result again with the same voxel returns it unchanged).
-    """
+    """The one downsampling every method gets: the float64 centroid (M, 3) of each occupied
+    voxel of edge ``voxel`` (origin-anchored, so downsampling the result again is a no-op)."""
     return _core_voxel_downsample(points, voxel)
 
 
 def paper_voxel(
     points: FloatArray, target_points: int = PAPER_POINTS, step: float = 0.05
 ) -> float:
-    """Voxel edge giving about ``target_points`` points (the paper's ~10,000), rounded to ``step``.
-
-    Computed once per data set on its first scan, so every scan and method share one voxel.
-    """
+    """Voxel edge giving about ``target_points`` points (the paper's ~10,000), rounded to
+    ``step``; computed once per data set on its first scan, so every scan and method share it."""
     size = choose_voxel_size(np.asarray(points, dtype=np.float64), target_points)
-    if size <= 0.0:
-        return step
-    return max(step, round(size / step) * step)
+    return step if size <= 0.0 else max(step, round(size / step) * step)
+
+
+THREAD_ENV = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+PINNED_ENV = 'KENTREG_BENCH_THREADS'
 
 
 def limit_threads(threads: int) -> None:
-    """Pin this process to ``threads`` CPUs (process-wide, call before heavy work).
-
-    Sets the CPU affinity to the first ``threads`` CPUs the process was allowed at import (this
-    bounds numpy/BLAS, scipy's ``workers=-1`` KD-tree queries and every native thread pool) and
-    ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` for libraries imported
-    afterwards. Open3D and small_gicp are additionally given the count directly by the
-    factories.
-    """
+    """Pin this process to its first ``threads`` allowed CPUs (bounding numpy/BLAS, scipy's
+    ``workers=-1`` and native thread pools) and set the OpenMP/BLAS variables for libraries
+    imported afterwards; Open3D and small_gicp also get the count from the factories."""
     if threads < 1:
         raise ValueError(f'Expected `threads` >= 1, got {threads}.')
-    for var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    for var in THREAD_ENV:
         os.environ[var] = str(threads)
     if hasattr(os, 'sched_setaffinity'):
-        cpus = set(_ALLOWED_CPUS[:threads])
-        os.sched_setaffinity(0, cpus)
-        logger.debug('CPU affinity set to %s', sorted(cpus))
+        os.sched_setaffinity(0, set(_ALLOWED_CPUS[:threads]))
+
+
+def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
+    """Make this process run on at most ``threads`` cores, re-executing ``script`` with ``argv``
+    once so that the BLAS/OpenMP variables apply before numpy loads; the second call (marked
+    by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity."""
+    import sys
+
+    if os.environ.get(PINNED_ENV) != str(threads):
+        env = dict(os.environ) | {name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)}
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, [sys.executable, str(script), *argv], env)
+    os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
 
 
 # --------------------------------------------------------------------------------------------
@@ -511,22 +494,3 @@ def at_defaults(names: Sequence[str], voxel: float, threads: int) -> list[RawMet
         for n in names
         if n == 'kentreg' or n in peers
     ]
-
-
-THREAD_ENV = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
-PINNED_ENV = 'KENTREG_BENCH_THREADS'
-
-
-def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
-    """Make this process run on at most ``threads`` cores, re-executing ``script`` with ``argv``
-    once so that the BLAS/OpenMP variables apply before numpy loads; the second call (marked
-    by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity."""
-    import sys
-
-    if os.environ.get(PINNED_ENV) != str(threads):
-        env = dict(os.environ)
-        env.update({name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)})
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.execve(sys.executable, [sys.executable, str(script), *argv], env)
-    os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])

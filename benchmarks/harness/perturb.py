@@ -1,13 +1,9 @@
 """Perturbations that compose: what an experiment does to scans, pairs and starts.
 
-Scan-list perturbations take and return a list of :class:`kentreg_ros.io.Scan` and compose with
-:func:`compose` (``compose(stride(2), raw_outliers(0.4, rng))``): :func:`stride` (frame
-skipping, stamps kept), :func:`raw_outliers` (uniform outliers added to every raw scan) and
-:func:`merge` (denser scans from the reference poses). Sweeps are a property of the simulated
-sensor (``benchmarks/simulate.py``, ``Sensor.sweep_period``). Point and pose perturbations:
-:func:`inject_raw_outliers` (a share of the raw cloud), :func:`inject_free_voxel_outliers`
-(a share of the downsampled cloud, the paper's protocol), :func:`offset_transform` (a start
-off by exact errors), :func:`turn_transform` (a turned source).
+On scan lists, composed with :func:`compose`: :func:`stride` (frame skipping), :func:`raw_outliers`
+and :func:`merge` (denser scans); sweeps are the simulated sensor's (``Sensor.sweep_period``).
+On points and poses: the two outlier models (a share of the raw cloud, a share of the
+downsampled cloud), :func:`offset_transform` (a start off by exact errors), :func:`turn_transform`.
 """
 
 from __future__ import annotations
@@ -93,34 +89,15 @@ def inject_raw_outliers(
     *,
     shell_share: float = 0.0,
 ) -> tuple[FloatArray, BoolArray]:
-    """A raw scan with uniform outliers making up exactly ``fraction`` of the returned cloud.
+    """A raw scan (N, 3), sensor at the origin, with uniform outliers making up exactly
+    ``fraction`` of the returned cloud: ``K = round(N f / (1 - f))`` points (so ``K / (N + K)``
+    is ``f`` to ``0.5 / (N + K)``) in the scan's bounding box, a share ``shell_share`` of them in
+    the sensor's range shell instead (directions in the scan's elevation band, ranges between
+    its nearest and farthest return, as rain or dust returns are), shuffled in as a sensor
+    interleaves them. Returns the cloud (N + K, 3) and its outlier mask; every draw from ``rng``.
 
-    ``K = round(N f / (1 - f))`` outliers are added to the ``N`` raw points, so ``K / (N + K)``
-    equals ``f`` to within ``0.5 / (N + K)``. They are uniform in the raw scan's bounding box,
-    except a share ``shell_share`` drawn in the sensor's range shell (directions uniform in the
-    scan's elevation band, ranges uniform between its nearest and farthest return, as rain or
-    dust returns are). The cloud is shuffled, as a sensor interleaves such returns.
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-        Raw scan, sensor frame (sensor at the origin).
-    fraction : float
-        Outlier share of the returned cloud, in [0, 1).
-    rng : numpy.random.Generator
-        Source of every random draw (positions and the shuffle).
-    shell_share : float
-        Share of the outliers drawn in the range shell instead of the box, in [0, 1].
-
-    Returns
-    -------
-    cloud : ndarray, shape (N + K, 3)
-    is_outlier : ndarray of bool, shape (N + K,)
-
-    Raises
-    ------
-    ValueError
-        ``fraction`` outside [0, 1), ``shell_share`` outside [0, 1], or an empty scan.
+    Raises ``ValueError`` for ``fraction`` outside [0, 1), ``shell_share`` outside [0, 1] or an
+    empty scan.
     """
     pts = np.asarray(points, dtype=np.float64)
     if not 0.0 <= fraction < 1.0:
@@ -153,18 +130,12 @@ def inject_raw_outliers(
 def inject_free_voxel_outliers(
     points: FloatArray, fraction: float, voxel: float, rng: np.random.Generator
 ) -> tuple[FloatArray, float]:
-    """Add uniform outliers to a raw scan, then downsample it with the shared voxel.
+    """The raw scan with ``K = round(M f / (1 - f))`` uniform outliers, downsampled at the
+    shared ``voxel`` to ``M`` points plus the outliers, and the realised share ``K / (M + K)``.
 
-    The outliers are uniform in the raw scan's bounding box, restricted to voxels the scan does
-    not occupy and one per voxel (rejection sampling): a point inside an occupied voxel would
-    only move that voxel's centroid. So every outlier survives the downsampling as one point.
-
-    Returns
-    -------
-    cloud : ndarray, shape (M + K, 3)
-        Downsampled scan (``M`` points) with ``K = round(M f / (1 - f))`` outliers.
-    realised : float
-        ``K / (M + K)``, measured on the result.
+    The outliers lie in the raw box, in voxels the scan does not occupy, one per voxel
+    (rejection sampling): one inside an occupied voxel would only move its centroid, so each
+    survives downsampling as one point and the share is exact (the paper's protocol).
     """
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f'Expected `fraction` in [0, 1), got {fraction}.')

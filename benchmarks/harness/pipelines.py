@@ -1,25 +1,12 @@
 """The odometry pipelines registry: one interface, a frame in and a pose out.
 
-A :class:`Pipeline` takes one :class:`kentreg_ros.io.Scan` (raw points, stamp, per-point
-fields) per :meth:`~Pipeline.step` and returns ``T_world_lidar`` (4, 4); it records the points
-it used per scan, its settings and its health counters. :data:`PIPELINES` names them as a user
-runs them (:func:`make_pipeline`):
-
-``kentreg`` / ``kentreg_local_map`` / ``kentreg_local_map_no_deskew`` / ``kentreg_numpy``
-    :class:`kentreg_ros.core.Odometry` (previous scan; local map; local map without deskewing;
-    without the compiled kernels), a thin adapter.
-``gicp``
-    small_gicp scan-to-scan: ``preprocess_points`` at ``voxel`` (10 covariance neighbours),
-    ``align`` (GICP, its defaults: 1 m gate, 20 iterations) from the constant-velocity guess.
-``icp_pt2pl``
-    Open3D scan-to-scan: ``voxel_down_sample``, normals from 15 neighbours, point-to-plane
-    ``registration_icp`` (gate 1 m, its default criteria) from the constant-velocity guess.
-``kiss_icp``
-    KISS-ICP's own pipeline (``KissICP.register_frame``, ``load_config(None)`` as its
-    ``OdometryPipeline`` loads it; ``max_range`` as a YAML file would set it).
-
-:func:`scan_to_scan` turns any pair method (:class:`~benchmarks.harness.methods.RawMethod`)
-into a pipeline: each scan against the previous one from the method's own previous motion.
+A :class:`Pipeline` takes a :class:`kentreg_ros.io.Scan` per :meth:`~Pipeline.step` and returns
+``T_world_lidar`` (4, 4), recording the points it used, its settings and health counters.
+:data:`PIPELINES` has them as a user runs them: ``kentreg`` (+ ``_local_map``,
+``_local_map_no_deskew``, ``_numpy``: :class:`kentreg_ros.core.Odometry`), ``gicp`` (small_gicp
+scan-to-scan at its defaults), ``icp_pt2pl`` (Open3D scan-to-scan at its defaults), ``kiss_icp``
+(KISS-ICP's own pipeline and configuration). :func:`scan_to_scan` makes any pair method a
+pipeline, each scan against the previous one from its own previous motion.
 """
 
 from __future__ import annotations

@@ -54,23 +54,22 @@ def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
 def motion_stats(T_rel: FloatArray) -> dict[str, float]:
     """Median and max rotation (deg) and translation (m) of relative motions (P, 4, 4)."""
     angle, dist = pair_errors(T_rel, np.broadcast_to(np.eye(4), T_rel.shape))
-    return {
+    out = {
         'rotation_deg_median': float(np.median(angle)),
         'rotation_deg_max': float(np.max(angle)),
+    }
+    out |= {
         'translation_m_median': float(np.median(dist)),
         'translation_m_max': float(np.max(dist)),
     }
+    return out
 
 
 def _stats(v: FloatArray) -> dict[str, float]:
     if not len(v):
         return dict.fromkeys(('mean', 'median', 'p90', 'max'), float('nan'))
-    return {
-        'mean': float(v.mean()),
-        'median': float(np.median(v)),
-        'p90': float(np.percentile(v, 90)),
-        'max': float(v.max()),
-    }
+    out = {'mean': float(v.mean()), 'median': float(np.median(v))}
+    return out | {'p90': float(np.percentile(v, 90)), 'max': float(v.max())}
 
 
 def summarize(
