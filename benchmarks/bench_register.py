@@ -1,15 +1,11 @@
 """Median per-stage times of kentreg at about 3k / 10k / 30k points per scan.
 
-Consecutive pairs of the real BALM scans (data set ``balm_or_sample``: ``../shared/data/balm``,
-else ``bags/balm_50``). For each size the target (model) scan is prepared once, as in odometry;
-the timed work per pair is the new scan's preprocessing (crop, voxel downsampling, normals,
-outlier removal, clustering) plus ``register``.
+Consecutive raw BALM pairs (``balm_or_sample``); the target prepared once, the new scan's
+preparation + ``register`` timed. Prints a table, writes ``results/bench_register.json``.
 
 Usage::
 
     python benchmarks/bench_register.py [--pairs 10] [--sizes 3000 10000 30000] [--json out.json]
-
-Prints a table and writes ``benchmarks/results/bench_register.json``.
 """
 
 from __future__ import annotations

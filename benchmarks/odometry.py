@@ -1,19 +1,13 @@
-"""Odometry: kentreg (previous scan and local map) against KISS-ICP and GICP scan-to-scan.
+"""Odometry: kentreg (previous scan, local map) against KISS-ICP and GICP scan-to-scan.
 
-The pipelines of ``harness/pipelines.py`` (``kentreg`` with the replay's configuration:
-defaults, or ``--config`` / ``--set`` as for ``kentreg_replay``; ``kentreg_local_map``;
-``kiss_icp``: its own pipeline and configuration; ``gicp``: small_gicp scan-to-scan at the voxel
-kentreg picks for the first scan) get the same scans, read once into memory, and are evaluated
-with the replay's metrics (``runner.evaluate_run``). Each first processes two scans untimed on a
-throwaway instance; ``--rounds`` rounds in rotated order, each scan's time the median over them.
-``--strides``: every pipeline once more on every N-th scan (``perturb.stride``).
+The pipelines get the same scans in memory (kentreg with the replay's configuration, or
+``--config`` / ``--set``), ``--rounds`` rotated rounds after a two-scan warm-up, evaluated with
+the replay's metrics; ``--strides``: once more on every N-th scan (README section 3).
 
 Usage::
 
     python3 benchmarks/odometry.py                          # bags/balm_50, 1 thread
     python3 benchmarks/odometry.py --input ../shared/data/balm --threads 2
-
-Writes ``odometry.json``, ``odometry.md`` and ``odometry.png`` in ``--out``.
 """
 
 from __future__ import annotations
@@ -75,125 +69,73 @@ def runners_for(
     return {name: make(name) for name in METHODS}
 
 
-def _pair_row(name: str, entry: dict[str, Any]) -> list[str]:
-    p = entry['metrics']['pairs']
-    return [
-        name,
-        report.fmt(p['rotation_deg']['median'], '.3f', '-'),
-        report.fmt(p['translation_m']['median'], '.4f', '-'),
-        report.fmt(p['rotation_deg']['max'], '.3f', '-'),
-        report.fmt(p['translation_m']['max'], '.4f', '-'),
-        f'{p["n_failed"]} / {p["count"]}',
-    ]
+PAIRS = 'rotation_deg.median:.3f', 'translation_m.median:.4f'
+RPE = ('rpe.rotation_deg.rmse:.3f', 'rpe.translation_m.rmse:.4f',
+       'rpe_per_metre.translation_pct.rmse:.2f', 'rpe_per_metre.rotation_deg_per_m.rmse:.3f',
+       'rpe_segment.rotation_deg.rmse:.3f', 'rpe_segment.translation_m.rmse:.4f')  # fmt: skip
+
+
+def _failed(m: dict[str, Any]) -> str:
+    return f'{m["pairs"]["n_failed"]} / {m["pairs"]["count"]}'
 
 
 def _rpe_row(name: str, m: dict[str, Any]) -> list[str]:
-    f = report.fmt
-    seg, drift, speed = m.get('rpe_segment', {}), m.get('drift'), m['speed']
-    ate = m['ate']['rmse'] if m['ate'] is not None else None
-    return [
-        name,
-        f(m['rpe']['rotation_deg']['rmse'], '.3f', '-'),
-        f(m['rpe']['translation_m']['rmse'], '.4f', '-'),
-        f(m['rpe_per_metre']['translation_pct']['rmse'], '.2f', '-'),
-        f(m['rpe_per_metre']['rotation_deg_per_m']['rmse'], '.3f', '-'),
-        f(seg.get('rotation_deg', {}).get('rmse'), '.3f', '-'),
-        f(seg.get('translation_m', {}).get('rmse'), '.4f', '-'),
+    drift = m.get('drift')
+    drift_text = (
         '-'
         if drift is None
-        else f'{drift["translation_pct"]:.2f}, {drift["rotation_deg_per_m"]:.4f}',
-        f(ate, '.4f', '-'),
-        f(speed['ms_per_scan']['mean'], '.1f', '-'),
-        f(speed['ms_per_scan']['p95'], '.1f', '-'),
-        f(speed['points_used_per_scan']['mean'], '.0f', '-'),
-    ]
+        else (f'{drift["translation_pct"]:.2f}, {drift["rotation_deg_per_m"]:.4f}')
+    )
+    speed = ('speed.ms_per_scan.mean:.1f', 'speed.ms_per_scan.p95:.1f',
+             'speed.points_used_per_scan.mean:.0f')  # fmt: skip
+    return [name, *report.cells(m, *RPE, missing='-'), drift_text,
+            *report.cells(m, 'ate.rmse:.4f', *speed, missing='-')]  # fmt: skip
 
 
-def markdown(report_: dict[str, Any]) -> str:
+def markdown(doc: dict[str, Any]) -> str:
     """Markdown tables of the report (the same numbers as the JSON, rounded)."""
-    rows = report_['methods']
-    n_pairs = next((m['metrics']['pairs']['count'] for m in rows.values() if 'metrics' in m), 0)
-    ok = {n: e for n, e in rows.items() if 'metrics' in e}
+    rows = doc['methods']
+    ok = {n: e['metrics'] for n, e in rows.items() if 'metrics' in e}
+    n_pairs = next((m['pairs']['count'] for m in ok.values()), 0)
     frames = runner.SEGMENT_FRAMES
+    pair_rows = [
+        [n, *report.cells(m['pairs'], *PAIRS, 'rotation_deg.max:.3f', 'translation_m.max:.4f',
+                          missing='-'), _failed(m)] if (m := e.get('metrics'))
+        else [n, f'error: {e["error"]}', '', '', '', '']
+        for n, e in rows.items()
+    ]  # fmt: skip
     lines = [
-        f'Input: {report_["input"]["description"]}, {report_["input"]["n_scans"]} scans, '
-        f'{n_pairs} consecutive pairs; {report_["threads"]} thread(s); ms per scan: per-scan '
-        f'median over {report_["rounds"]} rounds.',
+        f'Input: {doc["input"]["description"]}, {doc["input"]["n_scans"]} scans, {n_pairs} '
+        f'consecutive pairs; {doc["threads"]} thread(s); ms per scan: per-scan median over '
+        f'{doc["rounds"]} rounds.',
+        '',
+        *report.table('method | median e_R [deg] | median e_t [m] | max e_R [deg] | max e_t [m] '
+                      '| failures (e_R>2 deg or e_t>0.2 m)', pair_rows),
         '',
         *report.table(
-            [
-                'method',
-                'median e_R [deg]',
-                'median e_t [m]',
-                'max e_R [deg]',
-                'max e_t [m]',
-                'failures (e_R>2 deg or e_t>0.2 m)',
-            ],
-            [
-                _pair_row(n, e) if 'metrics' in e else [n, f'error: {e["error"]}', '', '', '', '']
-                for n, e in rows.items()
-            ],
+            'method | RPE/frame rot rmse [deg] | RPE/frame trans rmse [m] | RPE/m trans rmse [%] '
+            f'| RPE/m rot rmse [deg/m] | RPE/{frames} frames rot rmse [deg] | RPE/{frames} frames '
+            'trans rmse [m] | drift (KITTI segments) [%, deg/m] | ATE rmse [m] (SE(3)) '
+            '| ms/scan mean | ms/scan p95 | points used/scan',
+            [_rpe_row(n, m) for n, m in ok.items()],
         ),
-        '',
-        *report.table(
-            [
-                'method',
-                'RPE/frame rot rmse [deg]',
-                'RPE/frame trans rmse [m]',
-                'RPE/m trans rmse [%]',
-                'RPE/m rot rmse [deg/m]',
-                f'RPE/{frames} frames rot rmse [deg]',
-                f'RPE/{frames} frames trans rmse [m]',
-                'drift (KITTI segments) [%, deg/m]',
-                'ATE rmse [m] (SE(3))',
-                'ms/scan mean',
-                'ms/scan p95',
-                'points used/scan',
-            ],
-            [_rpe_row(n, e['metrics']) for n, e in ok.items()],
-        ),
-    ]
-    strides = report_.get('strides') or {}
-    if strides:
-        srows = []
-        for stride, block in strides.items():
-            for name, entry in ((k, v) for k, v in block.items() if k != 'n_scans'):
-                if 'metrics' not in entry:
-                    srows.append([stride, name, f'error: {entry["error"]}', '', '', '', '', ''])
-                    continue
-                m = entry['metrics']
-                ate = m['ate']['rmse'] if m['ate'] is not None else None
-                p = _pair_row(name, entry)
-                srows.append(
-                    [
-                        stride,
-                        name,
-                        p[1],
-                        p[2],
-                        p[5],
-                        report.fmt(m['rpe_per_metre']['translation_pct']['rmse'], '.2f', '-'),
-                        report.fmt(ate, '.4f', '-'),
-                        report.fmt(m['speed']['ms_per_scan']['mean'], '.1f', '-'),
-                    ]
-                )
-        lines += [
-            '',
-            'Frame skipping: every N-th scan of the same input, one round per pipeline.',
-            '',
-            *report.table(
-                [
-                    'stride',
-                    'method',
-                    'median e_R [deg]',
-                    'median e_t [m]',
-                    'failures',
-                    'RPE/m trans rmse [%]',
-                    'ATE rmse [m]',
-                    'ms/scan mean',
-                ],
-                srows,
-            ),
-        ]
+    ]  # fmt: skip
+    srows = []
+    for stride, block in (doc.get('strides') or {}).items():
+        for name, entry in ((k, v) for k, v in block.items() if k != 'n_scans'):
+            m = entry.get('metrics')
+            if m is None:
+                srows.append([stride, name, f'error: {entry["error"]}', '', '', '', '', ''])
+                continue
+            more = ('rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f',
+                    'speed.ms_per_scan.mean:.1f')  # fmt: skip
+            srows.append([stride, name, *report.cells(m['pairs'], *PAIRS, missing='-'),
+                          _failed(m), *report.cells(m, *more, missing='-')])  # fmt: skip
+    head = ('stride | method | median e_R [deg] | median e_t [m] | failures '
+            '| RPE/m trans rmse [%] | ATE rmse [m] | ms/scan mean')  # fmt: skip
+    if srows:
+        caption = 'Frame skipping: every N-th scan of the same input, one round per pipeline.'
+        lines += ['', caption, '', *report.table(head, srows)]
     return '\n'.join(lines) + '\n'
 
 

@@ -1,17 +1,12 @@
-"""The paper's outlier experiment on real BALM pairs: errors against the injected outlier share.
+"""The paper's outlier experiment on real BALM pairs: errors against the injected share.
 
-The paper injects 0-40 % outliers into a staircase scan (100 trials): ICP and NDT degrade, its
-method stays flat. Here a trial is a seeded BALM pair (the same pairs at every level) from the
-constant-velocity start; at level ``f`` both scans get ``perturb.inject_free_voxel_outliers``:
-``f`` of the points every method receives, added before the shared downsampling, fresh and
-seeded per trial and level.
+Seeded BALM pairs (the same at every level) from the constant-velocity start, both scans with
+``perturb.inject_free_voxel_outliers`` at each level (README section 2).
 
 Usage::
 
     nice python3 benchmarks/outliers.py                # 5 levels x 100 trials
     python3 benchmarks/outliers.py --trials 3 --methods gicp kentreg_robust   # quick look
-
-Writes ``outliers.json``, ``outliers.md`` and ``outliers.png`` in ``--out``.
 """
 
 from __future__ import annotations
@@ -35,6 +30,8 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('outliers')
 
 LEVELS = (0.0, 0.1, 0.2, 0.3, 0.4)
+Data, Methods = datasets.Sequence, Sequence[methods.Method]
+Floats, Ints = Sequence[float], Sequence[int]
 
 
 def _trial(m: methods.Method, target: Any, source: Any, init: Any, truth: Any) -> dict[str, Any]:
@@ -62,13 +59,8 @@ def _summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(
-    seq: datasets.Sequence,
-    built: Sequence[methods.Method],
-    levels: Sequence[float],
-    trial_pairs: Sequence[int],
-    voxel: float,
-    seed: int,
-) -> dict[str, Any]:
+    seq: Data, built: Methods, levels: Floats, trial_pairs: Ints, voxel: float, seed: int
+) -> dict:
     """Per level and method, the per-trial records and their summary."""
     out: dict[str, Any] = {}
     for level in levels:
@@ -99,10 +91,7 @@ def markdown(results: dict[str, Any]) -> str:
     levels, meta = results['levels'], results['meta']
     names = list(next(iter(levels.values()))['methods'])
     head = ['method', *(f'{float(k) * 100:.0f} %' for k in levels)]
-    realised = ', '.join(
-        f'{float(k) * 100:.0f} % → {v["realised_fraction"]["mean"] * 100:.1f} %'
-        for k, v in levels.items()
-    )
+    realised = report.realised(levels, 'realised_fraction', '.1f')
     lines = [
         f'{meta["trials"]} trials per level (seeded BALM pairs, constant-velocity start), voxel '
         f"{meta['voxel_m']:.2f} m; outliers uniform in each raw scan's bounding box "

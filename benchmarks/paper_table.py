@@ -1,18 +1,13 @@
-"""The paper's Table 1 protocol on the real data here: every method, two starts, consecutive pairs.
+"""The paper's Table 1 protocol on real data: every pair method, two starts, consecutive pairs.
 
-Fahandezh-Saadi et al. report the average e_R / e_t of ICP, point-to-plane ICP, CICP, GICP, NDT
-and their method over consecutive scans of ETH Hauptgebaeude, from the identity, at ~10,000
-points. The same protocol on ``balm`` (49 pairs), ``small_gicp_pair`` and ``--eth PATH``, from
-the identity and from the constant-velocity guess (the previous pair's reference motion). Time
-per pair = preparing the new scan + registering it (the target was prepared before, as in
-odometry); every method of ``harness/methods.py`` on the same voxel-downsampled clouds.
+``balm`` (49 pairs), ``small_gicp_pair`` and ``--eth PATH``, from the identity and from the
+constant-velocity guess; time per pair = preparing the new scan + registering it (README
+section 1).
 
 Usage::
 
     nice python3 benchmarks/paper_table.py                      # full run (~15 min)
     python3 benchmarks/paper_table.py --pairs 5 --methods gicp kentreg_robust   # quick look
-
-Writes ``paper_table.json`` and ``paper_table.md`` in ``--out`` (default benchmarks/results).
 """
 
 from __future__ import annotations
@@ -35,6 +30,8 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('paper_table')
 
 STARTS = ('identity', 'constant_velocity')
+Data, Methods = datasets.Sequence, Sequence[methods.Method]
+Ints, Strs = Sequence[int], Sequence[str]
 #: The paper's Table 1 (ETH Hauptgebaeude, from identity): average e_R (deg), e_t (m).
 PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
     'icp_pt2pt': ('ICP', 1.27, 0.403),
@@ -73,13 +70,7 @@ def run_pair(
     return out
 
 
-def run_sequence(
-    seq: datasets.Sequence,
-    built: Sequence[methods.Method],
-    pairs: Sequence[int],
-    starts: Sequence[str],
-    voxel: float,
-) -> dict[str, Any]:
+def run_sequence(seq: Data, built: Methods, pairs: Ints, starts: Strs, voxel: float) -> dict:
     """Every method on ``pairs`` of ``seq``, pairs outer (every method sees the same load)."""
     needed = sorted({p for p in pairs} | {p + 1 for p in pairs})
     clouds = {i: methods.voxel_downsample(seq.raw(i), voxel) for i in needed}

@@ -1,21 +1,14 @@
-"""Per-scan odometry cost: raw scan in, pose out, previous scan cached; one thread per method.
+"""Per-scan odometry cost: raw scan in, pose out; one process and one thread per pipeline.
 
-What a live node pays for every scan of a spinning LiDAR. Each pipeline of
-``harness/pipelines.py`` runs over the same raw BALM scans in its own subprocess pinned to one
-CPU: ``kentreg`` (``Odometry(KentRegConfig())``), ``kentreg_numpy`` (without the compiled
-kernels), ``gicp`` (small_gicp scan-to-scan at 0.25 m), ``icp_pt2pl`` (Open3D scan-to-scan at
-0.25 m) and ``kiss_icp`` (its own pipeline). Reported: p50 / p95 / max ms per scan (the first,
-which only prepares, excluded), resident memory once set up and at its peak, the memory growth
-over the second half of a long run (``--long-steps``: the scans forth and back), and the pair
-errors. ``--rounds`` rounds in rotated order.
+The pipelines (``kentreg``, ``kentreg_numpy``, ``gicp``, ``icp_pt2pl``, ``kiss_icp``) over the
+same raw BALM scans, ``--rounds`` rotated rounds: ms per scan, resident memory, memory growth
+over a long run (``--long-steps``), pair errors (README section 3). ``--merge K``: denser scans
+(``perturb.merge``), written as ``per_scan_merge<K>.*``.
 
 Usage::
 
     python3 benchmarks/per_scan.py                    # all methods, 2 rounds, ~5 min
     python3 benchmarks/per_scan.py --methods kentreg gicp --scans 20
-
-Writes ``per_scan.json`` and ``per_scan.md`` (``per_scan_merge<K>.*`` with ``--merge K``:
-denser scans, each joined with its predecessors by the reference poses, ``perturb.merge``).
 """
 
 from __future__ import annotations

@@ -1,16 +1,13 @@
-"""Paste the generated tables into benchmarks/README.md, so the README always equals the results.
+"""Paste the generated tables into the READMEs, so they always equal the results.
 
-Every ``benchmarks/results/<name>.md`` (paper_table, outliers, odometry, speed, robustness, ...)
-replaces the text between ``<!-- BEGIN <name> -->`` and ``<!-- END <name> -->`` in
-benchmarks/README.md; the main README's ``headline`` table is built from the results JSON.
-Goals are not code: the README prose states each goal beside the table that measures it.
-Blocks whose source is missing are left as they are.
+Every ``results/<name>.md`` replaces the text between ``<!-- BEGIN <name> -->`` and
+``<!-- END <name> -->`` in benchmarks/README.md; the main README's ``headline`` table is built
+from the results JSON. Goals are prose in the READMEs, not code.
 
 Usage::
 
-    python3 benchmarks/render_readme.py          # rewrite the README
-    python3 benchmarks/render_readme.py --check  # exit 1 if the README is out of date
-    python3 benchmarks/render_readme.py --only paper_table headline   # just these blocks
+    python3 benchmarks/render_readme.py          # rewrite the READMEs
+    python3 benchmarks/render_readme.py --check  # exit 1 if they are out of date
 """
 
 from __future__ import annotations

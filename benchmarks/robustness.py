@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +39,8 @@ from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # no
 
 logger = logging.getLogger('robustness')
 
-FloatArray = NDArray[np.float64]
+Data, Methods = datasets.Sequence, Sequence[methods.RawMethod]
+Floats, Ints, FloatArray = Sequence[float], Sequence[int], runner.FloatArray
 TESTS = ('strides', 'outliers', 'turned')
 DEFAULT_METHODS = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
 STRIDES = (1, 2, 3, 4)
@@ -82,12 +82,7 @@ def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: FloatArray,
     }
 
 
-def run_strides(
-    data: datasets.Sequence,
-    built: Sequence[methods.RawMethod],
-    strides: Sequence[int],
-    max_input: int | None,
-) -> dict[str, Any]:
+def run_strides(data: Data, built: Methods, strides: Ints, max_input: int | None) -> dict:
     """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
     assert data.T_world is not None
     scans = data.scans[:max_input]
@@ -130,12 +125,7 @@ def _outlier_summary(recs: list[dict[str, Any]], shares: list[float]) -> dict[st
 
 
 def run_outliers(
-    data: datasets.Sequence,
-    built: Sequence[methods.RawMethod],
-    levels: Sequence[float],
-    pairs: Sequence[int],
-    seed: int,
-    shell_share: float,
+    data: Data, built: Methods, levels: Floats, pairs: Ints, seed: int, shell_share: float
 ) -> dict[str, Any]:
     """Per level and method, the per-pair records, their summary and the clean-median ratio."""
     out: dict[str, Any] = {}
@@ -187,13 +177,7 @@ def run_outliers(
     return out
 
 
-def run_turned(
-    data: datasets.Sequence,
-    built: Sequence[methods.RawMethod],
-    angles: Sequence[float],
-    pairs: Sequence[int],
-    seed: int,
-) -> dict[str, Any]:
+def run_turned(data: Data, built: Methods, angles: Floats, pairs: Ints, seed: int) -> dict:
     """Per angle and method, the records of pairs whose source was turned, from the identity."""
     keys = [f'{a:g}' for a in angles]
     rows: dict[str, dict[str, list[dict[str, Any]]]] = {
@@ -265,18 +249,9 @@ def _strides_md(strides: dict[str, Any]) -> list[str]:
             if 'error' in m:
                 rows.append([*head, f'error: {m["error"]}', '', '', '', '', '', ''])
                 continue
-            rows.append(
-                [
-                    *head,
-                    f'{m["failed"]}/{m["n_pairs"]}',
-                    fmt(m['e_R_deg']['median'], '.3f'),
-                    fmt(m['e_R_deg']['max'], '.2f'),
-                    fmt(m['e_t_m']['median'], '.4f'),
-                    fmt(m['e_t_m']['max'], '.3f'),
-                    fmt(m['ate_rmse_m'], '.3f'),
-                    fmt(m['ms_per_scan_median'], '.0f'),
-                ]
-            )
+            specs = ('e_R_deg.median:.3f', 'e_R_deg.max:.2f', 'e_t_m.median:.4f', 'e_t_m.max:.3f')
+            values = report.cells(m, *specs, 'ate_rmse_m:.3f', 'ms_per_scan_median:.0f')
+            rows.append([*head, f'{m["failed"]}/{m["n_pairs"]}', *values])
     lines = [
         f'**Strides** ({meta["input"]}, every N-th of {meta["n_input_scans"]} scans, stamps '
         'unchanged). kentreg: its `Odometry` with `KentRegConfig()` (what `kentreg_replay '
@@ -285,18 +260,8 @@ def _strides_md(strides: dict[str, Any]) -> list[str]:
         f'processed scans and fails when {FAIL_RULE}; ATE after SE(3) alignment.',
         '',
         *table(
-            [
-                'N',
-                'reference motion per pair: median / max',
-                'method',
-                'failed pairs',
-                'median e_R (°)',
-                'max e_R (°)',
-                'median e_t (m)',
-                'max e_t (m)',
-                'ATE rmse (m)',
-                'median ms/scan',
-            ],
+            'N | reference motion per pair: median / max | method | failed pairs | median e_R (°) '
+            '| max e_R (°) | median e_t (m) | max e_t (m) | ATE rmse (m) | median ms/scan',
             rows,
         ),
     ]
@@ -336,10 +301,7 @@ def _outliers_md(outliers: dict[str, Any]) -> list[str]:
     meta, levels = outliers['meta'], outliers['levels']
     head = ['method', *(f'{float(k) * 100:.0f} %' for k in levels)]
     shell = f', {meta["shell_share"] * 100:.0f} % of them in the range shell'
-    realised = ', '.join(
-        f'{float(k) * 100:.0f} % → {v["realised_share"]["mean"] * 100:.2f} %'
-        for k, v in levels.items()
-    )
+    realised = report.realised(levels, 'realised_share', '.2f')
     lines = [
         f'**Raw outliers** ({meta["n_pairs"]} of the {meta["n_available_pairs"]} consecutive '
         f'pairs, drawn without replacement, seed {meta["seed"]}; the same pairs at every '
@@ -452,62 +414,26 @@ def plot(results: dict[str, Any], path: Path) -> None:
         results.get(t, {}).get(k)
         for t, k in zip(TESTS, ('strides', 'levels', 'angles'), strict=True)
     )
-    panel = report.method_panel
-    raw = {'scale': 100.0, 'xlabel': 'outliers in the raw scan (%)'}
-    grid = [
-        [
-            panel(
-                strides,
-                lambda e: 100 * e['failed'] / e['n_pairs'] if 'failed' in e else nan,
-                xlabel='stride N (every N-th scan)',
-                ylabel='failed pairs (%)',
-                title='strides: failed pairs',
-                ylim=(-2, 102),
-            ),
-            panel(
-                strides,
-                lambda e: e.get('ate_rmse_m') or nan,
-                log='y',
-                xlabel='stride N',
-                ylabel='ATE rmse (m)',
-                title='strides: ATE',
-            ),
-            panel(
-                levels,
-                lambda e: e['summary']['e_R_deg']['median'],
-                log='y',
-                **raw,
-                ylabel='e_R (deg)',
-                title='raw outliers: median e_R',
-            ),
-        ],
-        [
-            panel(
-                levels,
-                lambda e: 100 * e['summary']['failure_rate'],
-                **raw,
-                ylabel='failed pairs (%)',
-                title='raw outliers: failures',
-                ylim=(-2, 102),
-            ),
-            panel(
-                angles,
-                lambda e: 100 * (e['summary']['recovered_fraction'] or 0.0),
-                xlabel='turn of the source scan (deg)',
-                ylabel='recovered (%)',
-                title='turned pairs from the identity',
-                ylim=(-2, 102),
-            ),
-            panel(
-                strides,
-                lambda e: e['e_R_deg']['max'] if 'e_R_deg' in e else nan,
-                log='y',
-                xlabel='stride N',
-                ylabel='e_R (deg)',
-                title='strides: worst pair e_R',
-            ),
-        ],
+    pct, raw = {'ylim': (-2, 102)}, 'outliers in the raw scan (%)'
+    specs = [  # blocks, value, scale, log, x label, y label, title, more axes
+        (strides, lambda e: 100 * e['failed'] / e['n_pairs'] if 'failed' in e else nan, 1, '',
+         'stride N (every N-th scan)', 'failed pairs (%)', 'strides: failed pairs', pct),
+        (strides, lambda e: e.get('ate_rmse_m') or nan, 1, 'y', 'stride N', 'ATE rmse (m)',
+         'strides: ATE', {}),
+        (levels, lambda e: e['summary']['e_R_deg']['median'], 100, 'y', raw, 'e_R (deg)',
+         'raw outliers: median e_R', {}),
+        (levels, lambda e: 100 * e['summary']['failure_rate'], 100, '', raw, 'failed pairs (%)',
+         'raw outliers: failures', pct),
+        (angles, lambda e: 100 * (e['summary']['recovered_fraction'] or 0.0), 1, '',
+         'turn of the source scan (deg)', 'recovered (%)', 'turned pairs from the identity', pct),
+        (strides, lambda e: e['e_R_deg']['max'] if 'e_R_deg' in e else nan, 1, 'y', 'stride N',
+         'e_R (deg)', 'strides: worst pair e_R', {}),
+    ]  # fmt: skip
+    panels = [
+        report.method_panel(b, f, scale=k, log=g, xlabel=x, ylabel=y, title=t, **more)
+        for b, f, k, g, x, y, t, more in specs
     ]
+    grid = [panels[:3], panels[3:]]
     title = (
         'kentreg_ros robustness (BALM): kentreg at KentRegConfig() defaults (solid) against '
         f'the benchmarks/harness/methods.py peers (dashed)\nfailure: {FAIL_RULE}; '

@@ -47,81 +47,48 @@ def write_balm_poses(path: Path, T: FloatArray, stamps_s: FloatArray) -> None:
     path.write_text('\n'.join(lines) + '\n')
 
 
+SWEEP = 's per sweep, points timed in a field t; 0: all at the stamp'
+SENSOR_OPTIONS = {'occlusion_bin': 'deg', 'beam_bin': 'deg', 'range_noise': 'm, 1 sigma',
+                  'min_range': 'm', 'max_range': 'm', 'sweep_period': SWEEP}  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        '--input', type=Path, default=DEFAULT_INPUT, help='recording to re-simulate'
-    )
-    parser.add_argument('--out', type=Path, required=True, help='scan folder to write')
-    parser.add_argument('--step', type=float, default=0.6, help='metres per scan (default 0.6)')
-    parser.add_argument(
-        '--yaw-amplitude', type=float, default=0.0, help='yaw oscillation amplitude, deg'
-    )
-    parser.add_argument(
-        '--yaw-period', type=float, default=9.0, help='yaw oscillation period, scans'
-    )
-    parser.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
-    parser.add_argument(
-        '--world-voxel', type=float, default=WORLD_VOXEL, help=f'world thinning, m ({WORLD_VOXEL})'
-    )
-    default = Sensor()
-    for name, unit in (
-        ('occlusion_bin', 'deg'),
-        ('beam_bin', 'deg'),
-        ('range_noise', 'm, 1 sigma'),
-        ('min_range', 'm'),
-        ('max_range', 'm'),
-        ('sweep_period', 's per sweep, points timed in a field t; 0: every point at the stamp'),
-    ):
-        value = getattr(default, name)
-        parser.add_argument(
+    p.add_argument('--input', type=Path, default=DEFAULT_INPUT, help='recording to re-simulate')
+    p.add_argument('--out', type=Path, required=True, help='scan folder to write')
+    p.add_argument('--step', type=float, default=0.6, help='metres per scan (default 0.6)')
+    p.add_argument('--yaw-amplitude', type=float, default=0.0, help='yaw oscillation, deg')
+    p.add_argument('--yaw-period', type=float, default=9.0, help='yaw oscillation period, scans')
+    p.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
+    p.add_argument('--world-voxel', type=float, default=WORLD_VOXEL, help='world thinning, m')
+    for name, unit in SENSOR_OPTIONS.items():
+        value = getattr(Sensor(), name)
+        p.add_argument(
             '--' + name.replace('_', '-'), type=float, default=value, help=f'{unit} ({value})'
         )
-    return parser
+    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(name)s: %(message)s')
     world = build_world(args.input, args.world_voxel)
-    sensor = Sensor(
-        occlusion_bin=args.occlusion_bin,
-        beam_bin=args.beam_bin,
-        range_noise=args.range_noise,
-        min_range=args.min_range,
-        max_range=args.max_range,
-        sweep_period=args.sweep_period,
-    )
-    scans, gt = simulate(
-        world,
-        args.step,
-        args.seed,
-        sensor,
-        yaw_amplitude=args.yaw_amplitude,
-        yaw_period=args.yaw_period,
-    )
+    sensor = Sensor(**{name: getattr(args, name) for name in SENSOR_OPTIONS})
+    yaw = {'yaw_amplitude': args.yaw_amplitude, 'yaw_period': args.yaw_period}
+    scans, gt = simulate(world, args.step, args.seed, sensor, **yaw)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, scan in enumerate(scans):
         write_pcd(args.out / f'scan_{i:04d}.pcd', scan.points.astype(np.float32), scan.extras)
     T = gt.trajectory.T_world_sensor
-    stamps_s = np.asarray(gt.trajectory.stamps_ns) * 1e-9
-    write_balm_poses(args.out / 'alidarPose.csv', T, stamps_s)
-    stats = motion_stats(T)
-    counts = [len(scan.points) for scan in scans]
+    write_balm_poses(args.out / 'alidarPose.csv', T, np.asarray(gt.trajectory.stamps_ns) * 1e-9)
+    stats, counts = motion_stats(T), [len(scan.points) for scan in scans]
     logger.info(
         'world %d points; %d scans of %d-%d points; step %.2f m, rotation per scan median '
-        '%.1f deg, max %.1f deg -> %s',
-        len(world.points),
-        len(scans),
-        min(counts),
-        max(counts),
-        stats['step_median_m'],
-        stats['rotation_median_deg'],
-        stats['rotation_max_deg'],
-        args.out,
-    )
+        '%.1f deg, max %.1f deg -> %s', len(world.points), len(scans), min(counts), max(counts),
+        stats['step_median_m'], stats['rotation_median_deg'], stats['rotation_max_deg'], args.out,
+    )  # fmt: skip
     return 0
 
 

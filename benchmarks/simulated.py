@@ -1,21 +1,14 @@
-"""Odometry on re-simulated sequences with exact reference poses, at faster motion than the sample.
+"""Odometry on re-simulated sequences with exact poses, at faster motion than the sample's.
 
-``benchmarks/simulate.py`` rebuilds the scene of ``bags/balm_50`` and lets a simulated spinning
-LiDAR travel its path at ``--steps`` metres per scan, ``--seeds`` samplings each. Every step runs
-clean, with ``--outliers`` raw outliers on every scan (``perturb.raw_outliers``) and swept
-(``--sweep`` s, every point timed in ``t``; kentreg deskews, and
-``kentreg_local_map_no_deskew`` shows the local map without). The pipelines of
-``benchmarks/odometry.py`` run on every sequence, one round each, except KISS-ICP on the
-outlier runs (its 1 m map voxels fill with outliers: hours instead of seconds) and the swept
-runs (its deskewing assumes a sweep fills the interval between scans; these last 0.1 s of 0.5 s).
-What the simulation leaves out: smooth velocity changes, moving objects, dropouts, long paths.
+The sample's scene re-simulated (``harness/simulator.py``) at ``--steps`` m per scan,
+``--seeds`` samplings each, clean, with ``--outliers`` raw outliers (``perturb.raw_outliers``)
+and swept (``--sweep`` s, points timed); the odometry pipelines run on each, one round (README
+section 3b, which also says what the simulation leaves out).
 
 Usage::
 
     python3 benchmarks/simulated.py                # 0.15 0.3 0.6 m; clean, 40 %, swept
     python3 benchmarks/simulated.py --steps 0.6 --seeds 2 --out /tmp/sim
-
-Writes ``simulated.json`` and ``simulated.md``; ``--table JSON`` prints a file's table again.
 """
 
 from __future__ import annotations
@@ -36,16 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.harness import methods, perturb, pipelines, report, runner  # noqa: E402
-from benchmarks.harness.simulator import (  # noqa: E402
-    DEFAULT_INPUT,
-    WORLD_VOXEL,
-    Sensor,
-    World,
-    build_world,
-    motion_stats,
-    simulate,
-)
+from benchmarks.harness import methods, perturb, pipelines, report, runner, simulator  # noqa: E402
 from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
 
 logger = logging.getLogger('benchmarks.simulated')
@@ -77,12 +61,12 @@ def _entry(name: str, scans: list[Any], T_gt: Any, voxel: float, cfg: KentRegCon
 
 
 def run_condition(
-    world: World,
+    world: simulator.World,
     step: float,
     share: float,
     names: Sequence[str],
     seeds: int,
-    sensor: Sensor,
+    sensor: simulator.Sensor,
     cfg: KentRegConfig,
 ) -> dict[str, Any]:
     """Every pipeline on ``seeds`` sequences at ``step`` metres per scan, with a share
@@ -97,11 +81,11 @@ def run_condition(
     motion: dict[str, float] = {}
     n_scans = 0
     for seed in range(seeds):
-        scans, gt = simulate(world, step, seed, sensor)
+        scans, gt = simulator.simulate(world, step, seed, sensor)
         if share > 0.0:  # (no sweep with outliers: their times would be undefined)
             scans = perturb.raw_outliers(share, np.random.default_rng([seed, 1]))(scans)
         T_gt = np.asarray(gt.trajectory.T_world_sensor, dtype=np.float64)
-        motion, n_scans = motion_stats(T_gt), len(scans)
+        motion, n_scans = simulator.motion_stats(T_gt), len(scans)
         voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
         entry: dict[str, Any] = {'seed': seed, 'methods': {}}
         for name in (n for n in names if n not in skip):
@@ -216,7 +200,7 @@ def format_table(doc: dict[str, Any]) -> str:
 
 
 OPTIONS: list[report.Option] = [
-    ('--input', {'type': Path, 'default': DEFAULT_INPUT, 'help': 'scene to re-simulate'}),
+    ('--input', {'type': Path, 'default': simulator.DEFAULT_INPUT, 'help': 'scene to simulate'}),
     ('--steps', {'type': float, 'nargs': '+', 'default': [0.15, 0.3, 0.6], 'metavar': 'M'}),
     ('--outliers', {'type': float, 'nargs': '+', 'default': [0.0, 0.4], 'metavar': 'SHARE',
                     'help': 'raw outlier shares, each a run of every step (default 0 0.4)'}),
@@ -236,13 +220,14 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     methods.pin_threads(1, argv, __file__)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(levelname)s: %(message)s')
     t_start = time.perf_counter()
-    world = build_world(args.input, WORLD_VOXEL)
-    sensor, cfg = Sensor(), KentRegConfig()
+    world_voxel = simulator.WORLD_VOXEL
+    world = simulator.build_world(args.input, world_voxel)
+    sensor, cfg = simulator.Sensor(), KentRegConfig()
     doc: dict[str, Any] = {
         'benchmark': 'simulated', 'command': ['python3', 'benchmarks/simulated.py', *argv],
         'date': datetime.datetime.now().isoformat(timespec='seconds'),
         'machine': report.machine_info(), 'input': str(args.input),
-        'world': {'voxel_m': WORLD_VOXEL, 'points': len(world.points), 'period_s': world.period},
+        'world': {'voxel_m': world_voxel, 'points': len(world.points), 'period_s': world.period},
         'sensor': dataclasses.asdict(sensor), 'seeds': args.seeds, 'methods': args.methods,
         'steps': [],
     }  # fmt: skip

@@ -43,16 +43,8 @@ NORMAL_NEIGHBORS = 15
 PAPER_POINTS = 10_000
 
 #: Methods other than kentreg's ablations, in table order.
-BASE_METHODS: tuple[str, ...] = (
-    'icp_pt2pt',
-    'icp_pt2pl',
-    'cicp',
-    'gicp',
-    'ndt',
-    'kiss_icp',
-    'kentreg_paper',
-    'kentreg_robust',
-)
+BASE_METHODS: tuple[str, ...] = ('icp_pt2pt', 'icp_pt2pl', 'cicp', 'gicp', 'ndt', 'kiss_icp',
+                                 'kentreg_paper', 'kentreg_robust')  # fmt: skip
 
 #: kentreg robust ablations: one switch of the README's "robust vs paper" table each.
 ABLATIONS: dict[str, dict[str, Any]] = {
@@ -175,13 +167,8 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
 
         return run
 
-    params = {
-        'max_correspondence_distance': gate,
-        'max_iterations': MAX_ITERATIONS,
-        'relative_fitness': 1e-6,
-        'relative_rmse': 1e-6,
-        'open3d': o3d.__version__,
-    }
+    params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS}
+    params |= {'relative_fitness': 1e-6, 'relative_rmse': 1e-6, 'open3d': o3d.__version__}
     out = []
     if 'icp_pt2pt' in names:
         est = reg.TransformationEstimationPointToPoint()
@@ -217,25 +204,16 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
         return cloud, tree
 
     def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        T = np.asarray(init, dtype=np.float64)
         result = small_gicp.align(
-            target[0],
-            source[0],
-            target[1],
-            init_T_target_source=np.asarray(init, dtype=np.float64),
-            registration_type='GICP',
-            max_correspondence_distance=gate,
-            num_threads=n_threads,
-            max_iterations=MAX_ITERATIONS,
-        )
+            target[0], source[0], target[1], init_T_target_source=T, registration_type='GICP',
+            max_correspondence_distance=gate, num_threads=n_threads, max_iterations=MAX_ITERATIONS,
+        )  # fmt: skip
         return np.array(result.T_target_source, dtype=np.float64)
 
-    params = {
-        'max_correspondence_distance': gate,
-        'max_iterations': MAX_ITERATIONS,
-        'covariance_neighbors': NORMAL_NEIGHBORS,
-        'convergence': 'small_gicp defaults (0.1 deg, 1 mm)',
-        'threads': n_threads,
-    }
+    params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS}
+    params |= {'covariance_neighbors': NORMAL_NEIGHBORS, 'threads': n_threads}
+    params['convergence'] = 'small_gicp defaults (0.1 deg, 1 mm)'
     return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
 
 
@@ -269,15 +247,12 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
         )
         return np.array(T, dtype=np.float64)
 
-    params = {
-        'max_correspondence_distance': gate,
-        'kernel': gate / 3.0,
-        'map_voxel': map_voxel,
-        'max_iterations': MAX_ITERATIONS,
-        'convergence_criterion': 1e-4,
-        'note': "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
-        'KISS-ICP sets it) against a voxel hash map of the target scan',
-    }
+    note = (
+        "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
+        'KISS-ICP sets it) against a voxel hash map of the target scan'
+    )
+    params = {'max_correspondence_distance': gate, 'kernel': gate / 3.0, 'map_voxel': map_voxel}
+    params |= {'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4, 'note': note}
     return [Method('kiss_icp', 'kiss_icp', prepare, run, params)]
 
 
@@ -364,28 +339,10 @@ _FACTORIES: tuple[tuple[str, tuple[str, ...], Callable[..., list[Method]]], ...]
 def make_methods(
     names: Sequence[str] | None = None, *, voxel: float, threads: int | None = 1
 ) -> list[Method]:
-    """Build the requested methods, in the order of ``names`` (default :data:`ALL_METHODS`).
-
-    Parameters
-    ----------
-    names : sequence of str, optional
-        Method names from :data:`ALL_METHODS`.
-    voxel : float
-        Voxel edge (m) of the shared downsampling; gates derive from it.
-    threads : int or None
-        Pin the process and the libraries to this many threads (:func:`limit_threads`);
-        None leaves every library at its default.
-
-    Returns
-    -------
-    list of Method
-        A method whose library cannot be imported is left out with a logged warning.
-
-    Raises
-    ------
-    ValueError
-        An unknown method name.
-    """
+    """The methods ``names`` (default :data:`ALL_METHODS`) in that order, gates derived from
+    the shared ``voxel`` (m); ``threads`` pins the process and the libraries
+    (:func:`limit_threads`; None: library defaults). A method whose library cannot be imported
+    is left out with a logged warning; an unknown name raises ``ValueError``."""
     wanted = list(ALL_METHODS if names is None else names)
     unknown = [n for n in wanted if n not in ALL_METHODS]
     if unknown:
@@ -415,21 +372,10 @@ def make_methods(
 
 @dataclass
 class RawMethod:
-    """A method as a user runs it: raw scan in, ``T_target_source`` and what it reports out.
-
-    Attributes
-    ----------
-    name : str
-    prepare : callable
-        ``prepare(raw points (N, 3)) -> prep``: the method's own preprocessing of a raw scan.
-    register : callable
-        ``register(source_prep, target_prep, init (4, 4) or None) -> (T_target_source, info)``;
-        info holds what the method reports (kentreg: its status).
-    voxel : callable
-        ``voxel(prep) -> float``: the voxel edge the preprocessing used.
-    params : dict
-        Settings, for the JSON.
-    """
+    """A method as a user runs it: ``prepare(raw points (N, 3)) -> prep`` (its own
+    preprocessing), ``register(source_prep, target_prep, init or None) -> (T_target_source,
+    info)`` (info: what it reports, e.g. kentreg's status), ``voxel(prep)`` (the voxel edge it
+    used) and ``params`` (settings, for the JSON)."""
 
     name: str
     prepare: Callable[[FloatArray], Any]

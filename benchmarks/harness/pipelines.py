@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -72,36 +73,27 @@ class KentregPipeline:
         return np.asarray(step.T_world_lidar, dtype=np.float64)
 
 
+@dataclass
 class ScanToScan:
-    """Each scan against the previous one (prepared once), from the last motion (constant
-    velocity, identity first), poses chained.
+    """Each scan against the previous one (prepared once) from the last motion (constant
+    velocity, identity first), poses chained. With ``catch``, a step that raises keeps the
+    prediction (the last motion repeated), as an odometry would, counted in ``n_raised``."""
 
-    With ``catch``, a step that raises keeps the prediction (the last motion repeated), as an
-    odometry would, and is counted in ``health['n_raised']``.
-    """
+    name: str
+    prepare: Callable[[FloatArray], Any]
+    align: Callable[[Any, Any, FloatArray], FloatArray]
+    size: Callable[[Any], int] = lambda prep: 0
+    catch: bool = False
+    settings: dict[str, Any] = field(default_factory=dict)
+    health: dict[str, Any] = field(default_factory=dict)
+    points_used: list[int] = field(default_factory=list)
+    previous: Any = None
+    pose: FloatArray = field(default_factory=lambda: np.eye(4))
+    motion: FloatArray = field(default_factory=lambda: np.eye(4))
 
-    def __init__(
-        self,
-        name: str,
-        prepare: Callable[[FloatArray], Any],
-        align: Callable[[Any, Any, FloatArray], FloatArray],
-        *,
-        size: Callable[[Any], int] = lambda prep: 0,
-        catch: bool = False,
-        settings: dict[str, Any] | None = None,
-    ) -> None:
-        self.name, self.prepare, self.align, self.size, self.catch = (
-            name,
-            prepare,
-            align,
-            size,
-            catch,
-        )
-        self.previous: Any = None
-        self.pose, self.motion = np.eye(4), np.eye(4)
-        self.points_used: list[int] = []
-        self.settings = settings or {}
-        self.health: dict[str, Any] = {'n_raised': 0} if catch else {}
+    def __post_init__(self) -> None:
+        if self.catch:
+            self.health['n_raised'] = 0
 
     def step(self, scan: Scan) -> FloatArray:
         prep = None
@@ -161,9 +153,9 @@ def gicp(voxel: float, threads: int = 1) -> ScanToScan:
         health['not_converged'] += not result.converged
         return np.array(result.T_target_source, dtype=np.float64)
 
-    pipeline = ScanToScan('gicp', prepare, align, size=lambda p: p[0].size(), settings=settings)
-    pipeline.health = health
-    return pipeline
+    return ScanToScan(
+        'gicp', prepare, align, lambda p: p[0].size(), settings=settings, health=health
+    )
 
 
 def icp_pt2pl(voxel: float = 0.25, gate: float = 1.0, neighbors: int = 15) -> ScanToScan:

@@ -108,6 +108,27 @@ def write_results(out: Path, stem: str, data: Any, text: str) -> None:
     print(text)
 
 
+def cells(entry: dict[str, Any], *specs: str, missing: str = '–') -> list[str]:
+    """Formatted values of ``entry``: each spec ``'key.subkey:format'`` (e.g.
+    ``'e_R_deg.median:.3f'``); a missing key or a None/NaN value gives ``missing``."""
+    out = []
+    for spec in specs:
+        path, _, form = spec.partition(':')
+        value: Any = entry
+        for key in path.split('.'):
+            value = value.get(key) if isinstance(value, dict) else None
+        out.append(fmt(value, form, missing))
+    return out
+
+
+def realised(levels: dict[str, Any], key: str, spec: str) -> str:
+    """'10 % → 10.0 %, ...': each outlier level with the mean share ``key`` it realised."""
+    return ', '.join(
+        f'{float(k) * 100:.0f} % → {format(v[key]["mean"] * 100, spec)} %'
+        for k, v in levels.items()
+    )
+
+
 def fmt(value: Any, spec: str, missing: str = '–') -> str:
     """Format a number for a markdown table (``missing`` for None/NaN)."""
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
@@ -115,8 +136,9 @@ def fmt(value: Any, spec: str, missing: str = '–') -> str:
     return format(value, spec)
 
 
-def table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
-    """The lines of a markdown table."""
+def table(header: str | Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    """The lines of a markdown table (``header``: the cells, or one string ``'a | b'``)."""
+    header = header.split(' | ') if isinstance(header, str) else header
     lines = ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
     lines += ['| ' + ' | '.join(str(c) for c in row) + ' |' for row in rows]
     return lines

@@ -8,9 +8,11 @@ counted in ``n_errors``) and the experiment goes on.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -107,30 +109,29 @@ def summarize(
 # Pairs
 
 
-def raised(exc: BaseException | str, prep: Any = None) -> dict[str, Any]:
+@dataclass
+class Outcome:
+    """One registration: ``T`` (None when the method raised), the prepared source ``prep``
+    (None when its preparation raised), ``ms`` (source preparation + registration), the
+    source's ``voxel_m`` and what the method reported (``info``)."""
+
+    T: FloatArray | None
+    prep: Any = None
+    ms: float = float('nan')
+    voxel_m: float = float('nan')
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def raised(exc: BaseException | str, prep: Any = None) -> Outcome:
     """The outcome of a registration that raised (no pose, no time)."""
     text = exc if isinstance(exc, str) else f'{type(exc).__name__}: {exc}'
-    return {
-        'T': None,
-        'prep': prep,
-        'ms': float('nan'),
-        'voxel_m': float('nan'),
-        'info': {'error': text},
-    }
+    return Outcome(None, prep, info={'error': text})
 
 
 def register_pair(
     method: RawMethod, source_raw: FloatArray, target_prep: Any, init: FloatArray | None
-) -> dict[str, Any]:
-    """Prepare the raw source, register it.
-
-    Returns
-    -------
-    dict
-        ``T`` (None when the method raised), ``prep`` (the prepared source, None when its
-        preparation raised), ``ms`` (source preparation + registration), the source's
-        ``voxel_m`` and the method's ``info``.
-    """
+) -> Outcome:
+    """Prepare the raw source and register it to the prepared target from ``init``."""
     src = None
     try:
         src, prep_ms = timed(method.prepare, source_raw)
@@ -138,29 +139,17 @@ def register_pair(
     except Exception as exc:  # a method that raises fails the pair
         logger.warning('%s raised: %s', method.name, exc)
         return raised(exc, src)
-    return {
-        'T': T,
-        'prep': src,
-        'ms': prep_ms + reg_ms,
-        'voxel_m': method.voxel(src),
-        'info': info,
-    }
+    return Outcome(T, src, prep_ms + reg_ms, method.voxel(src), info)
 
 
-def pair_record(outcome: dict[str, Any], truth: FloatArray, **extra: Any) -> dict[str, Any]:
-    """The JSON record of a :func:`register_pair` outcome against ``truth``."""
-    e_R, e_t = (float('nan'),) * 2 if outcome['T'] is None else errors(outcome['T'], truth)
-    return {
-        **extra,
-        'e_R_deg': e_R,
-        'e_t_m': e_t,
-        'ms': outcome['ms'],
-        'voxel_m': outcome['voxel_m'],
-        **outcome['info'],
-    }
+def pair_record(outcome: Outcome, truth: FloatArray, **extra: Any) -> dict[str, Any]:
+    """The JSON record of an outcome against ``truth``."""
+    e_R, e_t = (float('nan'),) * 2 if outcome.T is None else errors(outcome.T, truth)
+    record = {**extra, 'e_R_deg': e_R, 'e_t_m': e_t, 'ms': outcome.ms}
+    return record | {'voxel_m': outcome.voxel_m, **outcome.info}
 
 
-def prepare_target(method: RawMethod, raw: FloatArray) -> tuple[Any, dict[str, Any] | None]:
+def prepare_target(method: RawMethod, raw: FloatArray) -> tuple[Any, Outcome | None]:
     """``(prep, None)``, or ``(None, raised outcome)`` when the preparation raised."""
     try:
         return method.prepare(raw), None
@@ -302,3 +291,37 @@ def in_subprocess(
     if proc.stderr.strip():
         result['stderr'] = proc.stderr.strip().splitlines()[-5:]
     return result
+
+
+def cpu_times() -> list[tuple[int, int]]:
+    """(busy, total) jiffies of every core (/proc/stat)."""
+    out = []
+    with open('/proc/stat') as f:
+        for line in f:
+            if line.startswith('cpu') and line[3].isdigit():
+                v = [int(x) for x in line.split()[1:]]
+                idle = v[3] + v[4]
+                out.append((sum(v) - idle, sum(v)))
+    return out
+
+
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of ``pid`` and its descendants so far."""
+    parents: dict[int, int] = {}
+    times: dict[int, float] = {}
+    tick = os.sysconf('SC_CLK_TCK')
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        parents[int(entry.name)] = int(fields[1])
+        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick
+    mine, grew = {pid}, True
+    while grew:
+        more = {p for p, pp in parents.items() if pp in mine} - mine
+        grew = bool(more)
+        mine |= more
+    return sum(times.get(p, 0.0) for p in mine)

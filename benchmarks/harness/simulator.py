@@ -1,36 +1,14 @@
 """Re-simulate the sample's scene along faster trajectories, with exact reference poses.
 
-The sample (`bags/balm_50`) moves 5 cm per scan; the recordings the odometry is judged on
-move faster (the rest of the BALM sequence: about 0.6 m and 8 deg median between scans) and
-their reference poses are estimates good to a few millimetres, which is the size of the
-differences to be measured. This script builds test sequences that have neither limit:
-
-1. **World.** The 50 sample scans, posed by their reference, merged into one cloud and thinned
-   to one point per ``--world-voxel`` cube (default 3 cm). Its blur (the reference's
-   millimetre errors) is part of the world and the same for every simulated scan, so it does
-   not enter the errors.
-2. **Trajectory.** A sensor travelling the sample's path (its reference positions,
-   interpolated by arc length) at ``--step`` metres per scan, with the reference's
-   orientation at that point of the path (slerp) turned further by a yaw oscillation of
-   amplitude ``--yaw-amplitude`` and period ``--yaw-period`` scans, the head-turning of a
-   hand-held sensor. The poses are exact: they are the definition of the sequence.
-3. **Scans.** From each pose, what a 360 deg spinning LiDAR sees of the world: points in range
-   (``--min-range`` .. ``--max-range``) within the sample's elevation band, occluded points
-   removed (a point is hidden when its direction bin of ``--occlusion-bin`` degrees holds a
-   point nearer by more than ``0.1 m + 5 %`` of the range: the tolerance keeps surfaces seen
-   at a grazing angle, whose range varies across a bin), then one point per
-   ``--beam-bin``-degree direction bin (drawn at random: the sensor's angular resolution, so
-   the density falls with range as a real scan's does), then Gaussian range noise of
-   ``--range-noise`` metres along the ray. Every scan samples the world anew (other bins,
-   other noise), so no two scans share a point exactly.
-
-Writes a scan folder (``scan_<i>.pcd``, float32 x y z, and ``alidarPose.csv`` with the exact
-poses, BALM format, stamped at the input's scan rate, so that the speeds are the ones a step
-of that length and turn would have in that recording: 2 Hz for the sample) that
-``kentreg_replay`` and ``benchmarks/odometry.py`` read like any recording;
-``benchmarks/simulated.py`` runs the odometry pipelines on such sequences in memory.
-
-Command line: ``python3 benchmarks/simulate.py --out /tmp/sim_0.6 --step 0.6 --seed 0``.
+The sample (``bags/balm_50``) moves 5 cm per scan and its reference is good to a few mm; this
+builds sequences with neither limit: (1) the world: the 50 scans posed by their reference,
+merged and thinned to one point per ``WORLD_VOXEL`` cube (its blur is the same for every
+simulated scan); (2) the trajectory: the sample's path at ``step`` metres per scan with the
+reference's orientation (slerp) turned by an optional yaw oscillation; (3) the scans: what a
+360 deg spinning LiDAR sees from each pose (points in range and in the sample's elevation band,
+occlusion per direction bin with a tolerance for grazing surfaces, one point per beam bin drawn
+at random, Gaussian range noise), optionally over a sweep with every point timed. The poses
+are exact: they define the sequence. ``benchmarks/simulate.py`` writes one as a scan folder.
 """
 
 from __future__ import annotations
