@@ -59,11 +59,12 @@ def _ouster_like(n: int, rng: np.random.Generator) -> Any:
     arr['x'][::50] = np.nan  # 2 % invalid returns, as an organised cloud has
     fac = rosbags_factory()
     codes = {'f4': 7, 'u4': 6, 'u2': 4}
+    offsets = {name: spec[1] for name, spec in (layout.fields or {}).items()}
     fields = [
         fac.point_field(
-            name=name, offset=layout.fields[name][1], datatype=codes[layout[name].str[1:]], count=1
+            name=name, offset=offsets[name], datatype=codes[layout[name].str[1:]], count=1
         )
-        for name in layout.names
+        for name in layout.names or ()
     ]
     height = 128
     return fac.point_cloud2(

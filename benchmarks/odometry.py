@@ -261,6 +261,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     runs = runners_for(scans, cfg, voxel, args)
     doc['reference_T_world_lidar'] = T_gt
     doc['methods'] = _evaluate_all(args.methods, runs, T_gt, args.rounds)
+    if 'settings' in doc['methods'].get('gicp', {}):
+        choice = "kentreg's automatic voxel size for the first scan"
+        doc['methods']['gicp']['settings']['voxel_choice'] = choice
     alive = [n for n in args.methods if 'error' not in doc['methods'][n]]
     doc['strides'] = {}
     for n in args.strides:

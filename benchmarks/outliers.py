@@ -17,7 +17,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 
@@ -30,8 +30,10 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('outliers')
 
 LEVELS = (0.0, 0.1, 0.2, 0.3, 0.4)
-Data, Methods = datasets.Sequence, Sequence[methods.Method]
-Floats, Ints = Sequence[float], Sequence[int]
+Data: TypeAlias = datasets.Sequence
+Methods: TypeAlias = Sequence[methods.Method]
+Floats: TypeAlias = Sequence[float]
+Ints: TypeAlias = Sequence[int]
 
 
 def _trial(m: methods.Method, target: Any, source: Any, init: Any, truth: Any) -> dict[str, Any]:

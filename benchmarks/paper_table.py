@@ -17,7 +17,7 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 
@@ -30,8 +30,10 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('paper_table')
 
 STARTS = ('identity', 'constant_velocity')
-Data, Methods = datasets.Sequence, Sequence[methods.Method]
-Ints, Strs = Sequence[int], Sequence[str]
+Data: TypeAlias = datasets.Sequence
+Methods: TypeAlias = Sequence[methods.Method]
+Ints: TypeAlias = Sequence[int]
+Strs: TypeAlias = Sequence[str]
 #: The paper's Table 1 (ETH Hauptgebaeude, from identity): average e_R (deg), e_t (m).
 PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
     'icp_pt2pt': ('ICP', 1.27, 0.403),

@@ -210,7 +210,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     samples: dict[str, list[dict[str, Any]]] = {m: [] for m in args.methods}
     with tempfile.TemporaryDirectory() as tmp:
         scans_file = Path(tmp) / 'scans.npz'
-        np.savez(scans_file, n=n, **{f's{i}': np.asarray(s.points) for i, s in enumerate(scans)})
+        arrays: dict[str, Any] = {f's{i}': np.asarray(s.points) for i, s in enumerate(scans)}
+        np.savez(scans_file, n=n, **arrays)
         for r, method in runner.rotated(list(args.methods), args.rounds):
             t0 = time.perf_counter()
             res = runner.in_subprocess(__file__, [method, str(scans_file), '0'])

@@ -16,7 +16,7 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ def _stat(summary: dict[str, Any], key: str, stat: str, scale: float = 1.0) -> s
 
 def _commit(meta: dict[str, Any]) -> str:
     """The commit a results file records (the benchmarks name it in slightly different keys)."""
-    machine = meta.get('machine') if isinstance(meta.get('machine'), dict) else {}
+    machine: dict[str, Any] = meta['machine'] if isinstance(meta.get('machine'), dict) else {}
     for value in (machine.get('git'), machine.get('git_commit'), meta.get('git')):
         if value:
             return str(value)
@@ -177,6 +177,15 @@ def _load(path: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def _paste(body: str) -> Callable[[re.Match[str]], str]:
+    """A ``re.sub`` replacement putting ``body`` between a block's markers."""
+
+    def paste(m: re.Match[str]) -> str:
+        return m.group(1) + body.rstrip('\n') + '\n' + m.group(2)
+
+    return paste
+
+
 def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
     """``text`` with every block pasted between its markers; also the names without markers."""
     missing = []
@@ -187,7 +196,7 @@ def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
         if not pattern.search(text):
             missing.append(name)
             continue
-        text = pattern.sub(lambda m, b=body: m.group(1) + b.rstrip('\n') + '\n' + m.group(2), text)
+        text = pattern.sub(_paste(body), text)
     return text, missing
 
 

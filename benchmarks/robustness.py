@@ -22,7 +22,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -39,8 +39,11 @@ from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # no
 
 logger = logging.getLogger('robustness')
 
-Data, Methods = datasets.Sequence, Sequence[methods.RawMethod]
-Floats, Ints, FloatArray = Sequence[float], Sequence[int], runner.FloatArray
+Data: TypeAlias = datasets.Sequence
+Methods: TypeAlias = Sequence[methods.RawMethod]
+Floats: TypeAlias = Sequence[float]
+Ints: TypeAlias = Sequence[int]
+FloatArray: TypeAlias = runner.FloatArray
 TESTS = ('strides', 'outliers', 'turned')
 DEFAULT_METHODS = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
 STRIDES = (1, 2, 3, 4)

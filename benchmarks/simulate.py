@@ -40,7 +40,7 @@ logger = logging.getLogger('simulate')
 
 def write_balm_poses(path: Path, T: FloatArray, stamps_s: FloatArray) -> None:
     """``alidarPose.csv``: the 3x4 ``[R | t]`` and ``0,0,0,<time>`` per pose (17 digits)."""
-    lines = []
+    lines: list[str] = []
     for Ti, ts in zip(T, stamps_s, strict=True):
         lines.extend(','.join(f'{v:.17g}' for v in row) + ',' for row in Ti[:3])
         lines.append(f'0,0,0,{ts:.9f},')

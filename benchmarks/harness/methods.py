@@ -167,20 +167,25 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
 
         return run
 
-    params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS}
-    params |= {'relative_fitness': 1e-6, 'relative_rmse': 1e-6, 'open3d': o3d.__version__}
+    params: dict[str, Any] = {'max_correspondence_distance': gate}
+    params |= {
+        'max_iterations': MAX_ITERATIONS,
+        'relative_fitness': 1e-6,
+        'relative_rmse': 1e-6,
+        'open3d': o3d.__version__,
+    }
     out = []
     if 'icp_pt2pt' in names:
-        est = reg.TransformationEstimationPointToPoint()
-        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, make_register(est), params))
+        pt2pt = make_register(reg.TransformationEstimationPointToPoint())
+        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, pt2pt, params))
     if 'icp_pt2pl' in names:
-        est = reg.TransformationEstimationPointToPlane()
+        pt2pl = make_register(reg.TransformationEstimationPointToPlane())
         out.append(
             Method(
                 'icp_pt2pl',
                 'open3d',
                 prepare_pt2pl,
-                make_register(est),
+                pt2pl,
                 {**params, 'normal_neighbors': NORMAL_NEIGHBORS},
             )
         )
@@ -211,8 +216,12 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
         )  # fmt: skip
         return np.array(result.T_target_source, dtype=np.float64)
 
-    params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS}
-    params |= {'covariance_neighbors': NORMAL_NEIGHBORS, 'threads': n_threads}
+    params: dict[str, Any] = {'max_correspondence_distance': gate}
+    params |= {
+        'max_iterations': MAX_ITERATIONS,
+        'covariance_neighbors': NORMAL_NEIGHBORS,
+        'threads': n_threads,
+    }
     params['convergence'] = 'small_gicp defaults (0.1 deg, 1 mm)'
     return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
 
@@ -251,7 +260,8 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
         "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
         'KISS-ICP sets it) against a voxel hash map of the target scan'
     )
-    params = {'max_correspondence_distance': gate, 'kernel': gate / 3.0, 'map_voxel': map_voxel}
+    params: dict[str, Any] = {'max_correspondence_distance': gate, 'kernel': gate / 3.0}
+    params['map_voxel'] = map_voxel
     params |= {'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4, 'note': note}
     return [Method('kiss_icp', 'kiss_icp', prepare, run, params)]
 

@@ -9,13 +9,13 @@ downsampled cloud), :func:`offset_transform` (a start off by exact errors), :fun
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from kentreg_ros.core import voxel_downsample
-from kentreg_ros.core.scan.voxels import _voxel_keys
 from kentreg_ros.io.sources import Scan
 
 FloatArray = NDArray[np.float64]
@@ -52,7 +52,9 @@ def raw_outliers(
             Scan(
                 s.stamp_ns,
                 s.frame_id,
-                inject_raw_outliers(s.points, fraction, rng, shell_share=shell_share)[0],
+                inject_raw_outliers(
+                    np.asarray(s.points, dtype=np.float64), fraction, rng, shell_share=shell_share
+                )[0],
                 {},
             )
             for s in scans
@@ -146,21 +148,30 @@ def inject_free_voxel_outliers(
     lo, hi = points.min(axis=0), points.max(axis=0)
     grid = (lo, hi)  # every point lies in the raw box, so keys on its grid name voxels alike
     chosen = np.empty((0, 3))
-    taken = np.unique(_voxel_keys(clean, voxel, grid))
+    taken = np.unique(_cell_keys(clean, voxel, grid))
     for _ in range(100):
         draw = rng.uniform(lo, hi, size=(2 * (n_out - len(chosen)) + 16, 3))
-        keys = _voxel_keys(draw, voxel, grid)
+        keys = _cell_keys(draw, voxel, grid)
         free = ~np.isin(keys, taken)
         _, first = np.unique(keys[free], return_index=True)
         new = draw[free][np.sort(first)][: n_out - len(chosen)]
         chosen = np.concatenate([chosen, new])
-        taken = np.union1d(taken, _voxel_keys(new, voxel, grid))
+        taken = np.union1d(taken, _cell_keys(new, voxel, grid))
         if len(chosen) == n_out:
             break
     else:
         raise ValueError('The bounding box has too few free voxels for the requested outliers.')
     cloud = voxel_downsample(np.concatenate([points, chosen]), voxel)
     return cloud, (len(cloud) - len(clean)) / len(cloud)
+
+
+def _cell_keys(points: FloatArray, voxel: float, grid: tuple[FloatArray, FloatArray]) -> Any:
+    """Linear index of each point's voxel in the grid spanning ``grid = (lo, hi)``, numbered as
+    kentreg's voxel downsampling numbers them (``floor(p / voxel)``, x then y then z)."""
+    corner = np.floor(grid[0] / voxel)
+    span = np.floor(grid[1] / voxel) - corner + 1.0
+    f = np.floor(points / voxel) - corner
+    return ((f[:, 0] * span[1] + f[:, 1]) * span[2] + f[:, 2]).astype(np.int64)
 
 
 def outlier_voxel_share(cloud: FloatArray, is_outlier: BoolArray, voxel: float) -> float:
