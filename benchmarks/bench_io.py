@@ -22,8 +22,10 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
 
+from benchmarks.harness.datasets import SAMPLE_BAG, SHARED_DATA  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, pointcloud2_to_array  # noqa: E402
 from kentreg_ros.io.scanfiles import read_pcd  # noqa: E402
 from kentreg_ros.io.sources import open_scan_source  # noqa: E402
@@ -57,11 +59,12 @@ def _ouster_like(n: int, rng: np.random.Generator) -> Any:
     arr['x'][::50] = np.nan  # 2 % invalid returns, as an organised cloud has
     fac = rosbags_factory()
     codes = {'f4': 7, 'u4': 6, 'u2': 4}
+    offsets = {name: spec[1] for name, spec in (layout.fields or {}).items()}
     fields = [
         fac.point_field(
-            name=name, offset=layout.fields[name][1], datatype=codes[layout[name].str[1:]], count=1
+            name=name, offset=offsets[name], datatype=codes[layout[name].str[1:]], count=1
         )
-        for name in layout.names
+        for name in layout.names or ()
     ]
     height = 128
     return fac.point_cloud2(
@@ -120,7 +123,7 @@ def main() -> None:
             _time(lambda: array_to_pointcloud2(xyz), args.repeat),
         )
     )
-    balm = REPO.parent / 'shared' / 'data' / 'balm' / 'full0.pcd'
+    balm = SHARED_DATA / 'balm' / 'full0.pcd'
     if balm.is_file():
         rows.append(
             (
@@ -128,7 +131,7 @@ def main() -> None:
                 _time(lambda: read_pcd(balm), max(args.repeat // 10, 5)),
             )
         )
-    bag = REPO / 'bags' / 'balm_50'
+    bag = SAMPLE_BAG
     if bag.is_dir():
         rows.append(
             (

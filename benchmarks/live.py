@@ -1,33 +1,16 @@
 """Live at sensor rate: ``kentreg_node`` fed a recording at its real rate over loopback DDS.
 
-What a new user gets: the node started as ``kentreg_node`` (its own process, its defaults but
-the model and the pipeline under test), a 10 Hz stream of raw scans published by this process at
-the recorded rate, nothing waiting for the node, Fast DDS with the shipped shared-memory profile
-(``config/fastdds_shm.xml``) or UDP on loopback only. Streams:
-
-``kitti_hdl64``
-    ``../shared/data/kitti_raw_hdl64``: 50 street frames of a 10 Hz Velodyne HDL-64E, 122k-124k
-    points (no per-point times).
-``balm_10hz``
-    ``../shared/data/balm``: the 50 raw BALM scans (72k-90k points) published at 10 Hz, five
-    times their recorded rate (the motion per scan is the recording's).
-
-Per run (:func:`measure_live`): scans published, odometry messages received and dropped (no
-odometry for the scan's stamp), the latency from publishing a cloud to receiving its odometry
-(p50 / p95 / max: an upper bound of the node's receipt-to-publication latency, which it also
-reports in ``diagnostics``, mean and max), and the CPU use of each core and of the node's
-processes over the stream. Beside it, per scan on this machine: the stage times of the
-sequential loop (:func:`measure_stages`) and the time per scan of the sequential and the
-pipelined loop fed as fast as they take it (:func:`measure_throughput`); and the per-scan table
-against GICP and KISS-ICP (``benchmarks/per_scan.py``, one thread each), from the same run.
+The node started as a user starts it, a 10 Hz stream of raw scans (``kitti_hdl64``: the HDL-64E
+street frames; ``balm_10hz``: the BALM scans at five times their rate) published without
+waiting for it over Fast DDS (the shipped shared-memory profile, or loopback UDP). Per run
+(:func:`measure_live`): drops, publish-to-odometry latency, CPU per core and of the node; beside
+it the sequential loop's stages (:func:`measure_stages`), sequential against pipelined
+throughput (:func:`measure_throughput`) and ``per_scan.py``'s table from the same run.
 
 Usage::
 
     python3 benchmarks/live.py                       # everything, ~10 min
     python3 benchmarks/live.py --streams kitti_hdl64 --models local_map --no-per-scan
-
-Writes ``benchmarks/results/live.json`` and ``live.md``. The measuring functions take the scans
-and stamps and return a result dict, so a harness can run them on any recording.
 """
 
 from __future__ import annotations
@@ -52,7 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.common import RESULTS, SHARED_DATA, git_describe, machine_info  # noqa: E402
+from benchmarks.harness import runner  # noqa: E402
+from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
+from benchmarks.harness.report import RESULTS, git_describe, machine_info, table  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 Scans = Sequence[NDArray[Any]]
@@ -85,15 +70,10 @@ DRAIN_S = 3.0
 
 def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int], float]:
     """The first ``n`` scans of a stream as float32 (N, 3), their stamps (ns) and its rate."""
-    from kentreg_ros.io import read_scan
-
-    if name == 'kitti_hdl64':
-        files = sorted((SHARED_DATA / 'kitti_raw_hdl64').glob('*.bin'))[:n]
-    elif name == 'balm_10hz':
-        files = [SHARED_DATA / 'balm' / f'full{i}.pcd' for i in range(n)]
-    else:
+    loaders = {'kitti_hdl64': load_kitti_hdl64, 'balm_10hz': load_balm}
+    if name not in loaders:
         raise ValueError(f'unknown stream {name!r}')
-    scans = [np.asarray(read_scan(f).points, dtype=np.float32) for f in files]
+    scans = [np.asarray(s.points, dtype=np.float32) for s in loaders[name]().scans[:n]]
     rate = 10.0
     stamps = [1_700_000_000 * 10**9 + int(i * 1e9 / rate) for i in range(len(scans))]
     return scans, stamps, rate
@@ -101,40 +81,6 @@ def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int]
 
 # ------------------------------------------------------------------------------------------------
 # CPU
-
-
-def _cpu_times() -> list[tuple[int, int]]:
-    """(busy, total) jiffies of every core (/proc/stat)."""
-    out = []
-    with open('/proc/stat') as f:
-        for line in f:
-            if line.startswith('cpu') and line[3].isdigit():
-                v = [int(x) for x in line.split()[1:]]
-                idle = v[3] + v[4]
-                out.append((sum(v) - idle, sum(v)))
-    return out
-
-
-def _tree_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of ``pid`` and its descendants so far."""
-    parents: dict[int, int] = {}
-    times: dict[int, float] = {}
-    tick = os.sysconf('SC_CLK_TCK')
-    for entry in Path('/proc').iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
-        except OSError:
-            continue
-        parents[int(entry.name)] = int(fields[1])
-        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick
-    mine, grew = {pid}, True
-    while grew:
-        more = {p for p, pp in parents.items() if pp in mine} - mine
-        grew = bool(more)
-        mine |= more
-    return sum(times.get(p, 0.0) for p in mine)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -182,22 +128,7 @@ def measure_live(
     from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
 
     ns = f'/live_{uuid.uuid4().hex[:8]}'
-    cmd = [
-        sys.executable,
-        '-m',
-        'kentreg_ros.ros.node',
-        '--ros-args',
-        '-r',
-        f'__ns:={ns}',
-        '-r',
-        f'{names.DIAGNOSTICS}:={ns}/diagnostics',
-        '-p',
-        f'model:={model}',
-        '-p',
-        f'pipeline:={pipeline}',
-        '-p',
-        'diagnostics_period:=1.0',
-    ]
+    cmd = _node_command(ns, names.DIAGNOSTICS, model, pipeline)
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
@@ -234,7 +165,7 @@ def measure_live(
                 raise RuntimeError(f'kentreg_node did not come up:\n{_log_text(log)}')
             time.sleep(0.05)
         time.sleep(SETTLE_S)
-        cpu0, node0, t0 = _cpu_times(), _tree_cpu_s(proc.pid), time.monotonic()
+        cpu0, node0, t0 = runner.cpu_times(), runner.tree_cpu_s(proc.pid), time.monotonic()
         sent: dict[int, float] = {}
         period = 1.0 / rate_hz
         for i, (msg, stamp) in enumerate(zip(messages, stamps, strict=True)):
@@ -243,50 +174,64 @@ def measure_live(
             sent[stamp] = time.monotonic()
             pub.publish(msg)
         stream_s = time.monotonic() - t0
-        cpu1, node1 = _cpu_times(), _tree_cpu_s(proc.pid)
+        cpu1, node1 = runner.cpu_times(), runner.tree_cpu_s(proc.pid)
         time.sleep(DRAIN_S)
     finally:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
-        proc.send_signal(2)  # Ctrl-C, as a user stops it
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        _stop_node(proc)
     latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
     cores = [
         round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
         for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)
     ]
-    last = diagnostics[-1] if diagnostics else {}
     return {
         'model': model,
         'pipeline': pipeline,
         'dds': profile,
         'rate_hz': rate_hz,
-        'published': len(sent),
-        'processed': int(len(latency)),
-        'dropped': len(sent) - int(len(latency)),
-        'dropped_pct': round(100.0 * (len(sent) - len(latency)) / max(len(sent), 1), 1),
-        'latency_ms': _quantiles(latency),
-        'node_diagnostics': {
-            k: last.get(k, '')
-            for k in (
-                'total.received',
-                'total.published',
-                'total.dropped_queue',
-                'total.errors',
-                'total.fell_back',
-            )
-        },
-        'node_latency_ms_mean_max': [
-            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
-        ],
+        **_delivery(len(sent), latency, diagnostics),
         'cpu_pct_per_core': cores,
         'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
         'exit_code': proc.returncode,
+    }
+
+
+def _node_command(ns: str, diagnostics: str, model: str, pipeline: str) -> list[str]:
+    """``kentreg_node`` in namespace ``ns`` with the model and pipeline under test."""
+    remap = ['-r', f'__ns:={ns}', '-r', f'{diagnostics}:={ns}/diagnostics']
+    params = [f'model:={model}', f'pipeline:={pipeline}', 'diagnostics_period:=1.0']
+    node = [sys.executable, '-m', 'kentreg_ros.ros.node', '--ros-args', *remap]
+    return node + [arg for p in params for arg in ('-p', p)]
+
+
+def _stop_node(proc: subprocess.Popen[bytes]) -> None:
+    """Ctrl-C, as a user stops it; killed after 20 s."""
+    proc.send_signal(2)
+    try:
+        proc.wait(20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _delivery(
+    n_sent: int, latency: NDArray[Any], diagnostics: list[dict[str, str]]
+) -> dict[str, Any]:
+    """Published, processed and dropped scans, the latency and the node's own diagnostics."""
+    last = diagnostics[-1] if diagnostics else {}
+    keys = ('received', 'published', 'dropped_queue', 'errors', 'fell_back')
+    return {
+        'published': n_sent,
+        'processed': int(len(latency)),
+        'dropped': n_sent - int(len(latency)),
+        'dropped_pct': round(100.0 * (n_sent - len(latency)) / max(n_sent, 1), 1),
+        'latency_ms': _quantiles(latency),
+        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
+        'node_latency_ms_mean_max': [
+            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
+        ],
     }
 
 
@@ -297,12 +242,9 @@ def _log_text(log: Any) -> str:
 
 def _quantiles(values: NDArray[Any]) -> dict[str, float]:
     if not len(values):
-        return {'p50': float('nan'), 'p95': float('nan'), 'max': float('nan')}
-    return {
-        'p50': round(float(np.percentile(values, 50)), 1),
-        'p95': round(float(np.percentile(values, 95)), 1),
-        'max': round(float(np.max(values)), 1),
-    }
+        return dict.fromkeys(('p50', 'p95', 'max'), float('nan'))
+    p50, p95 = (round(float(np.percentile(values, q)), 1) for q in (50, 95))
+    return {'p50': p50, 'p95': p95, 'max': round(float(np.max(values)), 1)}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -388,7 +330,7 @@ def measure_throughput(
             worker = pipelined.worker_pid
             got = []
             t0, c0 = time.perf_counter(), time.process_time()
-            w0 = _tree_cpu_s(worker) if worker else 0.0
+            w0 = runner.tree_cpu_s(worker) if worker else 0.0
             pipelined.prefetch(scans[0], stamps[0])
             for i, (p, s) in enumerate(zip(scans, stamps, strict=True)):
                 if i + 1 < len(scans):
@@ -397,7 +339,7 @@ def measure_throughput(
             pipelined.update_model()
             times['pipelined'].append(1e3 * (time.perf_counter() - t0) / n)
             cpu['main'].append(1e3 * (time.process_time() - c0) / n)
-            w1 = _tree_cpu_s(worker) if worker else 0.0
+            w1 = runner.tree_cpu_s(worker) if worker else 0.0
             cpu['worker'].append(1e3 * (w1 - w0) / n)
             poses['pipelined'] = got
     seq, pipe = (float(np.median(times[k])) for k in ('sequential', 'pipelined'))
@@ -496,28 +438,31 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
     if options.per_scan:
         out = tmp / 'per_scan'
         print('live: per_scan.py kentreg gicp kiss_icp', flush=True)
-        subprocess.run(
-            [
-                'nice',
-                sys.executable,
-                str(ROOT / 'benchmarks' / 'per_scan.py'),
-                '--methods',
-                'kentreg',
-                'gicp',
-                'kiss_icp',
-                '--rounds',
-                str(options.per_scan_rounds),
-                '--long-steps',
-                '0',  # the memory run is per_scan.py's own business
-                '--out',
-                str(out),
-            ],
-            check=True,
-        )
+        script = str(ROOT / 'benchmarks' / 'per_scan.py')
+        rounds = ['--rounds', str(options.per_scan_rounds)]
+        # The memory run (--long-steps) is per_scan.py's own business.
+        cmd = [*('nice', sys.executable, script, '--methods', 'kentreg', 'gicp', 'kiss_icp'),
+               *rounds, '--long-steps', '0', '--out', str(out)]  # fmt: skip
+        subprocess.run(cmd, check=True)
         doc['per_scan'] = json.loads((out / 'per_scan.json').read_text())
         doc['per_scan_table'] = (out / 'per_scan.md').read_text()
     doc['load_end'] = [round(x, 2) for x in _load()]
     return doc
+
+
+def _live_row(stream: str, r: dict[str, Any]) -> list[Any]:
+    lat, cores = r['latency_ms'], ' / '.join(str(c) for c in r['cpu_pct_per_core'])
+    dropped = f'{r["dropped"]}/{r["published"]} ({r["dropped_pct"]} %)'
+    latency = f'{lat["p50"]} / {lat["p95"]} / {lat["max"]}'
+    return [stream, r['model'], r['pipeline'], r['dds'], dropped, latency, cores,
+            r['node_cpu_pct'], r['load_before']]  # fmt: skip
+
+
+def _stage_row(stream: str, model: str, st: dict[str, Any], th: dict[str, Any]) -> list[Any]:
+    total, cpu = f'{st["total"]} / {st["total_p95"]}', f'{st["cpu"]} / {st["cpu_p95"]}'
+    fed = f'{th["sequential_ms"]} / {th["pipelined_ms"]}'
+    return [stream, model, st['prepare'], st['register'], st['model'], total, cpu, fed,
+            f'{th["speedup"]}x', th['poses_identical']]  # fmt: skip
 
 
 def render(doc: dict[str, Any]) -> str:
@@ -533,37 +478,25 @@ def render(doc: dict[str, Any]) -> str:
         'each core over the stream (the machine is shared: the load average is the 1-minute '
         "one before each run), and the node's processes (100 % = one core).",
         '',
-        '| stream | model | pipeline | DDS | dropped | latency p50 / p95 / max (ms) | '
-        'cores busy (%) | node CPU (%) | load |',
-        '|---|---|---|---|---|---|---|---|---|',
-    ]
-    for stream, entry in doc['streams'].items():
-        for r in entry['live']:
-            lat = r['latency_ms']
-            lines.append(
-                f'| {stream} | {r["model"]} | {r["pipeline"]} | {r["dds"]} | '
-                f'{r["dropped"]}/{r["published"]} ({r["dropped_pct"]} %) | '
-                f'{lat["p50"]} / {lat["p95"]} / {lat["max"]} | '
-                f'{" / ".join(str(c) for c in r["cpu_pct_per_core"])} | {r["node_cpu_pct"]} | '
-                f'{r["load_before"]} |'
-            )
-    lines += [
+        *table(
+            'stream | model | pipeline | DDS | dropped | latency p50 / p95 / max (ms) '
+            '| cores busy (%) | node CPU (%) | load',
+            [_live_row(stream, r) for stream, e in doc['streams'].items() for r in e['live']],
+        ),
         '',
         '## Per scan on this machine (one thread; sequential loop stages, median ms)',
         '',
-        '| stream | model | prepare | register | model upkeep | total p50 / p95 | CPU p50 / p95 | '
-        'sequential / pipelined fed at once (ms/scan) | speed-up | poses identical |',
-        '|---|---|---|---|---|---|---|---|---|---|',
+        *table(
+            'stream | model | prepare | register | model upkeep | total p50 / p95 '
+            '| CPU p50 / p95 | sequential / pipelined fed at once (ms/scan) | speed-up '
+            '| poses identical',
+            [
+                _stage_row(stream, model, st, e['throughput'][model])
+                for stream, e in doc['streams'].items()
+                for model, st in e['stages'].items()
+            ],
+        ),
     ]
-    for stream, entry in doc['streams'].items():
-        for model, st in entry['stages'].items():
-            th = entry['throughput'][model]
-            lines.append(
-                f'| {stream} | {model} | {st["prepare"]} | {st["register"]} | {st["model"]} | '
-                f'{st["total"]} / {st["total_p95"]} | {st["cpu"]} / {st["cpu_p95"]} | '
-                f'{th["sequential_ms"]} / '
-                f'{th["pipelined_ms"]} | {th["speedup"]}x | {th["poses_identical"]} |'
-            )
     lines.append('')
     for stream, entry in doc['streams'].items():
         st = entry['stages']
@@ -606,52 +539,47 @@ def _relative(text: str) -> str:
     return text.replace(str(ROOT) + '/', '').replace(str(ROOT.parent) + '/', '../')
 
 
+MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
+    'ratio': measure_model_ratio,
+    'live': measure_live,
+    'stages': measure_stages,
+    'throughput': measure_throughput,
+}
+OPTIONS: list[tuple[str, dict[str, Any]]] = [
+    ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),
+    ('--models', {'nargs': '+', 'default': ['previous_scan', 'local_map']}),
+    ('--pipelines', {'nargs': '+', 'default': ['process', 'sequential']}),
+    ('--dds', {'nargs': '+', 'default': ['shm'], 'choices': ['shm', 'udp']}),
+    ('--scans', {'type': int, 'default': 50}),
+    ('--rounds', {'type': int, 'default': 1}),
+    ('--no-per-scan', {'dest': 'per_scan', 'action': 'store_false'}),
+    ('--per-scan-rounds', {'type': int, 'default': 2}),
+    ('--live-nice', {'type': int, 'default': 0, 'help': 'niceness of the live runs (node and '
+                     'publisher; default 0, as a user runs them: on a shared machine, work at a '
+                     'higher niceness then takes the leftover CPU); the offline measurements run '
+                     'at 10'}),
+    ('--add-ratio', {'action': 'store_true', 'help': 'only measure the local-map / previous-scan '
+                     'ratio (alternating rounds) and add it to an existing live.json in --out'}),
+    ('--out', {'type': Path, 'default': RESULTS}),
+    ('--child', {'nargs': 4, 'help': argparse.SUPPRESS}),  # one measurement
+]  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--streams', nargs='+', default=['kitti_hdl64', 'balm_10hz'])
-    parser.add_argument('--models', nargs='+', default=['previous_scan', 'local_map'])
-    parser.add_argument('--pipelines', nargs='+', default=['process', 'sequential'])
-    parser.add_argument('--dds', nargs='+', default=['shm'], choices=['shm', 'udp'])
-    parser.add_argument('--scans', type=int, default=50)
-    parser.add_argument('--rounds', type=int, default=1)
-    parser.add_argument('--no-per-scan', dest='per_scan', action='store_false')
-    parser.add_argument('--per-scan-rounds', type=int, default=2)
-    parser.add_argument(
-        '--live-nice',
-        type=int,
-        default=0,
-        help='niceness of the live runs (node and publisher; default 0, as a user runs them: '
-        'on a shared machine, work at a higher niceness then takes the leftover CPU); the '
-        'offline measurements run at 10',
-    )
-    parser.add_argument(
-        '--add-ratio',
-        action='store_true',
-        help='only measure the local-map / previous-scan ratio (alternating rounds) and add it '
-        'to an existing live.json in --out',
-    )
-    parser.add_argument('--out', type=Path, default=RESULTS)
-    parser.add_argument('--child', nargs=4, help=argparse.SUPPRESS)  # one measurement
+    for flag, kwargs in OPTIONS:
+        parser.add_argument(flag, **kwargs)
     options = parser.parse_args(argv)
     if options.child:
         kind, stream, n, kwargs = options.child
         scans, stamps, rate = load_stream(stream, int(n))
-        measure: dict[str, Callable[..., dict[str, Any]]] = {
-            'ratio': measure_model_ratio,
-            'live': measure_live,
-            'stages': measure_stages,
-            'throughput': measure_throughput,
-        }
         kw = json.loads(kwargs) | ({'rate_hz': rate} if kind == 'live' else {})
-        print('RESULT' + json.dumps(measure[kind](scans, stamps, **kw)))
+        print('RESULT' + json.dumps(MEASURES[kind](scans, stamps, **kw)))
         return 0
     if options.add_ratio:
         doc = json.loads((options.out / 'live.json').read_text())
-        env = _node_env('shm', Path(tempfile.mkdtemp(prefix='kentreg_live_'))) | {
-            'OMP_NUM_THREADS': '1',
-            'OPENBLAS_NUM_THREADS': '1',
-            'MKL_NUM_THREADS': '1',
-        }
+        env = _node_env('shm', Path(tempfile.mkdtemp(prefix='kentreg_live_')))
+        env |= dict.fromkeys(('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'), '1')
         for stream in options.streams:
             load = _load()[0]
             ratio = _in_child('ratio', stream, options.scans, {}, env)

@@ -1,34 +1,8 @@
-"""Re-simulate the sample's scene along faster trajectories, with exact reference poses.
+"""Write a re-simulated sequence (``benchmarks/harness/simulator.py``) as a scan folder.
 
-The sample (`bags/balm_50`) moves 5 cm per scan; the recordings the odometry is judged on
-move faster (the rest of the BALM sequence: about 0.6 m and 8 deg median between scans) and
-their reference poses are estimates good to a few millimetres, which is the size of the
-differences to be measured. This script builds test sequences that have neither limit:
-
-1. **World.** The 50 sample scans, posed by their reference, merged into one cloud and thinned
-   to one point per ``--world-voxel`` cube (default 3 cm). Its blur (the reference's
-   millimetre errors) is part of the world and the same for every simulated scan, so it does
-   not enter the errors.
-2. **Trajectory.** A sensor travelling the sample's path (its reference positions,
-   interpolated by arc length) at ``--step`` metres per scan, with the reference's
-   orientation at that point of the path (slerp) turned further by a yaw oscillation of
-   amplitude ``--yaw-amplitude`` and period ``--yaw-period`` scans, the head-turning of a
-   hand-held sensor. The poses are exact: they are the definition of the sequence.
-3. **Scans.** From each pose, what a 360 deg spinning LiDAR sees of the world: points in range
-   (``--min-range`` .. ``--max-range``) within the sample's elevation band, occluded points
-   removed (a point is hidden when its direction bin of ``--occlusion-bin`` degrees holds a
-   point nearer by more than ``0.1 m + 5 %`` of the range: the tolerance keeps surfaces seen
-   at a grazing angle, whose range varies across a bin), then one point per
-   ``--beam-bin``-degree direction bin (drawn at random: the sensor's angular resolution, so
-   the density falls with range as a real scan's does), then Gaussian range noise of
-   ``--range-noise`` metres along the ray. Every scan samples the world anew (other bins,
-   other noise), so no two scans share a point exactly.
-
-Writes a scan folder (``scan_<i>.pcd``, float32 x y z, and ``alidarPose.csv`` with the exact
-poses, BALM format, stamped at the input's scan rate, so that the speeds are the ones a step
-of that length and turn would have in that recording: 2 Hz for the sample) that
-``kentreg_replay`` and ``benchmarks/odometry.py`` read like any recording;
-``benchmarks/simulated.py`` runs the odometry pipelines on such sequences in memory.
+``scan_<i>.pcd`` (float32 x y z, and ``t`` with sweeps) and ``alidarPose.csv`` with the exact
+poses (BALM format, stamped at the input's scan rate), which ``kentreg_replay`` and
+``benchmarks/odometry.py`` read like any recording.
 
 Usage::
 
@@ -41,299 +15,80 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm, logm
-from scipy.spatial.transform import Rotation, Slerp
-
-from kentreg_ros.eval import GroundTruth
-from kentreg_ros.io import open_recording
-from kentreg_ros.io.poses import Trajectory
-from kentreg_ros.io.scanfiles import write_pcd
-from kentreg_ros.io.sources import Scan
-
-FloatArray = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_INPUT = ROOT / 'bags' / 'balm_50'
-#: Thinning of the merged world (m): finer than the simulated beams' footprint at 4 m
-#: (0.5 deg -> 3.5 cm), so the beams, not the world's grid, set a scan's sampling.
-WORLD_VOXEL = 0.03
-#: Elevation band of the sample's sensor (deg): what the simulated sensor sees.
-ELEVATION_DEG = (-45.0, 45.0)
-#: Time slices of a sweep: the points of a slice share the pose of its middle (at 10 Hz,
-#: 0.5 ms: 0.6 mm at 1.2 m/s, 0.2 mm per 10 m at 30 deg/s).
-SWEEP_SLICES = 200
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
+from benchmarks.harness.simulator import (  # noqa: E402
+    DEFAULT_INPUT,
+    WORLD_VOXEL,
+    Sensor,
+    build_world,
+    motion_stats,
+    simulate,
+)
+from kentreg_ros.io.scanfiles import write_pcd  # noqa: E402
+
+FloatArray = NDArray[np.float64]
 logger = logging.getLogger('simulate')
-
-
-@dataclass(frozen=True)
-class Sensor:
-    """The simulated spinning LiDAR (see the module's description; angles in degrees)."""
-
-    occlusion_bin: float = 1.0
-    beam_bin: float = 0.5
-    range_noise: float = 0.02
-    min_range: float = 1.0
-    max_range: float = 30.0
-    #: Duration of one sweep (s); 0 takes every point at the scan's stamp. With a sweep, the
-    #: sensor turns once, ending at the stamp (azimuth -180 deg first), moving meanwhile with
-    #: the velocity that brought it from the previous scan, and every point carries its time
-    #: in the field ``t`` (s from the stamp, negative).
-    sweep_period: float = 0.0
-
-
-@dataclass
-class World:
-    """The merged cloud, the reference poses its path is taken from and its scan period (s)."""
-
-    points: FloatArray
-    T_ref: FloatArray
-    period: float
-
-
-def thin(points: FloatArray, voxel: float) -> FloatArray:
-    """One point (the first) per cube of edge ``voxel``."""
-    grid = np.floor(points / voxel).astype(np.int64)
-    grid -= grid.min(axis=0)
-    span = grid.max(axis=0) + 1
-    keys = (grid[:, 0] * span[1] + grid[:, 1]) * span[2] + grid[:, 2]
-    _, first = np.unique(keys, return_index=True)
-    return points[np.sort(first)]
-
-
-def build_world(path: Path, voxel: float) -> World:
-    """The merged, thinned world cloud, the reference poses it was merged with and the
-    recording's scan period (the median interval of the reference's stamps)."""
-    recording = open_recording(path)
-    if recording.reference is None:
-        raise SystemExit(f'{path}: no reference poses to merge the scans with')
-    T = np.asarray(recording.reference.T_world_sensor, dtype=np.float64)
-    scans = list(recording.source)
-    if len(scans) != len(T):
-        raise SystemExit(f'{path}: {len(scans)} scans but {len(T)} reference poses')
-    parts = [
-        np.asarray(s.points, dtype=np.float64) @ Ti[:3, :3].T + Ti[:3, 3]
-        for s, Ti in zip(scans, T, strict=True)
-    ]
-    stamps = recording.reference.stamps_ns
-    period = float(np.median(np.diff(stamps))) * 1e-9 if stamps is not None else 0.1
-    return World(thin(np.concatenate(parts), voxel), T, period)
-
-
-def trajectory(
-    T_ref: FloatArray, step: float, yaw_amplitude_deg: float, yaw_period: float
-) -> FloatArray:
-    """Poses every ``step`` metres along the reference path (see the module's description)."""
-    positions = T_ref[:, :3, 3]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    s = np.arange(0.0, arc[-1] + 1e-9, step)
-    xyz = np.stack([np.interp(s, arc, positions[:, k]) for k in range(3)], axis=1)
-    # Slerp needs strictly increasing times: drop reference poses that did not move.
-    keep = np.concatenate([[True], np.diff(arc) > 1e-6])
-    slerp = Slerp(arc[keep], Rotation.from_matrix(T_ref[keep, :3, :3]))
-    k = np.arange(len(s))
-    yaw = np.deg2rad(yaw_amplitude_deg) * np.sin(2.0 * np.pi * k / yaw_period)
-    R = slerp(s) * Rotation.from_euler('z', yaw[:, None])
-    T = np.tile(np.eye(4), (len(s), 1, 1))
-    T[:, :3, :3] = R.as_matrix()
-    T[:, :3, 3] = xyz
-    return T
-
-
-def direction_bins(q: FloatArray, r: FloatArray, size_deg: float) -> NDArray[np.int64]:
-    """Index of the azimuth x elevation bin of ``size_deg`` of each sensor-frame point."""
-    az = np.degrees(np.arctan2(q[:, 1], q[:, 0])) + 180.0
-    el = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0))) + 90.0
-    n_az = int(np.ceil(360.0 / size_deg))
-    return np.floor(el / size_deg).astype(np.int64) * n_az + np.floor(az / size_deg).astype(
-        np.int64
-    )
-
-
-def simulate_scan(
-    world: FloatArray,
-    T: FloatArray,
-    rng: np.random.Generator,
-    args: Sensor,
-    twist: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray]:
-    """The points a spinning LiDAR at pose ``T`` sees of ``world`` (sensor frame), and their
-    times from the stamp (s).
-
-    With ``args.sweep_period > 0`` and the sensor's ``twist`` (the 4x4 ``se(3)`` matrix of its
-    body velocity, per second), a point taken at time ``tau`` is expressed in the frame of the
-    pose ``T exp(tau twist)`` it was taken from; which points are visible is decided from
-    ``T``.
-    """
-    q = (world - T[:3, 3]) @ T[:3, :3]
-    r = np.linalg.norm(q, axis=1)
-    el = np.degrees(np.arcsin(np.clip(q[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0)))
-    inside = (r >= args.min_range) & (r <= args.max_range)
-    inside &= (el >= ELEVATION_DEG[0]) & (el <= ELEVATION_DEG[1])
-    q, r = q[inside], r[inside]
-    # Occlusion: the nearest range per coarse direction bin hides what lies well behind it.
-    coarse = direction_bins(q, r, args.occlusion_bin)
-    nearest = np.full(coarse.max() + 1, np.inf)
-    np.minimum.at(nearest, coarse, r)
-    visible = r <= nearest[coarse] + 0.1 + 0.05 * r
-    q, r = q[visible], r[visible]
-    # The sensor's angular resolution: one visible point per beam bin, drawn at random (the
-    # nearest would pull a surface towards the sensor by the world's blur, differently from
-    # every viewpoint), so that two scans from near poses do not share their points.
-    beam = direction_bins(q, r, args.beam_bin)
-    order = np.lexsort((rng.random(len(r)), beam))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = beam[order][1:] != beam[order][:-1]
-    chosen = order[first]
-    q, r = q[chosen], r[chosen]
-    times = np.zeros(len(q))
-    if args.sweep_period > 0.0 and twist is not None:
-        azimuth = np.arctan2(q[:, 1], q[:, 0]) + np.pi  # 0 .. 2 pi
-        slot = np.minimum(
-            (azimuth / (2.0 * np.pi) * SWEEP_SLICES).astype(np.intp), SWEEP_SLICES - 1
-        )
-        times = ((slot + 0.5) / SWEEP_SLICES - 1.0) * args.sweep_period
-        for k in np.unique(slot):
-            M = expm(twist * times[slot == k][0])  # pose at tau in the frame at the stamp
-            sel = slot == k
-            q[sel] = (q[sel] - M[:3, 3]) @ M[:3, :3]
-        r = np.linalg.norm(q, axis=1)
-    noisy = r + rng.normal(0.0, args.range_noise, len(r))
-    return q * (noisy / r)[:, None], times
-
-
-def simulate(
-    world: World,
-    step: float,
-    seed: int,
-    sensor: Sensor = Sensor(),
-    *,
-    yaw_amplitude: float = 0.0,
-    yaw_period: float = 9.0,
-) -> tuple[list[Scan], GroundTruth]:
-    """The scans of a sensor travelling the world's path at ``step`` metres per scan, and
-    their exact poses (stamped at the world's scan period from 1e9 s after the epoch)."""
-    T = trajectory(world.T_ref, step, yaw_amplitude, yaw_period)
-    rng = np.random.default_rng(seed)
-    start_ns = 10**18
-    stamps = start_ns + np.round(np.arange(len(T)) * world.period * 1e9).astype(np.int64)
-    # Body velocity of each scan's sweep, which ends at its stamp: the motion from the previous
-    # scan over the period (the first scan takes the next one's), constant within the sweep.
-    twists = [
-        np.real(logm(np.linalg.solve(T[i - 1], T[i]))) / world.period for i in range(1, len(T))
-    ]
-    twists.insert(0, twists[0] if twists else np.zeros((4, 4)))
-    scans = []
-    for ts, Ti, twist in zip(stamps, T, twists, strict=True):
-        points, times = simulate_scan(world.points, Ti, rng, sensor, twist)
-        extras = {'t': times.astype(np.float32)} if sensor.sweep_period > 0.0 else {}
-        scans.append(Scan(int(ts), 'lidar', points, extras))
-    origin = f'simulated: step {step} m, seed {seed}'
-    return scans, GroundTruth(Trajectory(stamps, T), origin)
-
-
-def motion_stats(T: FloatArray) -> dict[str, float]:
-    """Median step (m) and median / max rotation (deg) between consecutive poses."""
-    rel = np.einsum('nji,njk->nik', T[:-1, :3, :3], T[1:, :3, :3])  # R_i^T R_{i+1}
-    angles = np.degrees(Rotation.from_matrix(rel).magnitude())
-    steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
-    return {
-        'step_median_m': float(np.median(steps)),
-        'rotation_median_deg': float(np.median(angles)),
-        'rotation_max_deg': float(angles.max()),
-        'path_m': float(steps.sum()),
-    }
 
 
 def write_balm_poses(path: Path, T: FloatArray, stamps_s: FloatArray) -> None:
     """``alidarPose.csv``: the 3x4 ``[R | t]`` and ``0,0,0,<time>`` per pose (17 digits)."""
-    lines = []
+    lines: list[str] = []
     for Ti, ts in zip(T, stamps_s, strict=True):
         lines.extend(','.join(f'{v:.17g}' for v in row) + ',' for row in Ti[:3])
         lines.append(f'0,0,0,{ts:.9f},')
     path.write_text('\n'.join(lines) + '\n')
 
 
+SWEEP = 's per sweep, points timed in a field t; 0: all at the stamp'
+SENSOR_OPTIONS = {'occlusion_bin': 'deg', 'beam_bin': 'deg', 'range_noise': 'm, 1 sigma',
+                  'min_range': 'm', 'max_range': 'm', 'sweep_period': SWEEP}  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    p = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        '--input', type=Path, default=DEFAULT_INPUT, help='recording to re-simulate'
-    )
-    parser.add_argument('--out', type=Path, required=True, help='scan folder to write')
-    parser.add_argument('--step', type=float, default=0.6, help='metres per scan (default 0.6)')
-    parser.add_argument(
-        '--yaw-amplitude', type=float, default=0.0, help='yaw oscillation amplitude, deg'
-    )
-    parser.add_argument(
-        '--yaw-period', type=float, default=9.0, help='yaw oscillation period, scans'
-    )
-    parser.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
-    parser.add_argument(
-        '--world-voxel', type=float, default=WORLD_VOXEL, help=f'world thinning, m ({WORLD_VOXEL})'
-    )
-    default = Sensor()
-    for name, unit in (
-        ('occlusion_bin', 'deg'),
-        ('beam_bin', 'deg'),
-        ('range_noise', 'm, 1 sigma'),
-        ('min_range', 'm'),
-        ('max_range', 'm'),
-        ('sweep_period', 's per sweep, points timed in a field t; 0: every point at the stamp'),
-    ):
-        value = getattr(default, name)
-        parser.add_argument(
+    p.add_argument('--input', type=Path, default=DEFAULT_INPUT, help='recording to re-simulate')
+    p.add_argument('--out', type=Path, required=True, help='scan folder to write')
+    p.add_argument('--step', type=float, default=0.6, help='metres per scan (default 0.6)')
+    p.add_argument('--yaw-amplitude', type=float, default=0.0, help='yaw oscillation, deg')
+    p.add_argument('--yaw-period', type=float, default=9.0, help='yaw oscillation period, scans')
+    p.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
+    p.add_argument('--world-voxel', type=float, default=WORLD_VOXEL, help='world thinning, m')
+    for name, unit in SENSOR_OPTIONS.items():
+        value = getattr(Sensor(), name)
+        p.add_argument(
             '--' + name.replace('_', '-'), type=float, default=value, help=f'{unit} ({value})'
         )
-    return parser
+    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format='%(name)s: %(message)s')
     world = build_world(args.input, args.world_voxel)
-    sensor = Sensor(
-        occlusion_bin=args.occlusion_bin,
-        beam_bin=args.beam_bin,
-        range_noise=args.range_noise,
-        min_range=args.min_range,
-        max_range=args.max_range,
-        sweep_period=args.sweep_period,
-    )
-    scans, gt = simulate(
-        world,
-        args.step,
-        args.seed,
-        sensor,
-        yaw_amplitude=args.yaw_amplitude,
-        yaw_period=args.yaw_period,
-    )
+    sensor = Sensor(**{name: getattr(args, name) for name in SENSOR_OPTIONS})
+    yaw = {'yaw_amplitude': args.yaw_amplitude, 'yaw_period': args.yaw_period}
+    scans, gt = simulate(world, args.step, args.seed, sensor, **yaw)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, scan in enumerate(scans):
         write_pcd(args.out / f'scan_{i:04d}.pcd', scan.points.astype(np.float32), scan.extras)
     T = gt.trajectory.T_world_sensor
-    stamps_s = np.asarray(gt.trajectory.stamps_ns) * 1e-9
-    write_balm_poses(args.out / 'alidarPose.csv', T, stamps_s)
-    stats = motion_stats(T)
-    counts = [len(scan.points) for scan in scans]
+    write_balm_poses(args.out / 'alidarPose.csv', T, np.asarray(gt.trajectory.stamps_ns) * 1e-9)
+    stats, counts = motion_stats(T), [len(scan.points) for scan in scans]
     logger.info(
         'world %d points; %d scans of %d-%d points; step %.2f m, rotation per scan median '
-        '%.1f deg, max %.1f deg -> %s',
-        len(world.points),
-        len(scans),
-        min(counts),
-        max(counts),
-        stats['step_median_m'],
-        stats['rotation_median_deg'],
-        stats['rotation_max_deg'],
-        args.out,
-    )
+        '%.1f deg, max %.1f deg -> %s', len(world.points), len(scans), min(counts), max(counts),
+        stats['step_median_m'], stats['rotation_median_deg'], stats['rotation_max_deg'], args.out,
+    )  # fmt: skip
     return 0
 
 

@@ -14,22 +14,24 @@ if str(REPO_ROOT) not in sys.path:
 
 from scenes import box_room, pose_errors, random_transform, transform_points  # noqa: E402
 
-from benchmarks.baselines.cicp import cicp_register, weighted_rigid_fit  # noqa: E402
-from benchmarks.baselines.ndt import (  # noqa: E402
+from benchmarks.harness.baselines.cicp import cicp_register, weighted_rigid_fit  # noqa: E402
+from benchmarks.harness.baselines.ndt import (  # noqa: E402
     build_grid,
     gaussian_constants,
     ndt_derivatives,
     ndt_prepare,
     ndt_register,
 )
-from benchmarks.common import load_eth, select_pairs, summarize  # noqa: E402
-from benchmarks.methods import (  # noqa: E402
+from benchmarks.harness.datasets import load_eth  # noqa: E402
+from benchmarks.harness.methods import (  # noqa: E402
     ALL_METHODS,
     kentreg_config,
     make_methods,
     voxel_downsample,
 )
-from benchmarks.outliers import inject_outliers  # noqa: E402
+from benchmarks.harness.perturb import inject_free_voxel_outliers as inject_outliers  # noqa: E402
+from benchmarks.harness.perturb import select_pairs  # noqa: E402
+from benchmarks.harness.runner import summarize  # noqa: E402
 
 
 @pytest.fixture(scope='module')
@@ -190,12 +192,12 @@ def test_load_eth_reads_scans_in_order_and_pair_motions(tmp_path: Path) -> None:
     _write_eth_folder(tmp_path, poses, scans)
     (tmp_path / 'notes.csv').write_text('x, y, z\n1, 2, 3\n')
     seq = load_eth(tmp_path)
-    assert [p.name for p in seq.scan_paths][:3] == ['Hokuyo_0.csv', 'Hokuyo_1.csv', 'Hokuyo_2.csv']
-    assert seq.scan_paths[-1].name == 'Hokuyo_10.csv'
+    assert [p.name for p in seq.paths][:3] == ['Hokuyo_0.csv', 'Hokuyo_1.csv', 'Hokuyo_2.csv']
+    assert seq.paths[-1].name == 'Hokuyo_10.csv'
     assert seq.n_pairs == 10
     np.testing.assert_allclose(seq.truth(9), np.linalg.inv(poses[9]) @ poses[10], atol=1e-9)
     np.testing.assert_allclose(seq.constant_velocity(1), seq.truth(0))
-    np.testing.assert_allclose(seq.load(10), scans[10], atol=1e-8)
+    np.testing.assert_allclose(seq.raw(10), scans[10], atol=1e-8)
 
 
 def test_load_eth_rejects_a_pose_count_mismatch(tmp_path: Path) -> None:

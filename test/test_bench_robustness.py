@@ -1,4 +1,4 @@
-"""benchmarks/robustness.py: raw-outlier injection, perturbations and the report bookkeeping.
+"""benchmarks/robustness.py and the harness perturbations: raw outliers, offsets, turns, report.
 
 None of these tests needs Open3D, small_gicp or KISS-ICP (CI does not install them): the
 bookkeeping is run with stand-in methods on a synthetic room.
@@ -20,20 +20,22 @@ if str(REPO_ROOT) not in sys.path:
 
 from scenes import box_room, random_transform, transform_points  # noqa: E402
 
-from benchmarks.common import errors, failure_mask, is_failure  # noqa: E402
-from benchmarks.robustness import (  # noqa: E402
-    Runner,
-    Sample,
+from benchmarks.harness.datasets import Sequence  # noqa: E402
+from benchmarks.harness.methods import RawMethod  # noqa: E402
+from benchmarks.harness.perturb import (  # noqa: E402
     draw_pairs,
     inject_raw_outliers,
-    markdown,
     offset_transform,
     outlier_voxel_share,
+    turn_transform,
+)
+from benchmarks.harness.runner import errors, failure_mask, is_failure  # noqa: E402
+from benchmarks.robustness import (  # noqa: E402
+    markdown,
     plot,
     run_outliers,
     run_strides,
     run_turned,
-    turn_transform,
 )
 from kentreg_ros.io.sources import Scan  # noqa: E402
 
@@ -135,7 +137,7 @@ def test_failure_mask_is_is_failure_elementwise() -> None:
 
 
 @pytest.fixture(scope='module')
-def room_sample() -> Sample:
+def room_sample() -> Sequence:
     """Nine views of one room along a known trajectory, sensor at each pose's origin."""
     rng = np.random.default_rng(11)
     world = box_room(rng, 8000)
@@ -146,10 +148,10 @@ def room_sample() -> Sample:
         Scan(i * 100_000_000, 'lidar', transform_points(np.linalg.inv(T), world), {})
         for i, T in enumerate(poses)
     ]
-    return Sample(scans, np.stack(poses), 'synthetic room', 'exact')
+    return Sequence('room', scans, np.stack(poses), 'exact', 'synthetic room')
 
 
-def _stand_in(name: str, answer: str) -> Runner:
+def _stand_in(name: str, answer: str) -> RawMethod:
     """A method that returns the start ('init') or raises ('raise')."""
 
     def register(
@@ -159,11 +161,11 @@ def _stand_in(name: str, answer: str) -> Runner:
             raise RuntimeError('no convergence')
         return np.eye(4) if init is None else init, {'status': 'converged'}
 
-    return Runner(name, lambda points: points, register, lambda prep: 0.5, {'answer': answer})
+    return RawMethod(name, lambda points: points, register, lambda prep: 0.5, {'answer': answer})
 
 
 def test_report_bookkeeping_end_to_end_with_stand_in_methods(
-    room_sample: Sample, tmp_path: Path
+    room_sample: Sequence, tmp_path: Path
 ) -> None:
     runners = [_stand_in('stay', 'init'), _stand_in('crash', 'raise')]
     strides = run_strides(room_sample, runners, [1, 3], None)

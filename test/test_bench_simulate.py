@@ -1,4 +1,4 @@
-"""benchmarks/simulate.py and simulated.py: the re-simulated sequences with exact poses.
+"""benchmarks/harness/simulator.py, simulate.py, simulated.py: re-simulated sequences, exact poses.
 
 The simulated sensor is checked on a synthetic room (points on the surfaces within the range
 noise, occluded points hidden), the trajectory against its definition, and the whole chain on
@@ -17,16 +17,16 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from benchmarks.simulate import (  # noqa: E402
+from benchmarks.harness.simulator import (  # noqa: E402
     Sensor,
     World,
     build_world,
-    main,
     motion_stats,
     simulate,
     simulate_scan,
     trajectory,
 )
+from benchmarks.simulate import main  # noqa: E402
 from benchmarks.simulated import format_table, summarize_step  # noqa: E402
 from kentreg_ros.core import (  # noqa: E402
     Odometry,  # noqa: E402

@@ -246,8 +246,8 @@ def ndt_align_level(
         # Bound the step to the basin of one cell: at most one cell edge, max_step_rotation rad.
         scale = min(
             1.0,
-            grid.resolution / max(np.linalg.norm(delta[:3]), 1e-12),
-            max_step_rotation / max(np.linalg.norm(delta[3:]), 1e-12),
+            grid.resolution / max(float(np.linalg.norm(delta[:3])), 1e-12),
+            max_step_rotation / max(float(np.linalg.norm(delta[3:])), 1e-12),
         )
         delta *= scale
         if np.linalg.norm(delta[:3]) + np.linalg.norm(delta[3:]) < tolerance:

@@ -1,32 +1,15 @@
-"""One registry of registration methods for the benchmarks: same input, same budget, same API.
+"""The pair-registration methods: same input, same budget, one API (``prepare``, ``register``).
 
 Every method gets the same voxel-downsampled clouds (:func:`voxel_downsample`, voxel centroids)
-and is wrapped as a :class:`Method` with two callables:
-
-- ``prepare(points) -> prep``: the per-scan work an odometry would cache (normals, covariances,
-  KD-trees, NDT grids, kentreg's :class:`~kentreg_ros.core.PreparedScan`). Each scan is
-  prepared once and used as source of one pair and target of the next.
-- ``register(source_prep, target_prep, init) -> T_target_source`` (4x4, maps source points into
-  the target frame).
-
-Shared settings, derived from the voxel edge ``v`` and never tuned per data set:
-
-- correspondence gate ``4 v`` for every method that has one (Open3D ICP, small_gicp GICP,
-  KISS-ICP, kentreg robust's translation and refinement gates); 1.0 m at the 0.25 m voxels that
-  give the paper's ~10,000 points on a BALM scan, which is kentreg's own default;
-- every method iterates until its own convergence test stops it; :data:`MAX_ITERATIONS`
-  (500, KISS-ICP's default) only guards against non-convergence (Open3D, small_gicp, KISS-ICP,
-  kentreg's refinement, each NDT level). A cap of 50 measured as a handicap: point-to-point
-  ICP and KISS-ICP's robust-kernel steps need 100+ iterations on BALM's 20-29 deg pairs, and
-  failed 3 and 10 of 49 pairs under it against 0 of the 9 such pairs checked with 500;
-- CICP ends when its kernel width has decayed below a tenth of the voxel (or converged);
-- :data:`NORMAL_NEIGHBORS` (15, the paper's) neighbours for normals and covariances;
-- NDT and CICP use the paper's own settings (grids 2/4/2/1 m; sigma 1 m decaying by 0.96).
-
-Libraries are imported inside the factories: a missing library removes only its methods (with a
-logged reason), and a process can load just one library. ``threads`` pins the process (CPU
-affinity, OpenMP/BLAS environment, Open3D's and small_gicp's thread counts); see
-:func:`limit_threads`.
+and is a :class:`Method`: ``prepare(points) -> prep`` (the per-scan work an odometry caches:
+normals, covariances, trees, grids, kentreg's ``prepare_scan``) and
+``register(source_prep, target_prep, init) -> T_target_source``. Shared settings derive from the
+voxel edge ``v``, never tuned per data set: gate ``4 v``, :data:`NORMAL_NEIGHBORS` neighbours,
+iterate to each method's own convergence test (:data:`MAX_ITERATIONS` only guards: a cap of 50
+measured as a handicap for point-to-point ICP and KISS-ICP on BALM's 20-29 deg pairs); CICP ends
+below a tenth of the voxel; NDT and CICP use the paper's settings (benchmarks/README.md).
+:func:`at_defaults` wraps a method for raw scans (kentreg: its own automatic preprocessing).
+Libraries are imported inside the factories, so a missing one removes only its methods.
 """
 
 from __future__ import annotations
@@ -60,16 +43,8 @@ NORMAL_NEIGHBORS = 15
 PAPER_POINTS = 10_000
 
 #: Methods other than kentreg's ablations, in table order.
-BASE_METHODS: tuple[str, ...] = (
-    'icp_pt2pt',
-    'icp_pt2pl',
-    'cicp',
-    'gicp',
-    'ndt',
-    'kiss_icp',
-    'kentreg_paper',
-    'kentreg_robust',
-)
+BASE_METHODS: tuple[str, ...] = ('icp_pt2pt', 'icp_pt2pl', 'cicp', 'gicp', 'ndt', 'kiss_icp',
+                                 'kentreg_paper', 'kentreg_robust')  # fmt: skip
 
 #: kentreg robust ablations: one switch of the README's "robust vs paper" table each.
 ABLATIONS: dict[str, dict[str, Any]] = {
@@ -100,22 +75,10 @@ _ALLOWED_CPUS: tuple[int, ...] = (
 
 @dataclass(frozen=True)
 class Method:
-    """A registration method behind the benchmark API.
-
-    Attributes
-    ----------
-    name : str
-        e.g. ``'gicp'``, ``'kentreg_robust'``, ``'kentreg_robust-no_refine'``.
-    library : str
-        ``'open3d'``, ``'small_gicp'``, ``'kiss_icp'``, ``'kentreg'`` or ``'baseline'``
-        (this folder's own NDT and CICP).
-    prepare : callable
-        ``prepare(points (N, 3)) -> prep``, the per-scan work an odometry caches.
-    register : callable
-        ``register(source_prep, target_prep, init (4, 4)) -> T_target_source (4, 4)``.
-    params : dict
-        The settings used (for the results JSON).
-    """
+    """A pair-registration method: ``prepare(points (N, 3)) -> prep`` (the per-scan work an
+    odometry caches) and ``register(source_prep, target_prep, init (4, 4)) -> T_target_source``;
+    ``library`` is 'open3d', 'small_gicp', 'kiss_icp', 'kentreg' or 'baseline' (NDT, CICP here);
+    ``params`` the settings, for the results JSON."""
 
     name: str
     library: str
@@ -125,53 +88,48 @@ class Method:
 
 
 def voxel_downsample(points: FloatArray, voxel: float) -> FloatArray:
-    """The one downsampling every method gets: the centroid of each occupied voxel.
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-    voxel : float
-        Voxel edge (m), > 0.
-
-    Returns
-    -------
-    ndarray, shape (M, 3)
-        float64 voxel centroids (kentreg_ros.core.voxel_downsample; the grid is anchored at the
-        origin, so downsampling the result again with the same voxel returns it unchanged).
-    """
+    """The one downsampling every method gets: the float64 centroid (M, 3) of each occupied
+    voxel of edge ``voxel`` (origin-anchored, so downsampling the result again is a no-op)."""
     return _core_voxel_downsample(points, voxel)
 
 
 def paper_voxel(
     points: FloatArray, target_points: int = PAPER_POINTS, step: float = 0.05
 ) -> float:
-    """Voxel edge giving about ``target_points`` points (the paper's ~10,000), rounded to ``step``.
-
-    Computed once per data set on its first scan, so every scan and method share one voxel.
-    """
+    """Voxel edge giving about ``target_points`` points (the paper's ~10,000), rounded to
+    ``step``; computed once per data set on its first scan, so every scan and method share it."""
     size = choose_voxel_size(np.asarray(points, dtype=np.float64), target_points)
-    if size <= 0.0:
-        return step
-    return max(step, round(size / step) * step)
+    return step if size <= 0.0 else max(step, round(size / step) * step)
+
+
+THREAD_ENV = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+PINNED_ENV = 'KENTREG_BENCH_THREADS'
 
 
 def limit_threads(threads: int) -> None:
-    """Pin this process to ``threads`` CPUs (process-wide, call before heavy work).
-
-    Sets the CPU affinity to the first ``threads`` CPUs the process was allowed at import (this
-    bounds numpy/BLAS, scipy's ``workers=-1`` KD-tree queries and every native thread pool) and
-    ``OMP_NUM_THREADS``/``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS`` for libraries imported
-    afterwards. Open3D and small_gicp are additionally given the count directly by the
-    factories.
-    """
+    """Pin this process to its first ``threads`` allowed CPUs (bounding numpy/BLAS, scipy's
+    ``workers=-1`` and native thread pools) and set the OpenMP/BLAS variables for libraries
+    imported afterwards; Open3D and small_gicp also get the count from the factories."""
     if threads < 1:
         raise ValueError(f'Expected `threads` >= 1, got {threads}.')
-    for var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    for var in THREAD_ENV:
         os.environ[var] = str(threads)
     if hasattr(os, 'sched_setaffinity'):
-        cpus = set(_ALLOWED_CPUS[:threads])
-        os.sched_setaffinity(0, cpus)
-        logger.debug('CPU affinity set to %s', sorted(cpus))
+        os.sched_setaffinity(0, set(_ALLOWED_CPUS[:threads]))
+
+
+def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
+    """Make this process run on at most ``threads`` cores, re-executing ``script`` with ``argv``
+    once so that the BLAS/OpenMP variables apply before numpy loads; the second call (marked
+    by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity."""
+    import sys
+
+    if os.environ.get(PINNED_ENV) != str(threads):
+        env = dict(os.environ) | {name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)}
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, [sys.executable, str(script), *argv], env)
+    os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:threads])
 
 
 # --------------------------------------------------------------------------------------------
@@ -209,8 +167,8 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
 
         return run
 
-    params = {
-        'max_correspondence_distance': gate,
+    params: dict[str, Any] = {'max_correspondence_distance': gate}
+    params |= {
         'max_iterations': MAX_ITERATIONS,
         'relative_fitness': 1e-6,
         'relative_rmse': 1e-6,
@@ -218,16 +176,16 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
     }
     out = []
     if 'icp_pt2pt' in names:
-        est = reg.TransformationEstimationPointToPoint()
-        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, make_register(est), params))
+        pt2pt = make_register(reg.TransformationEstimationPointToPoint())
+        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, pt2pt, params))
     if 'icp_pt2pl' in names:
-        est = reg.TransformationEstimationPointToPlane()
+        pt2pl = make_register(reg.TransformationEstimationPointToPlane())
         out.append(
             Method(
                 'icp_pt2pl',
                 'open3d',
                 prepare_pt2pl,
-                make_register(est),
+                pt2pl,
                 {**params, 'normal_neighbors': NORMAL_NEIGHBORS},
             )
         )
@@ -251,25 +209,20 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
         return cloud, tree
 
     def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
+        T = np.asarray(init, dtype=np.float64)
         result = small_gicp.align(
-            target[0],
-            source[0],
-            target[1],
-            init_T_target_source=np.asarray(init, dtype=np.float64),
-            registration_type='GICP',
-            max_correspondence_distance=gate,
-            num_threads=n_threads,
-            max_iterations=MAX_ITERATIONS,
-        )
+            target[0], source[0], target[1], init_T_target_source=T, registration_type='GICP',
+            max_correspondence_distance=gate, num_threads=n_threads, max_iterations=MAX_ITERATIONS,
+        )  # fmt: skip
         return np.array(result.T_target_source, dtype=np.float64)
 
-    params = {
-        'max_correspondence_distance': gate,
+    params: dict[str, Any] = {'max_correspondence_distance': gate}
+    params |= {
         'max_iterations': MAX_ITERATIONS,
         'covariance_neighbors': NORMAL_NEIGHBORS,
-        'convergence': 'small_gicp defaults (0.1 deg, 1 mm)',
         'threads': n_threads,
     }
+    params['convergence'] = 'small_gicp defaults (0.1 deg, 1 mm)'
     return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
 
 
@@ -303,15 +256,13 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
         )
         return np.array(T, dtype=np.float64)
 
-    params = {
-        'max_correspondence_distance': gate,
-        'kernel': gate / 3.0,
-        'map_voxel': map_voxel,
-        'max_iterations': MAX_ITERATIONS,
-        'convergence_criterion': 1e-4,
-        'note': "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
-        'KISS-ICP sets it) against a voxel hash map of the target scan',
-    }
+    note = (
+        "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
+        'KISS-ICP sets it) against a voxel hash map of the target scan'
+    )
+    params: dict[str, Any] = {'max_correspondence_distance': gate, 'kernel': gate / 3.0}
+    params['map_voxel'] = map_voxel
+    params |= {'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4, 'note': note}
     return [Method('kiss_icp', 'kiss_icp', prepare, run, params)]
 
 
@@ -322,13 +273,13 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
 def _baseline_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
     out = []
     if 'ndt' in names:
-        from benchmarks.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
+        from benchmarks.harness.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
 
         run_ndt = functools.partial(ndt_register, max_iterations=MAX_ITERATIONS)
         params = {**NDT_DEFAULTS, 'max_iterations': MAX_ITERATIONS}
         out.append(Method('ndt', 'baseline', ndt_prepare, run_ndt, params))
     if 'cicp' in names:
-        from benchmarks.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
+        from benchmarks.harness.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
 
         min_sigma = CICP_MIN_SIGMA_VOXELS * voxel
         run_cicp = functools.partial(
@@ -398,28 +349,10 @@ _FACTORIES: tuple[tuple[str, tuple[str, ...], Callable[..., list[Method]]], ...]
 def make_methods(
     names: Sequence[str] | None = None, *, voxel: float, threads: int | None = 1
 ) -> list[Method]:
-    """Build the requested methods, in the order of ``names`` (default :data:`ALL_METHODS`).
-
-    Parameters
-    ----------
-    names : sequence of str, optional
-        Method names from :data:`ALL_METHODS`.
-    voxel : float
-        Voxel edge (m) of the shared downsampling; gates derive from it.
-    threads : int or None
-        Pin the process and the libraries to this many threads (:func:`limit_threads`);
-        None leaves every library at its default.
-
-    Returns
-    -------
-    list of Method
-        A method whose library cannot be imported is left out with a logged warning.
-
-    Raises
-    ------
-    ValueError
-        An unknown method name.
-    """
+    """The methods ``names`` (default :data:`ALL_METHODS`) in that order, gates derived from
+    the shared ``voxel`` (m); ``threads`` pins the process and the libraries
+    (:func:`limit_threads`; None: library defaults). A method whose library cannot be imported
+    is left out with a logged warning; an unknown name raises ``ValueError``."""
     wanted = list(ALL_METHODS if names is None else names)
     unknown = [n for n in wanted if n not in ALL_METHODS]
     if unknown:
@@ -445,3 +378,75 @@ def make_methods(
             continue
         built.update({m.name: m for m in methods})
     return [built[n] for n in wanted if n in built]
+
+
+@dataclass
+class RawMethod:
+    """A method as a user runs it: ``prepare(raw points (N, 3)) -> prep`` (its own
+    preprocessing), ``register(source_prep, target_prep, init or None) -> (T_target_source,
+    info)`` (info: what it reports, e.g. kentreg's status), ``voxel(prep)`` (the voxel edge it
+    used) and ``params`` (settings, for the JSON)."""
+
+    name: str
+    prepare: Callable[[FloatArray], Any]
+    register: Callable[[Any, Any, FloatArray | None], tuple[FloatArray, dict[str, Any]]]
+    voxel: Callable[[Any], float]
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def kentreg_at_defaults() -> RawMethod:
+    """kentreg with ``KentRegConfig()`` on raw scans (its automatic preprocessing)."""
+    cfg = KentRegConfig()
+
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        result = register(source, target, init=init, config=cfg)
+        info = {'status': result.status, 'fit': result.fit, 'ambiguous': result.ambiguous}
+        return np.array(result.T_target_source, dtype=np.float64), info
+
+    params = {
+        'config': 'KentRegConfig() defaults',
+        'mode': cfg.mode,
+        'preprocess.voxel_size': cfg.preprocess.voxel_size,
+        'preprocess.target_points': cfg.preprocess.target_points,
+        'input': 'raw scans',
+    }
+    return RawMethod(
+        'kentreg',
+        lambda points: prepare_scan(points, config=cfg),
+        run,
+        lambda prep: float(prep.voxel_size),
+        params,
+    )
+
+
+def at_fixed_voxel(method: Method, voxel: float) -> RawMethod:
+    """A registry method on the raw scan downsampled at the data set's fixed ``voxel``."""
+
+    def run(
+        source: Any, target: Any, init: FloatArray | None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        return method.register(source, target, np.eye(4) if init is None else init), {}
+
+    return RawMethod(
+        method.name,
+        lambda points: method.prepare(voxel_downsample(points, voxel)),
+        run,
+        lambda prep: voxel,
+        {'library': method.library, 'voxel_m': voxel, **method.params},
+    )
+
+
+def at_defaults(names: Sequence[str], voxel: float, threads: int) -> list[RawMethod]:
+    """``kentreg`` (:func:`kentreg_at_defaults`) and registry methods at ``voxel``, in the
+    order of ``names``; a method whose library is missing is left out."""
+    peers = {
+        m.name: m
+        for m in make_methods([n for n in names if n != 'kentreg'], voxel=voxel, threads=threads)
+    }
+    return [
+        kentreg_at_defaults() if n == 'kentreg' else at_fixed_voxel(peers[n], voxel)
+        for n in names
+        if n == 'kentreg' or n in peers
+    ]

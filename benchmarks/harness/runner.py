@@ -1,0 +1,327 @@
+"""The one runner: pairs through a :class:`~benchmarks.harness.methods.RawMethod` or
+:class:`~benchmarks.harness.methods.Method`, scans through a pipeline, errors and summaries.
+
+A method or pipeline that raises is a result, not a stop: its pair gets NaN errors (a failure,
+counted in ``n_errors``) and the experiment goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kentreg_ros.eval.metrics import failed_pairs, pair_errors
+from kentreg_ros.io.sources import Scan
+
+from .methods import RawMethod
+from .pipelines import Pipeline
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+T = TypeVar('T')
+
+
+def timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+    """``(fn(*args), milliseconds)``."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, (time.perf_counter() - t0) * 1e3
+
+
+def errors(T_est: FloatArray, T_true: FloatArray) -> tuple[float, float]:
+    """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.eval.metrics.pair_errors)."""
+    e_R, e_t = pair_errors(T_est[None], T_true[None])
+    return float(e_R[0]), float(e_t[0])
+
+
+def is_failure(e_R: float, e_t: float) -> bool:
+    """e_R > 2 deg or e_t > 0.2 m, or a method that raised (NaN errors)."""
+    return bool(failed_pairs(e_R, e_t))
+
+
+def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
+    """:func:`is_failure` of arrays of errors, element by element (NaN counts as failed)."""
+    return failed_pairs(e_R, e_t)
+
+
+def motion_stats(T_rel: FloatArray) -> dict[str, float]:
+    """Median and max rotation (deg) and translation (m) of relative motions (P, 4, 4)."""
+    angle, dist = pair_errors(T_rel, np.broadcast_to(np.eye(4), T_rel.shape))
+    out = {
+        'rotation_deg_median': float(np.median(angle)),
+        'rotation_deg_max': float(np.max(angle)),
+    }
+    out |= {
+        'translation_m_median': float(np.median(dist)),
+        'translation_m_max': float(np.max(dist)),
+    }
+    return out
+
+
+def _stats(v: FloatArray) -> dict[str, float]:
+    if not len(v):
+        return dict.fromkeys(('mean', 'median', 'p90', 'max'), float('nan'))
+    out = {'mean': float(v.mean()), 'median': float(np.median(v))}
+    return out | {'p90': float(np.percentile(v, 90)), 'max': float(v.max())}
+
+
+def summarize(
+    records: Iterable[Mapping[str, Any]], *, finite_times: bool = False
+) -> dict[str, Any]:
+    """Mean/median/p90/max of e_R, e_t, failure count and median time of per-pair records.
+
+    Records with NaN errors (the method raised) count as failures and are left out of the
+    error statistics (their count is ``n_errors``); ``finite_times``: the times are over the
+    pairs that ran (else one raised pair makes the median NaN).
+    """
+    rows = list(records)
+    e_R = np.array([r['e_R_deg'] for r in rows], dtype=np.float64)
+    e_t = np.array([r['e_t_m'] for r in rows], dtype=np.float64)
+    ms = np.array([r['ms'] for r in rows], dtype=np.float64)
+    if finite_times:
+        ms = ms[np.isfinite(ms)]
+    ok = np.isfinite(e_R) & np.isfinite(e_t)
+    fails = sum(is_failure(a, b) for a, b in zip(e_R, e_t, strict=True))
+    return {
+        'n': len(rows),
+        'n_errors': int((~ok).sum()),
+        'failures': int(fails),
+        'failure_rate': fails / len(rows) if rows else float('nan'),
+        'e_R_deg': _stats(e_R[ok]),
+        'e_t_m': _stats(e_t[ok]),
+        'ms': {
+            'median': float(np.median(ms)) if len(ms) else float('nan'),
+            'mean': float(ms.mean()) if len(ms) else float('nan'),
+        },
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Pairs
+
+
+@dataclass
+class Outcome:
+    """One registration: ``T`` (None when the method raised), the prepared source ``prep``
+    (None when its preparation raised), ``ms`` (source preparation + registration), the
+    source's ``voxel_m`` and what the method reported (``info``)."""
+
+    T: FloatArray | None
+    prep: Any = None
+    ms: float = float('nan')
+    voxel_m: float = float('nan')
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def raised(exc: BaseException | str, prep: Any = None) -> Outcome:
+    """The outcome of a registration that raised (no pose, no time)."""
+    text = exc if isinstance(exc, str) else f'{type(exc).__name__}: {exc}'
+    return Outcome(None, prep, info={'error': text})
+
+
+def register_pair(
+    method: RawMethod, source_raw: FloatArray, target_prep: Any, init: FloatArray | None
+) -> Outcome:
+    """Prepare the raw source and register it to the prepared target from ``init``."""
+    src = None
+    try:
+        src, prep_ms = timed(method.prepare, source_raw)
+        (T, info), reg_ms = timed(method.register, src, target_prep, init)
+    except Exception as exc:  # a method that raises fails the pair
+        logger.warning('%s raised: %s', method.name, exc)
+        return raised(exc, src)
+    return Outcome(T, src, prep_ms + reg_ms, method.voxel(src), info)
+
+
+def pair_record(outcome: Outcome, truth: FloatArray, **extra: Any) -> dict[str, Any]:
+    """The JSON record of an outcome against ``truth``."""
+    e_R, e_t = (float('nan'),) * 2 if outcome.T is None else errors(outcome.T, truth)
+    record = {**extra, 'e_R_deg': e_R, 'e_t_m': e_t, 'ms': outcome.ms}
+    return record | {'voxel_m': outcome.voxel_m, **outcome.info}
+
+
+def prepare_target(method: RawMethod, raw: FloatArray) -> tuple[Any, Outcome | None]:
+    """``(prep, None)``, or ``(None, raised outcome)`` when the preparation raised."""
+    try:
+        return method.prepare(raw), None
+    except Exception as exc:
+        logger.warning('%s cannot prepare the target: %s', method.name, exc)
+        return None, raised(exc)
+
+
+# --------------------------------------------------------------------------------------------
+# Scans through a pipeline
+
+
+@dataclass
+class Run:
+    """Poses and per-scan wall times of one pipeline over scans."""
+
+    name: str
+    poses: FloatArray
+    ms_per_scan: FloatArray
+    points_used: FloatArray
+    settings: dict[str, Any] = field(default_factory=dict)
+    health: dict[str, Any] = field(default_factory=dict)
+
+
+def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup: int = 0) -> Run:
+    """Every scan through a fresh pipeline, each step timed (wall clock, reading excluded).
+
+    ``warmup`` > 0: a throwaway pipeline first processes that many scans, untimed (imports,
+    allocators, caches).
+    """
+    if warmup:
+        throwaway = make()
+        for scan in scans[:warmup]:
+            throwaway.step(scan)
+    pipeline = make()
+    poses, ms = [], []
+    for scan in scans:
+        pose, t = timed(pipeline.step, scan)
+        poses.append(np.array(pose, dtype=np.float64))
+        ms.append(t)
+    used = np.array(pipeline.points_used, dtype=np.float64)
+    return Run(
+        pipeline.name,
+        np.stack(poses),
+        np.array(ms),
+        used,
+        pipeline.settings,
+        dict(pipeline.health),
+    )
+
+
+def combine_rounds(runs: list[Run]) -> Run:
+    """One run from several rounds: first round's poses, per-scan median of the times.
+
+    Every pipeline is deterministic, so later rounds repeat the first one's poses; the largest
+    difference is recorded in ``health['pose_spread_between_rounds_m']``.
+    """
+    first = runs[0]
+    spread = max(
+        (float(np.abs(r.poses[:, :3, 3] - first.poses[:, :3, 3]).max()) for r in runs[1:]),
+        default=0.0,
+    )
+    health = {
+        **first.health,
+        'rounds': len(runs),
+        'pose_spread_between_rounds_m': spread,
+        'mean_ms_per_scan_per_round': [float(r.ms_per_scan.mean()) for r in runs],
+    }
+    ms = np.median(np.stack([r.ms_per_scan for r in runs]), axis=0)
+    return Run(first.name, first.poses, ms, first.points_used, first.settings, health)
+
+
+def rotated(names: Sequence[T], rounds: int) -> list[tuple[int, T]]:
+    """``(round, name)`` over ``rounds`` rounds, each in an order rotated by one, so that a
+    change in the shared machine's load does not land on one method only."""
+    out = []
+    for r in range(rounds):
+        k = r % len(names) if names else 0
+        out += [(r, n) for n in list(names[k:]) + list(names[:k])]
+    return out
+
+
+#: Frames of the drift segment (RPE over scans i, i + SEGMENT_FRAMES): one second at 10 Hz.
+SEGMENT_FRAMES = 10
+
+
+def evaluate_run(run: Run, T_gt: FloatArray) -> dict[str, Any]:
+    """The replay's metrics (:func:`kentreg_ros.eval.evaluate`) of a run against the reference
+    poses of its scans, plus rotation RPE per metre, RPE over :data:`SEGMENT_FRAMES` and speed."""
+    from kentreg_ros.eval import evaluate, metrics
+
+    result = evaluate(run.poses, T_gt)
+    # Rotation RPE per metre over the pairs the translation per-metre figure keeps.
+    rpe = metrics.rpe(run.poses, T_gt, delta=1)
+    per_metre = metrics.rpe_per_metre(run.poses, T_gt, delta=1)
+    deg_per_m = rpe['e_R_deg'][per_metre['index']] / per_metre['distance_m']
+    result['rpe_per_metre']['rotation_deg_per_m'] = metrics.summarize(deg_per_m)
+    # Drift over a segment, not one step: scan-to-map adds two registration errors between
+    # consecutive scans where scan-to-scan has one, but should drift less over a stretch.
+    if len(run.poses) > SEGMENT_FRAMES:
+        seg = metrics.rpe(run.poses, T_gt, delta=SEGMENT_FRAMES)
+        result['rpe_segment'] = {
+            'frames': SEGMENT_FRAMES,
+            'rotation_deg': metrics.summarize(seg['e_R_deg']),
+            'translation_m': metrics.summarize(seg['e_t']),
+        }
+    result['n_matched'] = len(run.poses)
+    result['speed'] = {
+        'ms_per_scan': metrics.summarize(run.ms_per_scan),
+        'points_used_per_scan': metrics.summarize(run.points_used),
+    }
+    return result
+
+
+def in_subprocess(
+    script: str, args: Sequence[str], *, env: dict[str, str] | None = None, timeout: float = 1800
+) -> dict[str, Any]:
+    """Run ``script --worker OUT *args`` in a fresh interpreter (one library or method per
+    process, pinned by the worker itself); its JSON result, or ``{'error': ...}``."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory(prefix='kentreg-bench-') as tmp:
+        out = Path(tmp) / 'result.json'
+        cmd = [sys.executable, script, '--worker', str(out), *args]
+        try:
+            proc = subprocess.run(
+                cmd, env=env, capture_output=True, text=True, timeout=timeout, check=False
+            )
+        except subprocess.TimeoutExpired:
+            return {'error': f'timed out after {timeout:.0f} s'}
+        if proc.returncode != 0 or not out.is_file():
+            tail = proc.stderr.strip().splitlines()[-1:] or ['no output']
+            return {'error': f'exit {proc.returncode}: {tail[0]}'}
+        result: dict[str, Any] = json.loads(out.read_text())
+    if proc.stderr.strip():
+        result['stderr'] = proc.stderr.strip().splitlines()[-5:]
+    return result
+
+
+def cpu_times() -> list[tuple[int, int]]:
+    """(busy, total) jiffies of every core (/proc/stat)."""
+    out = []
+    with open('/proc/stat') as f:
+        for line in f:
+            if line.startswith('cpu') and line[3].isdigit():
+                v = [int(x) for x in line.split()[1:]]
+                idle = v[3] + v[4]
+                out.append((sum(v) - idle, sum(v)))
+    return out
+
+
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of ``pid`` and its descendants so far."""
+    parents: dict[int, int] = {}
+    times: dict[int, float] = {}
+    tick = os.sysconf('SC_CLK_TCK')
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        parents[int(entry.name)] = int(fields[1])
+        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick
+    mine, grew = {pid}, True
+    while grew:
+        more = {p for p, pp in parents.items() if pp in mine} - mine
+        grew = bool(more)
+        mine |= more
+    return sum(times.get(p, 0.0) for p in mine)

@@ -1,0 +1,94 @@
+"""benchmarks/harness: the datasets registry, composed perturbations, the pipeline interface
+and the renderer's table helpers (no Open3D, small_gicp or KISS-ICP needed)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+from scenes import box_room, random_transform, transform_points  # noqa: E402
+
+from benchmarks.harness import datasets, perturb, pipelines, report, runner  # noqa: E402
+from benchmarks.harness.methods import RawMethod  # noqa: E402
+from kentreg_ros.io.sources import Scan  # noqa: E402
+
+
+def _scans(n: int) -> list[Scan]:
+    rng = np.random.default_rng(3)
+    return [Scan(i * 10**8, 'lidar', box_room(rng, 2000), {}) for i in range(n)]
+
+
+def test_perturbations_compose_left_to_right() -> None:
+    scans = _scans(9)
+    both = perturb.compose(perturb.stride(3), perturb.raw_outliers(0.2, np.random.default_rng(0)))
+    out = both(scans)
+    assert [s.stamp_ns for s in out] == [0, 3 * 10**8, 6 * 10**8]
+    kept = scans[::3]
+    assert all(
+        len(o.points) == len(s.points) + round(len(s.points) * 0.25)
+        for o, s in zip(out, kept, strict=True)
+    )
+    with pytest.raises(ValueError, match='n'):
+        perturb.stride(0)
+
+
+def test_merge_joins_each_scan_with_its_predecessor_by_the_poses() -> None:
+    world = box_room(np.random.default_rng(4), 3000)
+    T = np.stack([np.eye(4), random_transform(np.random.default_rng(5), 5.0, 0.2)])
+    scans = [
+        Scan(i, 'lidar', transform_points(np.linalg.inv(Ti), world), {}) for i, Ti in enumerate(T)
+    ]
+    (merged,) = perturb.merge(2, T)(scans)
+    assert len(merged.points) == 2 * len(world)
+    np.testing.assert_allclose(merged.points[len(world) :], scans[1].points, atol=1e-9)
+    np.testing.assert_allclose(merged.points[: len(world)], scans[1].points, atol=1e-9)
+
+
+def test_scan_to_scan_chains_poses_and_counts_raised_steps() -> None:
+    calls: list[int] = []
+
+    def register(src: Any, tgt: Any, init: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError('no convergence')
+        step = np.eye(4)
+        step[0, 3] = 1.0
+        return step, {}
+
+    method = RawMethod('step', lambda p: p, register, lambda prep: 0.1)
+    run = runner.run_pipeline(lambda: pipelines.scan_to_scan(method), _scans(4))
+    # Moves 1 m per scan; the raised second step repeats the last motion, as an odometry would.
+    np.testing.assert_allclose(run.poses[:, 0, 3], [0.0, 1.0, 2.0, 3.0])
+    assert run.health == {'n_raised': 1} and run.ms_per_scan.shape == (4,)
+
+
+def test_make_pipeline_rejects_unknown_names_and_load_dataset_unknown_data() -> None:
+    with pytest.raises(ValueError, match='Unknown pipeline'):
+        pipelines.make_pipeline('icp_magic')
+    with pytest.raises(ValueError, match='Unknown data set'):
+        datasets.load_dataset('no_such_data_set')
+
+
+def test_the_sample_bag_is_a_sequence_with_a_pose_per_scan() -> None:
+    seq = datasets.load_dataset('balm_50')
+    assert seq.T_world is not None and len(seq.T_world) == len(seq.scans) == 50
+    np.testing.assert_allclose(seq.truth(3), np.linalg.inv(seq.T_world[3]) @ seq.T_world[4])
+    np.testing.assert_allclose(seq.constant_velocity(4), seq.truth(3))
+
+
+def test_table_and_cells_render_markdown_from_nested_results() -> None:
+    entry = {'e_R_deg': {'median': 0.12345}, 'ate': None, 'ms': float('nan')}
+    assert report.cells(entry, 'e_R_deg.median:.3f', 'ate.rmse:.2f', 'ms:.0f') == [
+        '0.123',
+        '–',
+        '–',
+    ]
+    assert report.table('a | b', [[1, 2]]) == ['| a | b |', '|---|---|', '| 1 | 2 |']
