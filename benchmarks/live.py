@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.harness import runner  # noqa: E402
+from benchmarks.harness import report, runner  # noqa: E402
 from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
 from benchmarks.harness.report import RESULTS, git_describe, machine_info, table  # noqa: E402
 
@@ -533,12 +533,6 @@ def render(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-def _relative(text: str) -> str:
-    """``text`` with the paths of this machine named relative to the repository
-    (``../shared/data/balm``, ``bags/balm_50``)."""
-    return text.replace(str(ROOT) + '/', '').replace(str(ROOT.parent) + '/', '../')
-
-
 MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
     'ratio': measure_model_ratio,
     'live': measure_live,
@@ -588,8 +582,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         doc = run(options)
     options.out.mkdir(parents=True, exist_ok=True)
-    (options.out / 'live.json').write_text(_relative(json.dumps(doc, indent=1)) + '\n')
-    (options.out / 'live.md').write_text(_relative(render(doc)))
+    report.write_json(options.out / 'live.json', doc)
+    (options.out / 'live.md').write_text(report.relative_paths(render(doc)))
     print(f'live: wrote {options.out / "live.json"} and live.md')
     return 0
 

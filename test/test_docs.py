@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -98,3 +100,33 @@ def test_readmes_quote_the_committed_benchmark_results() -> None:
         check=False,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+#: What a path of the machine that ran a benchmark looks like (a checkout, the shared data, a
+#: temporary folder, a home): a reader of the repository has none of these.
+MACHINE_PATH = re.compile(r'(?<![\w.$])/(?:work|tmp|root|home|Users)/')
+
+
+@pytest.mark.parametrize(
+    'path',
+    sorted(
+        p for p in (REPO_ROOT / 'benchmarks' / 'results').glob('*') if p.suffix in ('.md', '.json')
+    ),
+    ids=lambda p: p.name,
+)
+def test_committed_results_name_data_relative_to_the_repository(path: Path) -> None:
+    """Result files name data as a clone finds it (``../shared/data/balm``,
+    ``bags/balm_50``, ``$TMPDIR/...`` for a run's output folder), not by the path of the
+    machine that ran them."""
+    found = sorted({m.group(0) for m in MACHINE_PATH.finditer(path.read_text(encoding='utf-8'))})
+    assert found == [], f'{path.name} names machine paths: {found}'
+
+
+def test_benchmark_writer_names_paths_relative_to_the_repository() -> None:
+    sys.path.insert(0, str(REPO_ROOT))
+    from benchmarks.harness import report
+
+    text = (
+        f'{REPO_ROOT}/bags/balm_50 {REPO_ROOT.parent}/shared/data/balm {tempfile.gettempdir()}/x'
+    )
+    assert report.relative_paths(text) == 'bags/balm_50 ../shared/data/balm $TMPDIR/x'

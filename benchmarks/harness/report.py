@@ -14,6 +14,7 @@ import json
 import os
 import platform
 import subprocess
+import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import version
@@ -95,16 +96,26 @@ def finish_machine(machine: dict[str, Any]) -> None:
         )
 
 
+def relative_paths(text: str) -> str:
+    """``text`` with this machine's paths named as a reader of the repository finds them: the
+    repository's own relative to it (``bags/balm_50``), its neighbours with ``../``
+    (``../shared/data/balm``), and the temporary folder as ``$TMPDIR`` (a run's ``--out``)."""
+    text = text.replace(str(ROOT) + '/', '').replace(str(ROOT.parent) + '/', '../')
+    return text.replace(tempfile.gettempdir().rstrip('/') + '/', '$TMPDIR/')
+
+
 def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as indented JSON (numpy values as Python values, NaN written as null)."""
+    """Write ``data`` as indented JSON (numpy values as Python values, NaN written as null),
+    with :func:`relative_paths`."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(jsonable(data), indent=1) + '\n')
+    path.write_text(relative_paths(json.dumps(jsonable(data), indent=1)) + '\n')
 
 
 def write_results(out: Path, stem: str, data: Any, text: str) -> None:
-    """``<stem>.json`` and ``<stem>.md`` in ``out``; the table is printed too."""
+    """``<stem>.json`` and ``<stem>.md`` in ``out`` (with :func:`relative_paths`); the table
+    is printed too."""
     write_json(out / f'{stem}.json', data)
-    (out / f'{stem}.md').write_text(text)
+    (out / f'{stem}.md').write_text(relative_paths(text))
     print(text)
 
 
