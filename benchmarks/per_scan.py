@@ -14,10 +14,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
-import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -31,6 +29,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.harness import datasets, methods, perturb, pipelines, report, runner  # noqa: E402
 from kentreg_ros.core import invert_transform  # noqa: E402
+from kentreg_ros.eval.metrics import pair_errors  # noqa: E402
 from kentreg_ros.io.sources import Scan  # noqa: E402
 
 FloatArray = NDArray[np.float64]
@@ -57,18 +56,19 @@ def _rss_mb(key: str) -> float:
     return float('nan')
 
 
-def run_worker(method: str, scans_file: Path, steps: int = 0) -> dict[str, Any]:
-    """One method over the scans in this (pinned) process; ``steps`` > 0: a long run."""
+def run_worker(args: argparse.Namespace) -> dict[str, Any]:
+    """One method over the saved scans in this (pinned) process; ``--long-steps`` > 0: the
+    memory run (scans forth and back, numpy's and Python's live memory traced, not timed)."""
     methods.limit_threads(1)
-    data = np.load(scans_file)  # an NpzFile: each scan is read when it is used
+    data, steps = np.load(args.data), args.long_steps  # an NpzFile: a scan is read when used
     n = int(data['n'])
-    pipeline = pipelines.make_pipeline(method, voxel=PEER_VOXEL, threads=1, max_history=2)
+    pipeline = pipelines.make_pipeline(args.methods[0], voxel=PEER_VOXEL, threads=1, max_history=2)
     base_mb = _rss_mb('VmRSS')
     try:  # the peak from here on: the method's own, not the imports' (Linux)
         Path('/proc/self/clear_refs').write_text('5')
     except OSError:
         pass
-    if steps > 0:  # the memory run: numpy's and Python's live memory, exactly (not timed)
+    if steps > 0:
         tracemalloc.start()
     poses, ms, rss, traced = [], [], [], []
     for k, i in enumerate(_forth_and_back(n, steps) if steps > 0 else range(n)):
@@ -80,38 +80,24 @@ def run_worker(method: str, scans_file: Path, steps: int = 0) -> dict[str, Any]:
         if steps > 0:
             traced.append(tracemalloc.get_traced_memory()[0] / 2**20)
     peak_mb = _rss_mb('VmHWM')
-    return {
-        'ms': ms,
-        'poses': np.array(poses).tolist(),
-        'start_rss_mb': base_mb,
-        'peak_rss_mb': peak_mb,
-        'peak_growth_mb': peak_mb - base_mb,
-        'rss_mb': rss,
-        'traced_mb': traced,
-    }
+    return {'ms': ms, 'poses': np.array(poses).tolist(), 'start_rss_mb': base_mb,
+            'peak_rss_mb': peak_mb, 'peak_growth_mb': peak_mb - base_mb, 'rss_mb': rss,
+            'traced_mb': traced}  # fmt: skip
 
 
 def summarize(ms: list[float], poses: FloatArray, truth: FloatArray) -> dict[str, Any]:
     per_scan = np.array(ms[1:])  # the first scan only prepares
-    e = [
-        runner.errors(
-            invert_transform(poses[i - 1]) @ poses[i], invert_transform(truth[i - 1]) @ truth[i]
-        )
-        for i in range(1, len(poses))
+    rel = [
+        [invert_transform(T[i - 1]) @ T[i] for i in range(1, len(poses))] for T in (poses, truth)
     ]
-    e_R, e_t = np.array([a for a, _ in e]), np.array([b for _, b in e])
+    e_R, e_t = pair_errors(np.array(rel[0]), np.array(rel[1]))
     return {
-        'ms_per_scan': {
-            'p50': float(np.percentile(per_scan, 50)),
-            'p95': float(np.percentile(per_scan, 95)),
-            'max': float(per_scan.max()),
-            'mean': float(per_scan.mean()),
-        },
-        'e_R_deg_median': float(np.median(e_R)),
-        'e_t_m_median': float(np.median(e_t)),
-        'failures': int(runner.failure_mask(e_R, e_t).sum()),
-        'n_pairs': len(e_R),
-    }
+        'ms_per_scan': {'p50': float(np.percentile(per_scan, 50)),
+                        'p95': float(np.percentile(per_scan, 95)),
+                        'max': float(per_scan.max()), 'mean': float(per_scan.mean())},
+        'e_R_deg_median': float(np.median(e_R)), 'e_t_m_median': float(np.median(e_t)),
+        'failures': int(runner.failure_mask(e_R, e_t).sum()), 'n_pairs': len(e_R),
+    }  # fmt: skip
 
 
 def markdown(doc: dict[str, Any]) -> str:
@@ -122,43 +108,29 @@ def markdown(doc: dict[str, Any]) -> str:
         if meta.get('merge', 1) > 1
         else ''
     )
-    rows = []
-    for name, r in doc['methods'].items():
-        t, start, lr = r['ms_per_scan'], r.get('start_rss_mb'), r.get('long_run')
-        rows.append(
-            [
-                name,
-                f'{t["p50"]:.1f}',
-                f'{t["p95"]:.1f}',
-                f'{t["max"]:.1f}',
-                f'{t["p50"] / base:.2f}×' if base else '–',
-                f'{start:.0f} / {r["peak_rss_mb"]:.0f}' if start is not None else '–',
-                f'{r["peak_growth_mb"]:.0f}',
-                f'{lr["growth_mb"]:.2f} / {lr["rss_growth_mb"]:.1f}' if lr else '–',
-                f'{r["e_R_deg_median"]:.3f}',
-                f'{1e3 * r["e_t_m_median"]:.1f}',
-                f'{r["failures"]}/{r["n_pairs"]}',
-            ]
-        )
-    head = [
-        'method',
-        'p50 ms/scan',
-        'p95',
-        'max',
-        'ratio to GICP (p50)',
-        'resident MB once started / peak',
-        'peak memory growth MB',
+    long_run = (
         f'memory growth over the second half of {meta.get("long_steps") or "–"} steps MB: '
-        'live numpy/Python (tracemalloc) / resident',
-        'median e_R (deg)',
-        'median e_t (mm)',
-        'failed pairs',
-    ]
+        'live numpy/Python (tracemalloc) / resident'
+    )
+    columns: list[report.Column] = [
+        ('method', 'name:s'), ('p50 ms/scan', 'ms_per_scan.p50:.1f'),
+        ('p95', 'ms_per_scan.p95:.1f'), ('max', 'ms_per_scan.max:.1f'),
+        ('ratio to GICP (p50)', lambda r: f'{r["ms_per_scan"]["p50"] / base:.2f}×' if base
+         else '–'),
+        ('resident MB once started / peak', lambda r: '–' if r.get('start_rss_mb') is None
+         else f'{r["start_rss_mb"]:.0f} / {r["peak_rss_mb"]:.0f}'),
+        ('peak memory growth MB', 'peak_growth_mb:.0f'),
+        (long_run, lambda r: f'{lr["growth_mb"]:.2f} / {lr["rss_growth_mb"]:.1f}'
+         if (lr := r.get('long_run')) else '–'),
+        ('median e_R (deg)', 'e_R_deg_median:.3f'),
+        ('median e_t (mm)', lambda r: f'{1e3 * r["e_t_m_median"]:.1f}'),
+        ('failed pairs', lambda r: f'{r["failures"]}/{r["n_pairs"]}'),
+    ]  # fmt: skip
     lines = [
         f'Per-scan odometry on {meta["n_scans"]} raw BALM scans ({meta["points"]}{merged}), one '
         f'thread per method, {meta["rounds"]} rounds; the first scan (prepare only) excluded.',
         '',
-        *report.table(head, rows),
+        *report.column_table(columns, report.named(doc['methods'])),
         '',
         f'Run at {meta["git"]}; load average {meta["load"]} at the start.',
         '',
@@ -166,21 +138,23 @@ def markdown(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
+def _in_worker(method: str, scans_file: Path, steps: int) -> dict[str, Any]:
+    options = ['--methods', method, '--data', str(scans_file), '--long-steps', str(steps)]
+    res = runner.in_subprocess(__file__, options)
+    if 'error' in res:
+        raise SystemExit(f'{method}: {res["error"]}')
+    return res
+
+
 def _long_run(method: str, scans_file: Path, steps: int) -> dict[str, Any]:
     """Flat memory over a long run: memory after the last step minus at the middle (the
     allocator has settled by then); a leak of 10 kB per step would show as 2 MB."""
-    res = runner.in_subprocess(__file__, [method, str(scans_file), str(steps)])
-    rss, traced, middle = res['rss_mb'], res['traced_mb'], steps // 2
-    return {
-        'steps': steps,
-        'from_step': middle,
-        'rss_at_middle_mb': rss[middle - 1],
-        'rss_at_end_mb': rss[-1],
-        'rss_growth_mb': rss[-1] - rss[middle - 1],
-        'traced_at_middle_mb': traced[middle - 1],
-        'traced_at_end_mb': traced[-1],
-        'growth_mb': traced[-1] - traced[middle - 1],
-    }
+    res = _in_worker(method, scans_file, steps)
+    rss, traced, mid = res['rss_mb'], res['traced_mb'], steps // 2
+    return {'steps': steps, 'from_step': mid, 'rss_at_middle_mb': rss[mid - 1],
+            'rss_at_end_mb': rss[-1], 'rss_growth_mb': rss[-1] - rss[mid - 1],
+            'traced_at_middle_mb': traced[mid - 1], 'traced_at_end_mb': traced[-1],
+            'growth_mb': traced[-1] - traced[mid - 1]}  # fmt: skip
 
 
 OPTIONS: list[report.Option] = [
@@ -191,15 +165,11 @@ OPTIONS: list[report.Option] = [
                       'help': 'steps of the memory run per method (0: none)'}),
     ('--merge', {'type': int, 'default': 1, 'help': 'denser scans: each joined with its K-1 '
                  'predecessors (K=2: ~150-180k points; default 1, the raw scans)'}),
-    ('--worker', {'nargs': 4, 'help': argparse.SUPPRESS}),
+    ('--data', {'type': Path, 'help': argparse.SUPPRESS}),
 ]  # fmt: skip
 
 
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
-    if args.worker:
-        out, method, scans_file, steps = args.worker
-        Path(out).write_text(json.dumps(run_worker(method, Path(scans_file), int(steps))))
-        raise SystemExit(0)
     seq = datasets.load_balm()
     scans = seq.scans[: args.scans]
     truth = np.asarray(seq.T_world)[: len(scans)]
@@ -207,24 +177,21 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         scans = perturb.merge(args.merge, truth)(scans)
         truth = truth[args.merge - 1 :]
     n = len(scans)
+    long_steps = args.long_steps if args.long_steps > n else 0
     samples: dict[str, list[dict[str, Any]]] = {m: [] for m in args.methods}
+    results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         scans_file = Path(tmp) / 'scans.npz'
         arrays: dict[str, Any] = {f's{i}': np.asarray(s.points) for i, s in enumerate(scans)}
         np.savez(scans_file, n=n, **arrays)
         for r, method in runner.rotated(list(args.methods), args.rounds):
-            t0 = time.perf_counter()
-            res = runner.in_subprocess(__file__, [method, str(scans_file), '0'])
-            if 'error' in res:
-                raise SystemExit(f'{method}: {res["error"]}')
+            res, took_ms = runner.timed(_in_worker, method, scans_file, 0)
             samples[method].append(res)
+            p50 = np.median(res['ms'][1:])
             print(
-                f'round {r} {method}: p50 {np.median(res["ms"][1:]):.1f} ms/scan '
-                f'({time.perf_counter() - t0:.0f} s)',
+                f'round {r} {method}: p50 {p50:.1f} ms/scan ({took_ms / 1e3:.0f} s)',
                 file=sys.stderr,
             )
-        long_steps = args.long_steps if args.long_steps > n else 0
-        results: dict[str, Any] = {}
         for method, rounds in samples.items():
             ms = [rounds[0]['ms'][0]] + [t for res in rounds for t in res['ms'][1:]]
             summary = summarize(ms, np.array(rounds[0]['poses']), truth)
@@ -234,22 +201,12 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
             if long_steps:
                 summary['long_run'] = _long_run(method, scans_file, long_steps)
             results[method] = summary
-    info = report.machine_info()
-    sizes = [len(s.points) for s in scans]
-    doc = {
-        'meta': {
-            'n_scans': n,
-            'points': f'{min(sizes)}-{max(sizes)} points each',
-            'merge': args.merge,
-            'rounds': args.rounds,
-            'long_steps': long_steps,
-            'git': report.git_describe() or 'unknown',
-            'load': info.get('load_avg_at_start'),
-            'machine': info,
-        },
-        'methods': results,
-    }
-    return doc
+    info, sizes = report.machine_info(), [len(s.points) for s in scans]
+    meta = {'n_scans': n, 'points': f'{min(sizes)}-{max(sizes)} points each', 'merge': args.merge,
+            'rounds': args.rounds, 'long_steps': long_steps,
+            'git': report.git_describe() or 'unknown', 'load': info.get('load_avg_at_start'),
+            'machine': info}  # fmt: skip
+    return {'meta': meta, 'methods': results}
 
 
 def _stem(args: argparse.Namespace) -> str:
@@ -257,4 +214,6 @@ def _stem(args: argparse.Namespace) -> str:
 
 
 if __name__ == '__main__':
-    raise SystemExit(report.experiment_main(__doc__, _stem, OPTIONS, run, markdown))
+    raise SystemExit(
+        report.experiment_main(__doc__, _stem, OPTIONS, run, markdown, worker=run_worker)
+    )

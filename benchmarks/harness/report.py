@@ -155,6 +155,35 @@ def table(header: str | Sequence[str], rows: Iterable[Sequence[Any]]) -> list[st
     return lines
 
 
+#: A column of :func:`column_table`: its header and its cell, a :func:`cells` spec
+#: (``'key.subkey:format'``) or a function of the row's entry.
+Column = tuple[str, str | Callable[[Any], Any]]
+
+
+def column_table(
+    columns: Sequence[Column], entries: Iterable[Any], missing: str = '–'
+) -> list[str]:
+    """The lines of a markdown table with a row per entry and a cell per column."""
+    rows = [
+        [cells(e, cell, missing=missing)[0] if isinstance(cell, str) else cell(e)
+         for _, cell in columns]
+        for e in entries
+    ]  # fmt: skip
+    return table([head for head, _ in columns], rows)
+
+
+def named(entries: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each entry of ``{name: entry}`` with its name as ``'name'`` (:func:`column_table`)."""
+    return [{'name': name, **entry} for name, entry in entries.items()]
+
+
+def method_rows(blocks: dict[str, Any], cell: Callable[[Any], str]) -> list[list[str]]:
+    """A row per method of ``blocks`` (``{x: {'methods': {name: entry}}}``, as the results JSON
+    nests them): its name and ``cell(entry)`` of every block."""
+    names = list(next(iter(blocks.values()))['methods'])
+    return [[n, *(cell(b['methods'][n]) for b in blocks.values())] for n in names]
+
+
 @dataclass
 class Panel:
     """One axes of :func:`plot_panels`: ``lines`` are ``(label, x, y, style)``."""
@@ -219,10 +248,13 @@ def experiment_main(
     markdown: Callable[[dict[str, Any]], str],
     plot: Callable[[dict[str, Any], Path], None] | None = None,
     argv: Sequence[str] | None = None,
+    worker: Callable[[argparse.Namespace], dict[str, Any]] | None = None,
 ) -> int:
     """The command line of an experiment: parse ``options`` (plus ``--out`` and ``--table``),
     ``run(args, argv)`` to a results dict, write ``<stem>.json``, ``<stem>.md`` (and
-    ``<stem>.png`` with ``plot``) into ``--out``; ``--table JSON`` only prints its tables."""
+    ``<stem>.png`` with ``plot``) into ``--out``; ``--table JSON`` only prints its tables.
+    With ``worker``, ``--worker OUT`` writes ``worker(args)`` to OUT instead
+    (:func:`~benchmarks.harness.runner.in_subprocess`)."""
     import sys
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -233,9 +265,14 @@ def experiment_main(
         ('--out', {'type': Path, 'default': RESULTS, 'help': 'folder for the results'}),
         ('--table', {'type': Path, 'metavar': 'JSON', 'help': 'only print the tables of a file'}),
     ]
+    if worker is not None:
+        common.append(('--worker', {'type': Path, 'help': argparse.SUPPRESS}))
     for flag, kwargs in (*options, *common):
         parser.add_argument(flag, **kwargs)
     args = parser.parse_args(argv)
+    if getattr(args, 'worker', None) is not None and worker is not None:
+        args.worker.write_text(json.dumps(worker(args)))
+        return 0
     if args.table is not None:
         print(markdown(json.loads(args.table.read_text())), end='')
         return 0
