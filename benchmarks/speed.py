@@ -5,22 +5,28 @@ beyond half the smallest scan, downsampled at the edge giving about N points) fr
 reference off by 1 deg / 5 cm; per pair the target is prepared once untimed and the source
 prepared + registered ``--repeats`` times; each library runs in its own pinned subprocess, in
 ``--rounds`` rotated rounds; ratios are to small_gicp GICP in the same run (README section 3).
+``--stages``: kentreg's median time per stage at each N instead (``results/bench_register.json``);
+``--io``: the best and median time of kentreg_ros.io's conversions and readers (printed).
 
 Usage::
 
     python3 benchmarks/speed.py                       # all methods, 1 thread, ~10 min
     python3 benchmarks/speed.py --methods gicp kentreg_robust --sizes 10000 --pairs 3
+    python3 benchmarks/speed.py --stages --sizes 3000 10000 30000 --pairs 10
+    python3 benchmarks/speed.py --io                  # a 100k-point PointCloud2 in well under 5 ms
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import json
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +38,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.harness import datasets, methods, perturb, report, runner  # noqa: E402
-from kentreg_ros.core import count_voxels  # noqa: E402
+from kentreg_ros.core import KentRegConfig, count_voxels, prepare_scan, register  # noqa: E402
 from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # noqa: E402
 
 FloatArray = NDArray[np.float64]
@@ -240,6 +246,121 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     report.plot_panels(path, [[times, ratios]], size=(13.5, 5))
 
 
+PREP_STAGES = ('downsample', 'normals', 'outliers', 'clustering')
+REG_STAGES = ('rotation', 'translation', 'refine')
+
+
+def stage_times(args: argparse.Namespace) -> None:
+    """kentreg's median time per stage (ms) over ``--pairs`` consecutive raw pairs at each
+    ``preprocess.target_points`` of ``--sizes``: printed and written to bench_register.json."""
+    seq = datasets.load_dataset('balm_or_sample')
+    scans = [seq.raw(i) for i in range(args.pairs + 1)]
+    sizes = [len(s) for s in scans]
+    source = f'{seq.name} (real, {min(sizes)}-{max(sizes)} points per raw scan)'
+    load_before, rows = os.getloadavg()[0], []
+    for size in args.sizes:
+        cfg = KentRegConfig().with_updates({'preprocess.target_points': size})
+        prepare: Any = functools.partial(prepare_scan, config=cfg)
+        register(prepare(scans[1]), prepare(scans[0]), config=cfg)  # warm-up, not timed
+        per_pair = []
+        for i in range(args.pairs):
+            model = prepare(scans[i])
+            t0 = time.perf_counter()
+            scan = prepare(scans[i + 1])
+            result = register(scan, model, config=cfg)
+            wall = (time.perf_counter() - t0) * 1e3
+            entry = {f'prep.{k}': scan.timings.get(k, 0.0) for k in PREP_STAGES}
+            entry |= {f'reg.{k}': result.timings[k] for k in REG_STAGES}
+            entry |= {'prep.total': scan.timings['total'], 'reg.total': result.timings['total'],
+                      'prep+reg': wall, 'points': float(len(scan))}  # fmt: skip
+            per_pair.append(entry)
+        med = {k: float(np.median([e[k] for e in per_pair])) for k in per_pair[0]}
+        rows.append(med | {'target_points': size})
+    load_after = os.getloadavg()[0]
+    print(
+        f'kentreg per-stage median ms over {args.pairs} pairs of {source}; 1-min load '
+        f'average {load_before:.1f} before / {load_after:.1f} after'
+    )
+    print(f'{"stage":<22}' + ''.join(f'{int(r["target_points"]):>10}' for r in rows))
+    print(f'{"points after prep":<22}' + ''.join(f'{r["points"]:>10.0f}' for r in rows))
+    prep, reg = (f'prep.{k}' for k in PREP_STAGES), (f'reg.{k}' for k in REG_STAGES)
+    for k in (*prep, 'prep.total', *reg, 'reg.total', 'prep+reg'):
+        print(f'{k:<22}' + ''.join(f'{r[k]:>10.1f}' for r in rows))
+    doc = {'source': source, 'pairs': args.pairs, 'rows': rows, 'cpus': os.cpu_count(),
+           'load_average_1min': [load_before, load_after]}  # fmt: skip
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / 'bench_register.json').write_text(json.dumps(doc, indent=2))
+
+
+def _ouster_like(n: int, rng: np.random.Generator) -> Any:
+    """A rosbags PointCloud2 laid out like an Ouster driver's: 48-byte points, 128 rows."""
+    from kentreg_ros.io.pointcloud2 import rosbags_factory
+
+    names = ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range']
+    formats = ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4']
+    offsets = [0, 4, 8, 16, 20, 24, 26, 28, 32]
+    layout = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': 48})
+    arr = np.zeros(n, layout)
+    for c in 'xyz':
+        arr[c] = rng.normal(scale=20, size=n)
+    arr['x'][::50] = np.nan  # 2 % invalid returns, as an organised cloud has
+    fac, codes = rosbags_factory(), {'f4': 7, 'u4': 6, 'u2': 4}
+    fields = [fac.point_field(name=name, offset=offset, datatype=codes[form[1:]], count=1)
+              for name, offset, form in zip(names, offsets, formats, strict=True)]  # fmt: skip
+    header = fac.header(stamp=fac.time(sec=0, nanosec=0), frame_id='os_lidar')
+    return fac.point_cloud2(header=header, height=128, width=n // 128, fields=fields,
+                            is_bigendian=False, point_step=48, row_step=48 * (n // 128),
+                            data=arr.view(np.uint8), is_dense=False)  # fmt: skip
+
+
+def io_times(repeat: int) -> None:
+    """Print the best and median ms of kentreg_ros.io's conversions and readers (the best is
+    the cost without interference from other processes on a shared machine)."""
+    from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, pointcloud2_to_array
+    from kentreg_ros.io.scanfiles import read_pcd
+    from kentreg_ros.io.sources import open_scan_source
+
+    rng, n = np.random.default_rng(0), 100_000
+    packed = array_to_pointcloud2(
+        rng.normal(scale=20, size=(n, 3)), extra={'intensity': rng.random(n).astype(np.float32)}
+    )
+    ouster, xyz = _ouster_like(n - n % 128, rng), rng.normal(size=(n, 3))
+    packed_name, balm = 'PointCloud2 100k xyz+intensity (16 B) -> (N,3)', datasets.SHARED_DATA
+    operations: list[tuple[str, Callable[[], Any], int]] = [
+        (f'{packed_name} float64, no extras', lambda: pointcloud2_to_array(packed, fields=()),
+         repeat),
+        (f'{packed_name} float64 + intensity', lambda: pointcloud2_to_array(packed), repeat),
+        (f'{packed_name} float32, no extras',
+         lambda: pointcloud2_to_array(packed, fields=(), dtype=np.float32), repeat),
+        ('PointCloud2 99,968 Ouster-like 48 B, 128 rows, 2 % NaN -> (N,3) + 6 fields',
+         lambda: pointcloud2_to_array(ouster), repeat),
+        ('(N,3) float64 100k -> PointCloud2 float32 (rosbags message)',
+         lambda: array_to_pointcloud2(xyz), repeat),
+    ]  # fmt: skip
+    if (balm / 'balm' / 'full0.pcd').is_file():
+        operations.append(
+            (
+                'read_pcd BALM full0.pcd (73,452 points, binary)',
+                lambda: read_pcd(balm / 'balm' / 'full0.pcd'),
+                max(repeat // 10, 5),
+            )
+        )
+    if datasets.SAMPLE_BAG.is_dir():
+        operations.append(
+            (
+                'open_scan_source bags/balm_50: all 50 scans (zstd MCAP)',
+                lambda: list(open_scan_source(datasets.SAMPLE_BAG)),
+                3,
+            )
+        )
+    width = max(len(name) for name, *_ in operations)
+    print(f'{"operation":<{width}}  {"best ms":>8}  {"median ms":>9}')
+    for name, fn, times in operations:
+        fn()  # warm up
+        ms = [runner.timed(fn)[1] for _ in range(times)]
+        print(f'{name:<{width}}  {min(ms):8.3f}  {float(np.median(ms)):9.3f}')
+
+
 OPTIONS: list[report.Option] = [
     ('--input', {'type': Path, 'default': datasets.SHARED_DATA / 'balm', 'metavar': 'FOLDER',
                  'help': 'raw scan folder with its pose file'}),
@@ -252,7 +373,9 @@ OPTIONS: list[report.Option] = [
                        'help': 'seconds per method and size: fewer repeats for slower cells'}),
     ('--threads', {'type': int, 'default': 1, 'help': 'threads per library process'}),
     ('--rounds', {'type': int, 'default': 2, 'help': 'rotated rounds (default 2)'}),
-    ('--worker', {'type': Path, 'help': argparse.SUPPRESS}),
+    ('--stages', {'action': 'store_true', 'help': "kentreg's time per stage at each N"}),
+    ('--io', {'type': int, 'nargs': '?', 'const': 200, 'metavar': 'REPEATS',
+              'help': 'time kentreg_ros.io instead (default 200 repeats)'}),
     ('--data', {'type': Path, 'help': argparse.SUPPRESS}),
 ]  # fmt: skip
 
@@ -314,8 +437,8 @@ def summarize_results(doc: dict[str, Any], samples: dict[str, Any], names: list[
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if min(args.threads, args.pairs, args.repeats, args.rounds) < 1:
         raise SystemExit('--threads, --pairs, --repeats and --rounds must be >= 1')
-    if args.worker is not None:
-        args.worker.write_text(json.dumps(run_worker(args)))
+    if args.io or args.stages:
+        io_times(args.io) if args.io else stage_times(args)
         raise SystemExit(0)
     names = [REFERENCE] + [m for m in args.methods if m != REFERENCE]
     libraries: dict[str, list[str]] = {}
@@ -341,4 +464,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
 
 
 if __name__ == '__main__':
-    raise SystemExit(report.experiment_main(__doc__, 'speed', OPTIONS, run, format_table, plot))
+    raise SystemExit(
+        report.experiment_main(
+            __doc__, 'speed', OPTIONS, run, format_table, plot, worker=run_worker
+        )
+    )
