@@ -41,9 +41,6 @@ logger = logging.getLogger('robustness')
 
 Data: TypeAlias = datasets.Sequence
 Methods: TypeAlias = Sequence[methods.RawMethod]
-Floats: TypeAlias = Sequence[float]
-Ints: TypeAlias = Sequence[int]
-FloatArray: TypeAlias = runner.FloatArray
 TESTS = ('strides', 'outliers', 'turned')
 DEFAULT_METHODS = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
 STRIDES = (1, 2, 3, 4)
@@ -60,7 +57,7 @@ QUICK = {'max_input_scans': 25, 'outlier_pairs': 3, 'turned_pairs': 2}
 FAIL_RULE = f'e_R > {FAIL_ROTATION_DEG:g}° or e_t > {FAIL_TRANSLATION_M:g} m'
 
 
-def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: FloatArray, idx: Any) -> dict:
+def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: Any, idx: Any) -> dict:
     """One method's odometry over ``scans`` evaluated like the replay."""
     if method.name == 'kentreg':
         run = runner.run_pipeline(lambda: pipelines.KentregPipeline(KentRegConfig()), scans)
@@ -73,19 +70,17 @@ def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: FloatArray,
     e_t = np.asarray(result['pairs']['e_t_m'], dtype=np.float64)
     failed = runner.failure_mask(e_R, e_t)
     return {
-        'n_pairs': len(e_R),
-        'failed': int(failed.sum()),
+        'n_pairs': len(e_R), 'failed': int(failed.sum()),
         'failed_pairs': [[int(idx[i]), int(idx[i + 1])] for i in np.flatnonzero(failed)],
         'e_R_deg': {'median': float(np.median(e_R)), 'max': float(e_R.max())},
         'e_t_m': {'median': float(np.median(e_t)), 'max': float(e_t.max())},
         'ate_rmse_m': None if result['ate'] is None else result['ate']['rmse'],
         'ms_per_scan_median': float(np.median(run.ms_per_scan)),
-        'per_pair': {'e_R_deg': e_R.tolist(), 'e_t_m': e_t.tolist()},
-        **extra,
-    }
+        'per_pair': {'e_R_deg': e_R.tolist(), 'e_t_m': e_t.tolist()}, **extra,
+    }  # fmt: skip
 
 
-def run_strides(data: Data, built: Methods, strides: Ints, max_input: int | None) -> dict:
+def run_strides(data: Data, built: Methods, strides: Sequence[int], max_input: int | None) -> dict:
     """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
     assert data.T_world is not None
     scans = data.scans[:max_input]
@@ -93,11 +88,9 @@ def run_strides(data: Data, built: Methods, strides: Ints, max_input: int | None
     for n in strides:
         idx = np.arange(0, len(scans), n)
         T_gt = data.T_world[idx]
-        block: dict[str, Any] = {
-            'input_indices': idx.tolist(),
-            'reference_motion': runner.motion_stats(np.linalg.inv(T_gt[:-1]) @ T_gt[1:]),
-            'methods': {},
-        }
+        motion = runner.motion_stats(np.linalg.inv(T_gt[:-1]) @ T_gt[1:])
+        block: dict[str, Any] = {'input_indices': idx.tolist(), 'reference_motion': motion}
+        block['methods'] = {}
         for method in built:
             try:
                 entry = _stride_entry(method, perturb.stride(n)(scans), T_gt, idx)
@@ -106,14 +99,9 @@ def run_strides(data: Data, built: Methods, strides: Ints, max_input: int | None
                 entry = {'error': f'{type(exc).__name__}: {exc}'}
             block['methods'][method.name] = entry
             if 'failed' in entry:
-                logger.info(
-                    'strides: N=%d %s: %d/%d failed, ATE %s m',
-                    n,
-                    method.name,
-                    entry['failed'],
-                    entry['n_pairs'],
-                    fmt(entry['ate_rmse_m'], '.3f'),
-                )
+                failed, ate = f'{entry["failed"]}/{entry["n_pairs"]}', entry['ate_rmse_m']
+                logger.info('strides: N=%d %s: %s failed, ATE %s m', n, method.name, failed,
+                            fmt(ate, '.3f'))  # fmt: skip
         out[str(n)] = block
     return out
 
@@ -128,8 +116,9 @@ def _outlier_summary(recs: list[dict[str, Any]], shares: list[float]) -> dict[st
 
 
 def run_outliers(
-    data: Data, built: Methods, levels: Floats, pairs: Ints, seed: int, shell_share: float
-) -> dict[str, Any]:
+    data: Data, built: Methods, levels: Sequence[float], pairs: Sequence[int], seed: int,
+    shell_share: float,
+) -> dict[str, Any]:  # fmt: skip
     """Per level and method, the per-pair records, their summary and the clean-median ratio."""
     out: dict[str, Any] = {}
     for level in levels:
@@ -142,12 +131,9 @@ def run_outliers(
                 np.random.default_rng([seed, 2, trial]), START_OFFSET_DEG, START_OFFSET_M
             )
             rng = np.random.default_rng([seed, 2, trial, int(round(level * 1000))])
-            target, tgt_out = perturb.inject_raw_outliers(
-                data.raw(pair), level, rng, shell_share=shell_share
-            )
-            source, src_out = perturb.inject_raw_outliers(
-                data.raw(pair + 1), level, rng, shell_share=shell_share
-            )
+            inject = perturb.inject_raw_outliers
+            target, tgt_out = inject(data.raw(pair), level, rng, shell_share=shell_share)
+            source, src_out = inject(data.raw(pair + 1), level, rng, shell_share=shell_share)
             realised += [tgt_out.mean(), src_out.mean()]
             for method in built:
                 tgt, failed = runner.prepare_target(method, target)
@@ -158,17 +144,13 @@ def run_outliers(
                     row['outlier_share_after_downsampling'] = share
                     shares[method.name].append(share)
                 rows[method.name].append(row)
-        block: dict[str, Any] = {
-            'realised_share': {
-                'mean': float(np.mean(realised)),
-                'min': float(np.min(realised)),
-                'max': float(np.max(realised)),
-            },
+        spread = {'mean': np.mean(realised), 'min': np.min(realised), 'max': np.max(realised)}
+        out[f'{level:.2f}'] = {
+            'realised_share': {k: float(v) for k, v in spread.items()},
             'methods': {
                 n: {'summary': _outlier_summary(r, shares[n]), 'pairs': r} for n, r in rows.items()
             },
         }
-        out[f'{level:.2f}'] = block
         logger.info('outliers: %.0f %% done', 100 * level)
     clean = out.get(f'{min(levels):.2f}') if levels else None
     for block in out.values():
@@ -180,7 +162,9 @@ def run_outliers(
     return out
 
 
-def run_turned(data: Data, built: Methods, angles: Floats, pairs: Ints, seed: int) -> dict:
+def run_turned(
+    data: Data, built: Methods, angles: Sequence[float], pairs: Sequence[int], seed: int
+) -> dict:
     """Per angle and method, the records of pairs whose source was turned, from the identity."""
     keys = [f'{a:g}' for a in angles]
     rows: dict[str, dict[str, list[dict[str, Any]]]] = {
@@ -196,9 +180,8 @@ def run_turned(data: Data, built: Methods, angles: Floats, pairs: Ints, seed: in
             )
             turned = perturb.transform(T_turn, data.raw(pair + 1))
             ref = truth @ np.linalg.inv(T_turn)
-            reference_angle[key].append(
-                float(np.degrees(Rotation.from_matrix(ref[:3, :3]).magnitude()))
-            )
+            angle_deg = np.degrees(Rotation.from_matrix(ref[:3, :3]).magnitude())
+            reference_angle[key].append(float(angle_deg))
             for m in built:
                 tgt, failed = targets[m.name]
                 rec = runner.raised('the target could not be prepared') if failed else None
@@ -209,14 +192,13 @@ def run_turned(data: Data, built: Methods, angles: Floats, pairs: Ints, seed: in
     out: dict[str, Any] = {}
     for key, by_method in rows.items():
         ref_angles = np.array(reference_angle[key])
-        out[key] = {
-            'reference_rotation_deg': {
-                'min': float(ref_angles.min()),
-                'median': float(np.median(ref_angles)),
-                'max': float(ref_angles.max()),
-            },
-            'methods': {},
+        spread = {
+            'min': ref_angles.min(),
+            'median': np.median(ref_angles),
+            'max': ref_angles.max(),
         }
+        out[key] = {'reference_rotation_deg': {k: float(v) for k, v in spread.items()}}
+        out[key]['methods'] = {}
         for name, recs in by_method.items():
             summ = runner.summarize(recs, finite_times=True)
             summ['recovered'] = summ['n'] - summ['failures']
@@ -230,17 +212,23 @@ def run_turned(data: Data, built: Methods, angles: Floats, pairs: Ints, seed: in
 # Report
 
 
-def _commit(meta: dict[str, Any]) -> str:
-    return str(meta['machine'].get('git') or meta['machine'].get('git_commit') or '?')
+def _run_at(meta: dict[str, Any]) -> list[str]:
+    commit = meta['machine'].get('git') or meta['machine'].get('git_commit') or '?'
+    return ['', f'Run at {commit}: `{meta["command"]}`.', '']
 
 
 def _raised_note(summary: dict[str, Any]) -> str:
     return f' ({summary["n_errors"]} raised)' if summary['n_errors'] else ''
 
 
+def _percent(key: str) -> str:
+    return f'{float(key) * 100:.0f} %'
+
+
 def _strides_md(strides: dict[str, Any]) -> list[str]:
-    meta = strides['meta']
-    rows = []
+    meta, rows = strides['meta'], []
+    values = ('e_R_deg.median:.3f', 'e_R_deg.max:.2f', 'e_t_m.median:.4f', 'e_t_m.max:.3f',
+              'ate_rmse_m:.3f', 'ms_per_scan_median:.0f')  # fmt: skip
     for n, block in strides['strides'].items():
         ref = block['reference_motion']
         motion = (
@@ -251,10 +239,8 @@ def _strides_md(strides: dict[str, Any]) -> list[str]:
             head = [n, motion if i == 0 else '', name]
             if 'error' in m:
                 rows.append([*head, f'error: {m["error"]}', '', '', '', '', '', ''])
-                continue
-            specs = ('e_R_deg.median:.3f', 'e_R_deg.max:.2f', 'e_t_m.median:.4f', 'e_t_m.max:.3f')
-            values = report.cells(m, *specs, 'ate_rmse_m:.3f', 'ms_per_scan_median:.0f')
-            rows.append([*head, f'{m["failed"]}/{m["n_pairs"]}', *values])
+            else:
+                rows.append([*head, f'{m["failed"]}/{m["n_pairs"]}', *report.cells(m, *values)])
     lines = [
         f'**Strides** ({meta["input"]}, every N-th of {meta["n_input_scans"]} scans, stamps '
         'unchanged). kentreg: its `Odometry` with `KentRegConfig()` (what `kentreg_replay '
@@ -276,33 +262,32 @@ def _strides_md(strides: dict[str, Any]) -> list[str]:
     ]
     if health:
         lines += ['', "kentreg's odometry health per stride: " + '; '.join(health) + '.']
-    return [*lines, '', f'Run at {_commit(meta)}: `{meta["command"]}`.', '']
+    return [*lines, *_run_at(meta)]
 
 
-def _level_rows(levels: dict[str, Any], cell: Any) -> list[list[str]]:
-    names = list(next(iter(levels.values()))['methods'])
-    return [[n, *(cell(b['methods'][n]['summary']) for b in levels.values())] for n in names]
-
-
-def _e_R(s: dict[str, Any]) -> str:
+def _e_R(entry: dict[str, Any]) -> str:
+    s = entry['summary']
     ratio = fmt(s['median_e_R_ratio_to_clean'], '.1f')
     return f'{fmt(s["e_R_deg"]["median"], ".3f")} ({ratio}×) / {fmt(s["e_R_deg"]["mean"], ".3f")}'
 
 
-def _e_t(s: dict[str, Any]) -> str:
+def _e_t(entry: dict[str, Any]) -> str:
+    s = entry['summary']
     return f'{fmt(s["e_t_m"]["median"], ".4f")} / {fmt(s["e_t_m"]["mean"], ".4f")}'
 
 
-def _failures(s: dict[str, Any]) -> str:
-    share = fmt(100 * s['outlier_share_after_downsampling'], '.0f')
-    return (
-        f'{s["failures"]}/{s["n"]}{_raised_note(s)}, {share} %, {fmt(s["ms"]["median"], ".0f")} ms'
+def _failures(entry: dict[str, Any]) -> str:
+    s = entry['summary']
+    share, ms = (
+        fmt(100 * s['outlier_share_after_downsampling'], '.0f'),
+        fmt(s['ms']['median'], '.0f'),
     )
+    return f'{s["failures"]}/{s["n"]}{_raised_note(s)}, {share} %, {ms} ms'
 
 
 def _outliers_md(outliers: dict[str, Any]) -> list[str]:
     meta, levels = outliers['meta'], outliers['levels']
-    head = ['method', *(f'{float(k) * 100:.0f} %' for k in levels)]
+    head = ['method', *map(_percent, levels)]
     shell = f', {meta["shell_share"] * 100:.0f} % of them in the range shell'
     realised = report.realised(levels, 'realised_share', '.2f')
     lines = [
@@ -317,30 +302,24 @@ def _outliers_md(outliers: dict[str, Any]) -> list[str]:
         '',
         "*e_R (°): median (× the method's own outlier-free median) / mean*",
         '',
-        *table(head, _level_rows(levels, _e_R)),
+        *table(head, report.method_rows(levels, _e_R)),
         '',
         '*e_t (m): median / mean*',
         '',
-        *table(head, _level_rows(levels, _e_t)),
+        *table(head, report.method_rows(levels, _e_t)),
         '',
         f'*Failures ({FAIL_RULE}; "raised": the method threw an exception, counted as '
         'failed); outlier share among the points the method downsampled to; median ms per '
         'pair that ran (source preparation + registration)*',
         '',
-        *table(head, _level_rows(levels, _failures)),
+        *table(head, report.method_rows(levels, _failures)),
     ]
-    kentreg = {
-        k: b['methods']['kentreg']['summary']
-        for k, b in levels.items()
-        if 'kentreg' in b['methods']
-    }
+    kentreg = {k: b['methods']['kentreg']['summary'] for k, b in levels.items()
+               if 'kentreg' in b['methods']}  # fmt: skip
     if kentreg:
-        flagged = ', '.join(
-            f'{float(k) * 100:.0f} %: {s["reported_failed"]}' for k, s in kentreg.items()
-        )
+        flagged = ', '.join(f'{_percent(k)}: {s["reported_failed"]}' for k, s in kentreg.items())
         voxel = ', '.join(
-            f'{float(k) * 100:.0f} % → {fmt(s["voxel_m_median"], ".2f")} m'
-            for k, s in kentreg.items()
+            f'{_percent(k)} → {fmt(s["voxel_m_median"], ".2f")} m' for k, s in kentreg.items()
         )
         lines += [
             '',
@@ -354,22 +333,19 @@ def _outliers_md(outliers: dict[str, Any]) -> list[str]:
         'Downsampled outlier share: voxels (origin-anchored grid at the voxel the method '
         'used) holding only injected points, among all occupied voxels of the source scan; '
         'for kentreg before its normal-based outlier test.',
-        '',
-        f'Run at {_commit(meta)}: `{meta["command"]}`.',
-        '',
+        *_run_at(meta),
     ]
+
+
+def _recovered(entry: dict[str, Any]) -> str:
+    s = entry['summary']
+    share, ms = fmt(100 * s['recovered_fraction'], '.0f'), fmt(s['ms']['median'], '.0f')
+    return f'{s["recovered"]}/{s["n"]} ({share} %), {ms} ms{_raised_note(s)}'
 
 
 def _turned_md(turned: dict[str, Any]) -> list[str]:
     meta, angles = turned['meta'], turned['angles']
-
-    def cell(s: dict[str, Any]) -> str:
-        share, ms = (
-            fmt(100 * s['recovered_fraction'], '.0f'),
-            fmt(s['ms']['median'], '.0f'),
-        )
-        return f'{s["recovered"]}/{s["n"]} ({share} %), {ms} ms{_raised_note(s)}'
-
+    references = (f'{b["reference_rotation_deg"]["median"]:.0f}°' for b in angles.values())
     lines = [
         f'**Turned pairs** ({meta["n_pairs"]} of the {meta["n_available_pairs"]} consecutive '
         f'pairs, drawn without replacement, seed {meta["seed"]}): the raw source scan turned '
@@ -377,29 +353,20 @@ def _turned_md(turned: dict[str, Any]) -> list[str]:
         'identity (kentreg: `register()` without `init`, which searches rotations); recovered = '
         f'not failed ({FAIL_RULE}); median ms per pair (source preparation + registration).',
         '',
-        *table(['method', *(f'{k}°' for k in angles)], _level_rows(angles, cell)),
-        '| *reference rotation (median)* | '
-        + ' | '.join(f'{b["reference_rotation_deg"]["median"]:.0f}°' for b in angles.values())
-        + ' |',
+        *table(['method', *(f'{k}°' for k in angles)], report.method_rows(angles, _recovered)),
+        '| *reference rotation (median)* | ' + ' | '.join(references) + ' |',
     ]
-    flagged = [
-        f'{k}°: {b["methods"]["kentreg"]["summary"]["reported_failed"]}'
-        for k, b in angles.items()
-        if 'kentreg' in b['methods']
-    ]
+    flagged = [f'{k}°: {b["methods"]["kentreg"]["summary"]["reported_failed"]}'
+               for k, b in angles.items() if 'kentreg' in b['methods']]  # fmt: skip
     if flagged:
         lines += ['', "kentreg's own `status == 'failed'` per angle: " + ', '.join(flagged) + '.']
-    return [*lines, '', f'Run at {_commit(meta)}: `{meta["command"]}`.', '']
+    return [*lines, *_run_at(meta)]
 
 
 def markdown(results: dict[str, Any]) -> str:
     """Tables of every test present in ``results`` (the numbers of the JSON, rounded)."""
     lines: list[str] = []
-    for test, render in (
-        ('strides', _strides_md),
-        ('outliers', _outliers_md),
-        ('turned', _turned_md),
-    ):
+    for test, render in zip(TESTS, (_strides_md, _outliers_md, _turned_md), strict=True):
         if results.get(test):
             lines += render(results[test])
     meta, machine = results['meta'], results['meta']['machine']
@@ -436,13 +403,12 @@ def plot(results: dict[str, Any], path: Path) -> None:
         report.method_panel(b, f, scale=k, log=g, xlabel=x, ylabel=y, title=t, **more)
         for b, f, k, g, x, y, t, more in specs
     ]
-    grid = [panels[:3], panels[3:]]
     title = (
         'kentreg_ros robustness (BALM): kentreg at KentRegConfig() defaults (solid) against '
         f'the benchmarks/harness/methods.py peers (dashed)\nfailure: {FAIL_RULE}; '
         f'{results["meta"]["threads"]} thread(s)'
     )
-    report.plot_panels(path, grid, size=(15, 9), title=title)
+    report.plot_panels(path, [panels[:3], panels[3:]], size=(15, 9), title=title)
 
 
 # --------------------------------------------------------------------------------------------
@@ -458,24 +424,11 @@ def _tests(text: str) -> list[str]:
 
 OPTIONS: list[report.Option] = [
     ('--quick', {'action': 'store_true', 'help': f'smoke test {QUICK}; out: a tmp folder'}),
-    (
-        '--only',
-        {
-            'type': _tests,
-            'default': list(TESTS),
-            'metavar': 'TESTS',
-            'help': 'comma-separated subset of strides,outliers,turned; the others are kept '
-            'from an existing robustness.json',
-        },
-    ),
-    (
-        '--methods',
-        {
-            'nargs': '+',
-            'choices': ('kentreg', *methods.ALL_METHODS),
-            'default': list(DEFAULT_METHODS),
-        },
-    ),
+    ('--only', {'type': _tests, 'default': list(TESTS), 'metavar': 'TESTS',
+                'help': 'comma-separated subset of strides,outliers,turned; the others are kept '
+                'from an existing robustness.json'}),
+    ('--methods', {'nargs': '+', 'choices': ('kentreg', *methods.ALL_METHODS),
+                   'default': list(DEFAULT_METHODS)}),
     ('--seed', {'type': int, 'default': 0, 'help': 'seed of every random draw'}),
     ('--data', {'type': Path, 'help': 'scans with poses (default ../shared/data/balm)'}),
     ('--threads', {'type': int, 'default': 1, 'help': 'CPUs every method may use'}),
@@ -484,43 +437,28 @@ OPTIONS: list[report.Option] = [
     ('--angles', {'nargs': '+', 'type': float, 'default': list(ANGLES_DEG)}),
     ('--outlier-pairs', {'type': int, 'help': f'default {OUTLIER_PAIRS}'}),
     ('--turned-pairs', {'type': int, 'help': f'default {TURNED_PAIRS}'}),
-    (
-        '--shell-share',
-        {
-            'type': float,
-            'default': 0.0,
-            'help': "share of the outliers in the sensor's range shell",
-        },
-    ),
-]
+    ('--shell-share', {'type': float, 'default': 0.0,
+                       'help': "share of the outliers in the sensor's range shell"}),
+]  # fmt: skip
 
 
-def _run_test(
-    test: str, args: argparse.Namespace, data: datasets.Sequence, built: list[methods.RawMethod]
-) -> dict:
+def _run_test(test: str, args: argparse.Namespace, data: Data, built: Methods) -> dict:
     """One test's JSON block (without the common metadata)."""
     n_pairs = data.n_pairs
     if test == 'strides':
         max_input = QUICK['max_input_scans'] if args.quick else None
-        body = run_strides(data, built, args.strides, max_input)
-        return {
-            'meta': {
-                'n_input_scans': len(data.scans[:max_input]),
-                'strides': args.strides,
-                'peer_start': 'own previous estimate (constant velocity), identity first',
-            },
-            'strides': body,
+        meta = {
+            'n_input_scans': len(data.scans[:max_input]),
+            'strides': args.strides,
+            'peer_start': 'own previous estimate (constant velocity), identity first',
         }
+        return {'meta': meta, 'strides': run_strides(data, built, args.strides, max_input)}
     key = 'outlier_pairs' if test == 'outliers' else 'turned_pairs'
     full = OUTLIER_PAIRS if test == 'outliers' else TURNED_PAIRS
     count = getattr(args, key) or (QUICK[key] if args.quick else full)
     pairs = perturb.draw_pairs(n_pairs, count, args.seed, 2 if test == 'outliers' else 3)
-    meta = {
-        'n_pairs': len(pairs),
-        'n_available_pairs': n_pairs,
-        'pairs': pairs,
-        'pair_draw': 'without replacement, seeded',
-    }
+    meta = {'n_pairs': len(pairs), 'n_available_pairs': n_pairs, 'pairs': pairs,
+            'pair_draw': 'without replacement, seeded'}  # fmt: skip
     if test == 'outliers':
         body = run_outliers(data, built, args.levels, pairs, args.seed, args.shell_share)
         offset = {'degrees': START_OFFSET_DEG, 'metres': START_OFFSET_M}
@@ -551,21 +489,14 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     machine = report.machine_info()
     common = {
         'command': ' '.join(['python3', 'benchmarks/robustness.py', *argv]),
-        'machine': machine,
-        'input': data.description,
-        'ground_truth': data.note,
-        'seed': args.seed,
-        'threads': args.threads,
-        'quick': args.quick,
-        'peer_voxel_m': voxel,
+        'machine': machine, 'input': data.description, 'ground_truth': data.note,
+        'seed': args.seed, 'threads': args.threads, 'quick': args.quick, 'peer_voxel_m': voxel,
         'methods': {m.name: m.params for m in built},
-    }
+    }  # fmt: skip
     t_all = time.perf_counter()
     for test in (t for t in TESTS if t in args.only):
-        t0 = time.perf_counter()
-        block = _run_test(test, args, data, built)
-        block['meta'] = {**common, **block['meta'], 'wall_s': time.perf_counter() - t0}
-        results[test] = block
+        block, ms = runner.timed(_run_test, test, args, data, built)
+        results[test] = block | {'meta': {**common, **block['meta'], 'wall_s': ms / 1e3}}
     report.finish_machine(machine)
     results['meta'] = {**common, 'tests_run': args.only, 'wall_s': time.perf_counter() - t_all}
     return {'meta': results['meta'], **{t: results[t] for t in TESTS if t in results}}
