@@ -87,10 +87,9 @@ class Method:
     params: Mapping[str, Any] = field(default_factory=dict)
 
 
-def voxel_downsample(points: FloatArray, voxel: float) -> FloatArray:
-    """The one downsampling every method gets: the float64 centroid (M, 3) of each occupied
-    voxel of edge ``voxel`` (origin-anchored, so downsampling the result again is a no-op)."""
-    return _core_voxel_downsample(points, voxel)
+#: The one downsampling every method gets: the float64 centroid (M, 3) of each occupied voxel
+#: of edge ``voxel`` (origin-anchored, so downsampling the result again is a no-op).
+voxel_downsample = _core_voxel_downsample
 
 
 def paper_voxel(
@@ -144,52 +143,40 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
     if threads is not None:
         o3d.utility.set_max_threads(threads)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    reg = o3d.pipelines.registration
-    gate = GATE_VOXELS * voxel
+    reg, gate = o3d.pipelines.registration, GATE_VOXELS * voxel
     criteria = reg.ICPConvergenceCriteria(
         relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=MAX_ITERATIONS
     )
 
-    def prepare_pt2pt(points: FloatArray) -> Any:
+    def prepare(points: FloatArray, normals: bool) -> Any:
         pcd = o3d.geometry.PointCloud()
         pcd.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
+        if normals:
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBORS))
         return pcd
 
-    def prepare_pt2pl(points: FloatArray) -> Any:
-        pcd = prepare_pt2pt(points)
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBORS))
-        return pcd
-
-    def make_register(estimation: Any) -> Callable[[Any, Any, FloatArray], FloatArray]:
+    def make(name: str, estimation: Any, more: dict[str, Any]) -> Method:
         def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
             result = reg.registration_icp(source, target, gate, init, estimation, criteria)
             return np.array(result.transformation, dtype=np.float64)
 
-        return run
+        params = {
+            'max_correspondence_distance': gate,
+            'max_iterations': MAX_ITERATIONS,
+            'relative_fitness': 1e-6,
+            'relative_rmse': 1e-6,
+            'open3d': o3d.__version__,
+        }
+        normals = name == 'icp_pt2pl'
+        return Method(name, 'open3d', functools.partial(prepare, normals=normals), run,
+                      params | more)  # fmt: skip
 
-    params: dict[str, Any] = {'max_correspondence_distance': gate}
-    params |= {
-        'max_iterations': MAX_ITERATIONS,
-        'relative_fitness': 1e-6,
-        'relative_rmse': 1e-6,
-        'open3d': o3d.__version__,
-    }
-    out = []
-    if 'icp_pt2pt' in names:
-        pt2pt = make_register(reg.TransformationEstimationPointToPoint())
-        out.append(Method('icp_pt2pt', 'open3d', prepare_pt2pt, pt2pt, params))
-    if 'icp_pt2pl' in names:
-        pt2pl = make_register(reg.TransformationEstimationPointToPlane())
-        out.append(
-            Method(
-                'icp_pt2pl',
-                'open3d',
-                prepare_pt2pl,
-                pt2pl,
-                {**params, 'normal_neighbors': NORMAL_NEIGHBORS},
-            )
-        )
-    return out
+    variants = {
+        'icp_pt2pt': (reg.TransformationEstimationPointToPoint(), {}),
+        'icp_pt2pl': (reg.TransformationEstimationPointToPlane(),
+                      {'normal_neighbors': NORMAL_NEIGHBORS}),
+    }  # fmt: skip
+    return [make(n, *variants[n]) for n in variants if n in names]
 
 
 # --------------------------------------------------------------------------------------------
@@ -216,13 +203,9 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
         )  # fmt: skip
         return np.array(result.T_target_source, dtype=np.float64)
 
-    params: dict[str, Any] = {'max_correspondence_distance': gate}
-    params |= {
-        'max_iterations': MAX_ITERATIONS,
-        'covariance_neighbors': NORMAL_NEIGHBORS,
-        'threads': n_threads,
-    }
-    params['convergence'] = 'small_gicp defaults (0.1 deg, 1 mm)'
+    params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS,
+              'covariance_neighbors': NORMAL_NEIGHBORS, 'threads': n_threads,
+              'convergence': 'small_gicp defaults (0.1 deg, 1 mm)'}  # fmt: skip
     return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
 
 
@@ -239,9 +222,7 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
     gate = GATE_VOXELS * voxel
     map_voxel = 2.0 * voxel
     registration = Registration(
-        max_num_iterations=MAX_ITERATIONS,
-        convergence_criterion=1e-4,
-        max_num_threads=threads or 0,
+        max_num_iterations=MAX_ITERATIONS, convergence_criterion=1e-4, max_num_threads=threads or 0
     )
 
     def prepare(points: FloatArray) -> Any:
@@ -260,9 +241,9 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
         "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
         'KISS-ICP sets it) against a voxel hash map of the target scan'
     )
-    params: dict[str, Any] = {'max_correspondence_distance': gate, 'kernel': gate / 3.0}
-    params['map_voxel'] = map_voxel
-    params |= {'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4, 'note': note}
+    params = {'max_correspondence_distance': gate, 'kernel': gate / 3.0, 'map_voxel': map_voxel,
+              'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4,
+              'note': note}  # fmt: skip
     return [Method('kiss_icp', 'kiss_icp', prepare, run, params)]
 
 
@@ -302,38 +283,31 @@ def kentreg_config(name: str, voxel: float) -> KentRegConfig:
     if base != 'kentreg_robust' or (ablation and ablation not in ABLATIONS):
         raise ValueError(f'Unknown kentreg method {name!r}.')
     gate = GATE_VOXELS * voxel
-    updates: dict[str, Any] = {
-        'preprocess.voxel_size': voxel,
-        'translation.max_correspondence_distance': gate,
-        'refine.max_correspondence_distance': gate,
-        'refine.max_iterations': MAX_ITERATIONS,
-    }
-    updates.update(ABLATIONS.get(ablation, {}))
-    return KentRegConfig().with_updates(updates)
+    updates: dict[str, Any] = {'preprocess.voxel_size': voxel,
+                               'translation.max_correspondence_distance': gate,
+                               'refine.max_correspondence_distance': gate,
+                               'refine.max_iterations': MAX_ITERATIONS}  # fmt: skip
+    return KentRegConfig().with_updates(updates | ABLATIONS.get(ablation, {}))
+
+
+def _kentreg_register(
+    source: Any, target: Any, init: FloatArray | None, config: KentRegConfig
+) -> tuple[FloatArray, Any]:
+    result = register(source, target, init=init, config=config)
+    return np.array(result.T_target_source, dtype=np.float64), result
 
 
 def _kentreg_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
-    out = []
-    for name in names:
-        if not name.startswith('kentreg'):
-            continue
+    out, defaults = [], KentRegConfig().to_flat_dict()
+    for name in (n for n in names if n.startswith('kentreg')):
         cfg = kentreg_config(name, voxel)
 
-        def prep(points: FloatArray, cfg: KentRegConfig = cfg) -> Any:
-            return prepare_scan(points, config=cfg)
+        def run(source: Any, target: Any, init: FloatArray, cfg: KentRegConfig = cfg) -> Any:
+            return _kentreg_register(source, target, init, cfg)[0]
 
-        def run(
-            source: Any, target: Any, init: FloatArray, cfg: KentRegConfig = cfg
-        ) -> FloatArray:
-            result = register(source, target, init=init, config=cfg)
-            return np.array(result.T_target_source, dtype=np.float64)
-
-        changed = {
-            k: v
-            for k, v in cfg.to_flat_dict().items()
-            if KentRegConfig().to_flat_dict().get(k) != v
-        }
-        out.append(Method(name, 'kentreg', prep, run, {'config_changes': changed}))
+        changed = {k: v for k, v in cfg.to_flat_dict().items() if defaults.get(k) != v}
+        prepare = functools.partial(prepare_scan, config=cfg)
+        out.append(Method(name, 'kentreg', prepare, run, {'config_changes': changed}))
     return out
 
 
@@ -369,11 +343,10 @@ def make_methods(
         try:
             methods = factory(mine, voxel, threads)
         except ImportError as exc:
+            skipped = ', '.join(mine)
+            hint = '`pip install -e .[bench]`'
             logger.warning(
-                'Skipping %s: %s cannot be imported (%s); `pip install -e .[bench]`.',
-                ', '.join(mine),
-                library,
-                exc,
+                'Skipping %s: %s cannot be imported (%s); %s.', skipped, library, exc, hint
             )
             continue
         built.update({m.name: m for m in methods})
@@ -398,55 +371,35 @@ def kentreg_at_defaults() -> RawMethod:
     """kentreg with ``KentRegConfig()`` on raw scans (its automatic preprocessing)."""
     cfg = KentRegConfig()
 
-    def run(
-        source: Any, target: Any, init: FloatArray | None
-    ) -> tuple[FloatArray, dict[str, Any]]:
-        result = register(source, target, init=init, config=cfg)
-        info = {'status': result.status, 'fit': result.fit, 'ambiguous': result.ambiguous}
-        return np.array(result.T_target_source, dtype=np.float64), info
+    def run(source: Any, target: Any, init: FloatArray | None) -> tuple[FloatArray, dict]:
+        T, result = _kentreg_register(source, target, init, cfg)
+        return T, {'status': result.status, 'fit': result.fit, 'ambiguous': result.ambiguous}
 
-    params = {
-        'config': 'KentRegConfig() defaults',
-        'mode': cfg.mode,
-        'preprocess.voxel_size': cfg.preprocess.voxel_size,
-        'preprocess.target_points': cfg.preprocess.target_points,
-        'input': 'raw scans',
-    }
-    return RawMethod(
-        'kentreg',
-        lambda points: prepare_scan(points, config=cfg),
-        run,
-        lambda prep: float(prep.voxel_size),
-        params,
-    )
+    params = {'config': 'KentRegConfig() defaults', 'mode': cfg.mode,
+              'preprocess.voxel_size': cfg.preprocess.voxel_size,
+              'preprocess.target_points': cfg.preprocess.target_points,
+              'input': 'raw scans'}  # fmt: skip
+    prepare = functools.partial(prepare_scan, config=cfg)
+    return RawMethod('kentreg', prepare, run, lambda prep: float(prep.voxel_size), params)
 
 
 def at_fixed_voxel(method: Method, voxel: float) -> RawMethod:
     """A registry method on the raw scan downsampled at the data set's fixed ``voxel``."""
 
-    def run(
-        source: Any, target: Any, init: FloatArray | None
-    ) -> tuple[FloatArray, dict[str, Any]]:
+    def run(source: Any, target: Any, init: FloatArray | None) -> tuple[FloatArray, dict]:
         return method.register(source, target, np.eye(4) if init is None else init), {}
 
-    return RawMethod(
-        method.name,
-        lambda points: method.prepare(voxel_downsample(points, voxel)),
-        run,
-        lambda prep: voxel,
-        {'library': method.library, 'voxel_m': voxel, **method.params},
-    )
+    def prepare(points: FloatArray) -> Any:
+        return method.prepare(voxel_downsample(points, voxel))
+
+    params = {'library': method.library, 'voxel_m': voxel, **method.params}
+    return RawMethod(method.name, prepare, run, lambda prep: voxel, params)
 
 
 def at_defaults(names: Sequence[str], voxel: float, threads: int) -> list[RawMethod]:
     """``kentreg`` (:func:`kentreg_at_defaults`) and registry methods at ``voxel``, in the
     order of ``names``; a method whose library is missing is left out."""
-    peers = {
-        m.name: m
-        for m in make_methods([n for n in names if n != 'kentreg'], voxel=voxel, threads=threads)
-    }
-    return [
-        kentreg_at_defaults() if n == 'kentreg' else at_fixed_voxel(peers[n], voxel)
-        for n in names
-        if n == 'kentreg' or n in peers
-    ]
+    built = make_methods([n for n in names if n != 'kentreg'], voxel=voxel, threads=threads)
+    peers = {m.name: at_fixed_voxel(m, voxel) for m in built}
+    return [kentreg_at_defaults() if n == 'kentreg' else peers[n] for n in names
+            if n == 'kentreg' or n in peers]  # fmt: skip
