@@ -33,8 +33,6 @@ from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
 from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
 
-logger = logging.getLogger('benchmarks.odometry')
-
 FloatArray = NDArray[np.float64]
 METHODS = pipelines.ODOMETRY
 TIMING = (
@@ -42,24 +40,15 @@ TIMING = (
     'excluded), every scan including the first, after an untimed two-scan warm-up; per scan the '
     'median over --rounds rounds, which run the pipelines in rotated order'
 )
-COLOURS = {
-    'kentreg': 'tab:blue',
-    'kentreg_local_map': 'tab:purple',
-    'kiss_icp': 'tab:orange',
-    'gicp': 'tab:green',
-}
+COLOURS = dict(zip(METHODS, ('tab:blue', 'tab:purple', 'tab:orange', 'tab:green'), strict=True))
 
 
 def runners_for(
     scans: list[Any], cfg: KentRegConfig, voxel: float, args: argparse.Namespace
 ) -> dict[str, Callable[[], runner.Run]]:
     """Each pipeline's run over ``scans`` (a fresh pipeline per run, two-scan warm-up)."""
-    options = {
-        'config': cfg,
-        'voxel': voxel,
-        'threads': args.threads,
-        'max_range': args.kiss_max_range,
-    }
+    options = {'config': cfg, 'voxel': voxel, 'threads': args.threads,
+               'max_range': args.kiss_max_range}  # fmt: skip
 
     def make(name: str) -> Callable[[], runner.Run]:
         return lambda: runner.run_pipeline(
@@ -69,119 +58,99 @@ def runners_for(
     return {name: make(name) for name in METHODS}
 
 
-PAIRS = 'rotation_deg.median:.3f', 'translation_m.median:.4f'
+PAIRS = 'pairs.rotation_deg.median:.3f', 'pairs.translation_m.median:.4f'
 RPE = ('rpe.rotation_deg.rmse:.3f', 'rpe.translation_m.rmse:.4f',
        'rpe_per_metre.translation_pct.rmse:.2f', 'rpe_per_metre.rotation_deg_per_m.rmse:.3f',
        'rpe_segment.rotation_deg.rmse:.3f', 'rpe_segment.translation_m.rmse:.4f')  # fmt: skip
+SPEED = ('speed.ms_per_scan.mean:.1f', 'speed.ms_per_scan.p95:.1f',
+         'speed.points_used_per_scan.mean:.0f')  # fmt: skip
+
+
+def _row(name: str, entry: dict[str, Any], *specs: str | Callable[[Any], str]) -> list[str]:
+    """``name`` and the cells of ``entry``'s metrics (a :func:`report.cells` spec or a function
+    of them), or its error and blank cells."""
+    m = entry.get('metrics')
+    if m is None:
+        return [name, f'error: {entry["error"]}', *[''] * (len(specs) - 1)]
+    return [name, *(report.cells(m, c, missing='-')[0] if isinstance(c, str) else c(m)
+                    for c in specs)]  # fmt: skip
 
 
 def _failed(m: dict[str, Any]) -> str:
     return f'{m["pairs"]["n_failed"]} / {m["pairs"]["count"]}'
 
 
-def _rpe_row(name: str, m: dict[str, Any]) -> list[str]:
-    drift = m.get('drift')
-    drift_text = (
-        '-'
-        if drift is None
-        else (f'{drift["translation_pct"]:.2f}, {drift["rotation_deg_per_m"]:.4f}')
-    )
-    speed = ('speed.ms_per_scan.mean:.1f', 'speed.ms_per_scan.p95:.1f',
-             'speed.points_used_per_scan.mean:.0f')  # fmt: skip
-    return [name, *report.cells(m, *RPE, missing='-'), drift_text,
-            *report.cells(m, 'ate.rmse:.4f', *speed, missing='-')]  # fmt: skip
+def _drift(m: dict[str, Any]) -> str:
+    d = m.get('drift')
+    return '-' if d is None else f'{d["translation_pct"]:.2f}, {d["rotation_deg_per_m"]:.4f}'
 
 
 def markdown(doc: dict[str, Any]) -> str:
     """Markdown tables of the report (the same numbers as the JSON, rounded)."""
-    rows = doc['methods']
-    ok = {n: e['metrics'] for n, e in rows.items() if 'metrics' in e}
-    n_pairs = next((m['pairs']['count'] for m in ok.values()), 0)
-    frames = runner.SEGMENT_FRAMES
-    pair_rows = [
-        [n, *report.cells(m['pairs'], *PAIRS, 'rotation_deg.max:.3f', 'translation_m.max:.4f',
-                          missing='-'), _failed(m)] if (m := e.get('metrics'))
-        else [n, f'error: {e["error"]}', '', '', '', '']
-        for n, e in rows.items()
-    ]  # fmt: skip
+    rows, frames = doc['methods'], runner.SEGMENT_FRAMES
+    n_pairs = next((e['metrics']['pairs']['count'] for e in rows.values() if 'metrics' in e), 0)
     lines = [
         f'Input: {doc["input"]["description"]}, {doc["input"]["n_scans"]} scans, {n_pairs} '
         f'consecutive pairs; {doc["threads"]} thread(s); ms per scan: per-scan median over '
         f'{doc["rounds"]} rounds.',
         '',
         *report.table('method | median e_R [deg] | median e_t [m] | max e_R [deg] | max e_t [m] '
-                      '| failures (e_R>2 deg or e_t>0.2 m)', pair_rows),
+                      '| failures (e_R>2 deg or e_t>0.2 m)',
+                      [_row(n, e, *PAIRS, 'pairs.rotation_deg.max:.3f',
+                            'pairs.translation_m.max:.4f', _failed) for n, e in rows.items()]),
         '',
         *report.table(
             'method | RPE/frame rot rmse [deg] | RPE/frame trans rmse [m] | RPE/m trans rmse [%] '
             f'| RPE/m rot rmse [deg/m] | RPE/{frames} frames rot rmse [deg] | RPE/{frames} frames '
             'trans rmse [m] | drift (KITTI segments) [%, deg/m] | ATE rmse [m] (SE(3)) '
             '| ms/scan mean | ms/scan p95 | points used/scan',
-            [_rpe_row(n, m) for n, m in ok.items()],
+            [_row(n, e, *RPE, _drift, 'ate.rmse:.4f', *SPEED) for n, e in rows.items()
+             if 'metrics' in e],
         ),
     ]  # fmt: skip
-    srows = []
-    for stride, block in (doc.get('strides') or {}).items():
-        for name, entry in ((k, v) for k, v in block.items() if k != 'n_scans'):
-            m = entry.get('metrics')
-            if m is None:
-                srows.append([stride, name, f'error: {entry["error"]}', '', '', '', '', ''])
-                continue
-            more = ('rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f',
-                    'speed.ms_per_scan.mean:.1f')  # fmt: skip
-            srows.append([stride, name, *report.cells(m['pairs'], *PAIRS, missing='-'),
-                          _failed(m), *report.cells(m, *more, missing='-')])  # fmt: skip
-    head = ('stride | method | median e_R [deg] | median e_t [m] | failures '
-            '| RPE/m trans rmse [%] | ATE rmse [m] | ms/scan mean')  # fmt: skip
+    more = ('rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f', 'speed.ms_per_scan.mean:.1f')
+    srows = [[stride, *_row(name, entry, *PAIRS, _failed, *more)]
+             for stride, block in (doc.get('strides') or {}).items()
+             for name, entry in block.items() if name != 'n_scans']  # fmt: skip
     if srows:
+        head = ('stride | method | median e_R [deg] | median e_t [m] | failures '
+                '| RPE/m trans rmse [%] | ATE rmse [m] | ms/scan mean')  # fmt: skip
         caption = 'Frame skipping: every N-th scan of the same input, one round per pipeline.'
         lines += ['', caption, '', *report.table(head, srows)]
     return '\n'.join(lines) + '\n'
 
 
-def plot(path: Path, aligned: dict[str, FloatArray], T_gt: FloatArray, errors: dict) -> None:
-    """Top view of every aligned trajectory over the reference, position and per-pair errors."""
-    top, pos, rot, trans = (report.Panel() for _ in range(4))
+def plot(doc: dict[str, Any], path: Path) -> None:
+    """Top view of every trajectory (aligned onto the reference by its ATE alignment) over the
+    reference, position and per-pair errors."""
+    T_gt = np.asarray(doc['reference_T_world_lidar'])
+    errors = {n: e['metrics'] for n, e in doc['methods'].items() if 'metrics' in e}
+    aligned = {n: np.asarray(m['ate']['T_gt_est'])
+               @ np.asarray(doc['methods'][n]['poses_T_world_lidar'])
+               for n, m in errors.items() if m['ate'] is not None}  # fmt: skip
+    if not aligned:
+        return
+    top, pos = report.Panel(), report.Panel()
+    rot, trans = report.Panel(log='y'), report.Panel(log='y')
     top.add('reference', T_gt[:, 0, 3], T_gt[:, 1, 3], color='black', lw=4, alpha=0.25)
     for name, poses in aligned.items():
-        colour = COLOURS[name]
-        top.add(name, poses[:, 0, 3], poses[:, 1, 3], color=colour, lw=1.2)
-        rmse = errors[name]['ate']['rmse']
+        style = {'color': COLOURS[name], 'lw': 0.8, 'marker': '.'}
+        top.add(name, poses[:, 0, 3], poses[:, 1, 3], color=COLOURS[name], lw=1.2)
         err = np.linalg.norm(poses[:, :3, 3] - T_gt[:, :3, 3], axis=1)
-        pos.add(
-            f'{name} (rmse {rmse:.3f} m)',
-            np.arange(len(err)),
-            err,
-            color=colour,
-            lw=0.8,
-            marker='.',
-        )
+        pos.add(f'{name} (rmse {errors[name]["ate"]["rmse"]:.3f} m)', np.arange(len(err)), err,
+                **style)  # fmt: skip
         pairs = errors[name]['pairs']
         x = np.arange(1, len(pairs['e_R_deg']) + 1)
-        rot.add(None, x, np.maximum(pairs['e_R_deg'], 1e-4), color=colour, lw=0.8, marker='.')
-        trans.add(None, x, np.maximum(pairs['e_t_m'], 1e-5), color=colour, lw=0.8, marker='.')
+        rot.add(None, x, np.maximum(pairs['e_R_deg'], 1e-4), **style)
+        trans.add(None, x, np.maximum(pairs['e_t_m'], 1e-5), **style)
     top.add('start', T_gt[:1, 0, 3], T_gt[:1, 1, 3], color='black', marker='o')
-    top.axes = {
-        'xlabel': 'x [m]',
-        'ylabel': 'y [m]',
-        'aspect': 'equal',
-        'title': 'top view, each SE(3)-aligned onto the reference',
-    }
-    pos.axes = {
-        'xlabel': 'scan',
-        'ylabel': 'position error [m]',
-        'title': 'ATE: position error after alignment',
-    }
+    top.axes = {'xlabel': 'x [m]', 'ylabel': 'y [m]', 'aspect': 'equal',
+                'title': 'top view, each SE(3)-aligned onto the reference'}  # fmt: skip
+    pos.axes = {'xlabel': 'scan', 'ylabel': 'position error [m]',
+                'title': 'ATE: position error after alignment'}  # fmt: skip
     for panel, label, limit in ((rot, 'e_R [deg]', 2.0), (trans, 'e_t [m]', 0.2)):
-        panel.log = 'y'
-        panel.add(
-            'failure threshold',
-            [1, len(T_gt) - 1],
-            [limit, limit],
-            color='red',
-            lw=0.8,
-            linestyle='--',
-        )
+        panel.add('failure threshold', [1, len(T_gt) - 1], [limit, limit], color='red', lw=0.8,
+                  linestyle='--')  # fmt: skip
         panel.axes = {'xlabel': 'pair', 'ylabel': label, 'title': f'per-pair {label} error'}
     report.plot_panels(path, [[top, pos], [rot, trans]], size=(13, 9))
 
@@ -205,34 +174,28 @@ OPTIONS: list[report.Option] = [
 
 
 def _evaluate_all(
-    names: Sequence[str],
-    runs: dict[str, Callable[[], runner.Run]],
-    T_gt: FloatArray,
-    rounds: int,
-    combine: bool = True,
-) -> dict[str, dict[str, Any]]:
+    names: Sequence[str], runs: dict[str, Callable[[], runner.Run]], T_gt: FloatArray,
+    rounds: int, combine: bool = True,
+) -> dict[str, dict[str, Any]]:  # fmt: skip
     """Every pipeline in ``rounds`` rotated rounds, evaluated (its error when it crashed)."""
     done: dict[str, list[runner.Run]] = {n: [] for n in names}
     failed: dict[str, str] = {}
     for _, name in runner.rotated(list(names), rounds):
         if name not in failed:
-            try:
-                done[name].append(runs[name]())
-            except Exception as exc:  # a peer crashing is a result to report, not a stop
-                logger.exception('%s failed', name)
-                failed[name] = f'{type(exc).__name__}: {exc}'
+            run = runner.guarded(name, runs[name])
+            if isinstance(run, dict):
+                failed[name] = run['error']
+            else:
+                done[name].append(run)
     out: dict[str, dict[str, Any]] = {}
     for name in names:
         if name in failed:
             out[name] = {'error': failed[name]}
             continue
         run = runner.combine_rounds(done[name]) if combine else done[name][0]
-        out[name] = {
-            'settings': run.settings,
-            'health': run.health,
-            'metrics': runner.evaluate_run(run, T_gt),
-            'poses_T_world_lidar': run.poses,
-        }
+        metrics = runner.evaluate_run(run, T_gt)
+        out[name] = {'settings': run.settings, 'health': run.health, 'metrics': metrics,
+                     'poses_T_world_lidar': run.poses}  # fmt: skip
     return out
 
 
@@ -245,10 +208,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     seq = datasets.load_recording(args.input, topic=args.topic)
     scans, T_gt = seq.scans[: args.max_scans], np.asarray(seq.T_world)[: args.max_scans]
     voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
-    pinning = {
-        'env': {name: os.environ.get(name) for name in methods.THREAD_ENV},
-        'cpu_affinity': sorted(os.sched_getaffinity(0)),
-    }
+    env = {name: os.environ.get(name) for name in methods.THREAD_ENV}
+    pinning = {'env': env, 'cpu_affinity': sorted(os.sched_getaffinity(0))}
     points = metrics.summarize([len(s.points) for s in scans])
     doc: dict[str, Any] = {
         'benchmark': 'odometry', 'command': ['python3', 'benchmarks/odometry.py', *argv],
@@ -277,19 +238,5 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     return doc
 
 
-def plot_run(doc: dict[str, Any], path: Path) -> None:
-    """:func:`plot` of a results file: each trajectory aligned onto the reference by its ATE
-    alignment."""
-    T_gt = np.asarray(doc['reference_T_world_lidar'])
-    ok = {n: e['metrics'] for n, e in doc['methods'].items() if 'metrics' in e}
-    aligned = {
-        n: np.asarray(m['ate']['T_gt_est']) @ np.asarray(doc['methods'][n]['poses_T_world_lidar'])
-        for n, m in ok.items()
-        if m['ate'] is not None
-    }
-    if aligned:
-        plot(path, aligned, T_gt, ok)
-
-
 if __name__ == '__main__':
-    raise SystemExit(report.experiment_main(__doc__, 'odometry', OPTIONS, run, markdown, plot_run))
+    raise SystemExit(report.experiment_main(__doc__, 'odometry', OPTIONS, run, markdown, plot))

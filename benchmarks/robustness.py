@@ -92,11 +92,8 @@ def run_strides(data: Data, built: Methods, strides: Sequence[int], max_input: i
         block: dict[str, Any] = {'input_indices': idx.tolist(), 'reference_motion': motion}
         block['methods'] = {}
         for method in built:
-            try:
-                entry = _stride_entry(method, perturb.stride(n)(scans), T_gt, idx)
-            except Exception as exc:  # a crashing pipeline is a result
-                logger.exception('%s stride %d failed', method.name, n)
-                entry = {'error': f'{type(exc).__name__}: {exc}'}
+            what, batch = f'{method.name} stride {n}', perturb.stride(n)(scans)
+            entry = runner.guarded(what, _stride_entry, method, batch, T_gt, idx)
             block['methods'][method.name] = entry
             if 'failed' in entry:
                 failed, ate = f'{entry["failed"]}/{entry["n_pairs"]}', entry['ate_rmse_m']

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import functools
 import logging
 import sys
 import time
@@ -32,8 +33,6 @@ if str(ROOT) not in sys.path:
 from benchmarks.harness import methods, perturb, pipelines, report, runner, simulator  # noqa: E402
 from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
 
-logger = logging.getLogger('benchmarks.simulated')
-
 #: Pipelines run on the clean sequences only, and not on the swept ones (module docstring).
 CLEAN_ONLY = ('kiss_icp',)
 UNSWEPT_ONLY = ('kiss_icp',)
@@ -42,33 +41,20 @@ NO_DESKEW = 'kentreg_local_map_no_deskew'
 
 
 def _entry(name: str, scans: list[Any], T_gt: Any, voxel: float, cfg: KentRegConfig) -> dict:
-    run = runner.run_pipeline(
-        lambda: pipelines.make_pipeline(name, config=cfg, voxel=voxel, threads=1),
-        scans,
-        warmup=2,
-    )
+    make = functools.partial(pipelines.make_pipeline, name, config=cfg, voxel=voxel, threads=1)
+    run = runner.run_pipeline(make, scans, warmup=2)
     m = runner.evaluate_run(run, T_gt)
-    return {
-        'ate_m': m['ate']['rmse'],
-        'drift_pct': m['drift']['translation_pct'],
-        'rpe_frame_m': m['rpe']['translation_m']['rmse'],
-        'rpe_frame_deg': m['rpe']['rotation_deg']['rmse'],
-        'n_failed': m['pairs']['n_failed'],
-        'n_pairs': m['pairs']['count'],
-        'ms_per_scan_mean': float(np.mean(run.ms_per_scan)),
-        'health': run.health,
-    }
+    return {'ate_m': m['ate']['rmse'], 'drift_pct': m['drift']['translation_pct'],
+            'rpe_frame_m': m['rpe']['translation_m']['rmse'],
+            'rpe_frame_deg': m['rpe']['rotation_deg']['rmse'], 'n_failed': m['pairs']['n_failed'],
+            'n_pairs': m['pairs']['count'], 'ms_per_scan_mean': float(np.mean(run.ms_per_scan)),
+            'health': run.health}  # fmt: skip
 
 
 def run_condition(
-    world: simulator.World,
-    step: float,
-    share: float,
-    names: Sequence[str],
-    seeds: int,
-    sensor: simulator.Sensor,
-    cfg: KentRegConfig,
-) -> dict[str, Any]:
+    world: simulator.World, step: float, share: float, names: Sequence[str], seeds: int,
+    sensor: simulator.Sensor, cfg: KentRegConfig,
+) -> dict[str, Any]:  # fmt: skip
     """Every pipeline on ``seeds`` sequences at ``step`` metres per scan, with a share
     ``share`` of raw outliers on every scan, or swept (``sensor.sweep_period > 0``)."""
     swept = sensor.sweep_period > 0.0
@@ -78,8 +64,7 @@ def run_condition(
     skip = set(CLEAN_ONLY if share > 0.0 else ()) | set(UNSWEPT_ONLY if swept else ())
     runs: list[dict[str, Any]] = []
     errors: dict[str, str] = {}
-    motion: dict[str, float] = {}
-    n_scans = 0
+    motion, n_scans = {}, 0
     for seed in range(seeds):
         scans, gt = simulator.simulate(world, step, seed, sensor)
         if share > 0.0:  # (no sweep with outliers: their times would be undefined)
@@ -89,23 +74,15 @@ def run_condition(
         voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
         entry: dict[str, Any] = {'seed': seed, 'methods': {}}
         for name in (n for n in names if n not in skip):
-            try:
-                entry['methods'][name] = _entry(name, scans, T_gt, voxel, cfg)
-            except Exception as exc:  # a pipeline crashing is a result, not a stop
-                logger.exception('%s failed at step %s seed %d', name, step, seed)
-                errors[name] = f'{type(exc).__name__}: {exc}'
-                entry['methods'][name] = {'error': errors[name]}
+            what = f'{name} at step {step} seed {seed}'
+            result = runner.guarded(what, _entry, name, scans, T_gt, voxel, cfg)
+            entry['methods'][name] = result
+            if 'error' in result:
+                errors[name] = result['error']
         runs.append(entry)
-    return {
-        'step_m': step,
-        'outliers': share,
-        'sweep_s': sensor.sweep_period,
-        'n_scans': n_scans,
-        'motion': motion,
-        'runs': runs,
-        'summary': summarize_step(runs, names),
-        'errors': errors,
-    }
+    return {'step_m': step, 'outliers': share, 'sweep_s': sensor.sweep_period,
+            'n_scans': n_scans, 'motion': motion, 'runs': runs,
+            'summary': summarize_step(runs, names), 'errors': errors}  # fmt: skip
 
 
 def summarize_step(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, Any]:
@@ -116,24 +93,21 @@ def summarize_step(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str
         if not both:
             continue
         rows = [m[name] for m in both]
-        ratios = [
-            m[name]['ate_m'] / m['kentreg']['ate_m']
-            for m in both
-            if 'ate_m' in m.get('kentreg', {})
-        ]
+        ratios = [m[name]['ate_m'] / m['kentreg']['ate_m'] for m in both
+                  if 'ate_m' in m.get('kentreg', {})]  # fmt: skip
+        spread = (('median', np.median), ('min', np.min), ('max', np.max))
+
+        def median(key: str, rows: list[dict[str, Any]] = rows) -> float:
+            return float(np.median([m[key] for m in rows]))
+
         out[name] = {
-            'runs': len(rows),
-            'ate_m_median': float(np.median([m['ate_m'] for m in rows])),
-            'ate_ratio_to_kentreg': {
-                k: float(f(ratios)) if ratios else None
-                for k, f in (('median', np.median), ('min', np.min), ('max', np.max))
-            },
-            'drift_pct_median': float(np.median([m['drift_pct'] for m in rows])),
-            'rpe_frame_m_median': float(np.median([m['rpe_frame_m'] for m in rows])),
+            'runs': len(rows), 'ate_m_median': median('ate_m'),
+            'ate_ratio_to_kentreg': {k: float(f(ratios)) if ratios else None for k, f in spread},
+            'drift_pct_median': median('drift_pct'), 'rpe_frame_m_median': median('rpe_frame_m'),
             'failed_pairs': int(sum(m['n_failed'] for m in rows)),
             'pairs': int(sum(m['n_pairs'] for m in rows)),
             'ms_per_scan_mean': float(np.mean([m['ms_per_scan_mean'] for m in rows])),
-        }
+        }  # fmt: skip
     return out
 
 
@@ -145,54 +119,43 @@ def _input_text(step: dict[str, Any]) -> str:
     return f'{100 * share:.0f} % raw outliers' if share else 'clean'
 
 
+def _ratio(s: dict[str, Any]) -> str:
+    r = s['ate_ratio_to_kentreg']
+    return f'{r["median"]:.2f} ({r["min"]:.2f}–{r["max"]:.2f})'
+
+
+#: The columns of the table: a row per step, condition and method.
+COLUMNS: list[report.Column] = [
+    ('step [m]', lambda r: r['step']['step_m']),
+    ('input', lambda r: _input_text(r['step'])),
+    ('scans', lambda r: r['step']['n_scans']),
+    ('rotation/scan median, max [deg]',
+     lambda r: '{rotation_median_deg:.1f}, {rotation_max_deg:.1f}'.format(**r['step']['motion'])),
+    ('method', 'name:s'),
+    ('ATE median [mm]', lambda r: f'{1e3 * r["ate_m_median"]:.2f}'),
+    ('ATE / kentreg: median (range)', _ratio),
+    ('drift [%]', 'drift_pct_median:.2f'),
+    ('RPE/frame [mm]', lambda r: f'{1e3 * r["rpe_frame_m_median"]:.2f}'),
+    ('failures', lambda r: f'{r["failed_pairs"]} / {r["pairs"]}'),
+    ('ms/scan', 'ms_per_scan_mean:.1f'),
+]  # fmt: skip
+
+
 def format_table(doc: dict[str, Any]) -> str:
     """Markdown table of the per-step summaries."""
-    rows = []
-    for step in doc['steps']:
-        motion = step['motion']
-        for name, s in step['summary'].items():
-            ratio = s['ate_ratio_to_kentreg']
-            rows.append(
-                [
-                    step['step_m'],
-                    _input_text(step),
-                    step['n_scans'],
-                    f'{motion["rotation_median_deg"]:.1f}, {motion["rotation_max_deg"]:.1f}',
-                    name,
-                    f'{1e3 * s["ate_m_median"]:.2f}',
-                    f'{ratio["median"]:.2f} ({ratio["min"]:.2f}–{ratio["max"]:.2f})',
-                    f'{s["drift_pct_median"]:.2f}',
-                    f'{1e3 * s["rpe_frame_m_median"]:.2f}',
-                    f'{s["failed_pairs"]} / {s["pairs"]}',
-                    f'{s["ms_per_scan_mean"]:.1f}',
-                ]
-            )
+    entries = [
+        {'step': step, **row} for step in doc['steps'] for row in report.named(step['summary'])
+    ]
     lines = [
         f'Re-simulated `bags/balm_50` scene, exact poses; {doc["seeds"]} seeds per step '
         f'(independent sampling and noise); 1 thread; one round per pipeline.',
         '',
-        *report.table(
-            [
-                'step [m]',
-                'input',
-                'scans',
-                'rotation/scan median, max [deg]',
-                'method',
-                'ATE median [mm]',
-                'ATE / kentreg: median (range)',
-                'drift [%]',
-                'RPE/frame [mm]',
-                'failures',
-                'ms/scan',
-            ],
-            rows,
-        ),
+        *report.column_table(COLUMNS, entries),
     ]
     for step in doc['steps']:
         for name, error in step.get('errors', {}).items():
-            lines.append(
-                f'\n{name} at step {step["step_m"]}, {step.get("outliers", 0.0)} outliers: {error}'
-            )
+            condition = f'{step["step_m"]}, {step.get("outliers", 0.0)} outliers'
+            lines.append(f'\n{name} at step {condition}: {error}')
     if doc.get('machine', {}).get('git'):
         command = ' '.join(doc.get('command', []))
         lines += ['', f'Run at {doc["machine"]["git"]}: `{command}`.']

@@ -37,6 +37,16 @@ def timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
     return out, (time.perf_counter() - t0) * 1e3
 
 
+def guarded(what: str, fn: Callable[..., T], *args: Any) -> T | dict[str, str]:
+    """``fn(*args)``, or ``{'error': 'Type: message'}`` when it raised (logged as ``what``
+    failed): a pipeline or method that crashes is a result, not a stop."""
+    try:
+        return fn(*args)
+    except Exception as exc:
+        logger.exception('%s failed', what)
+        return {'error': f'{type(exc).__name__}: {exc}'}
+
+
 def errors(T_est: FloatArray, T_true: FloatArray) -> tuple[float, float]:
     """(e_R in degrees, e_t in metres) of the paper (kentreg_ros.eval.metrics.pair_errors)."""
     e_R, e_t = pair_errors(T_est[None], T_true[None])
