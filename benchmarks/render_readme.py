@@ -16,7 +16,7 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,9 @@ HERE = Path(__file__).resolve().parent
 README = HERE / 'README.md'
 MAIN_README = HERE.parent / 'README.md'
 RESULTS = HERE / 'results'
+#: The headline's columns: the robustness peers at their defaults.
+HEADLINE = {'kentreg': 'kentreg (defaults)', 'gicp': 'GICP (small_gicp)',
+            'icp_pt2pl': 'point-to-plane ICP (Open3D)', 'kiss_icp': 'KISS-ICP'}  # fmt: skip
 
 
 def _stat(summary: dict[str, Any], key: str, stat: str, scale: float = 1.0) -> str:
@@ -42,35 +45,33 @@ def _commit(meta: dict[str, Any]) -> str:
 
 def _paper_paragraph(paper: dict[str, Any] | None) -> str:
     """The rotation-stage sentence under the headline table (paper_table.json)."""
-    if paper is None:
+    ident = paper['datasets']['balm']['starts']['identity'] if paper else {}
+    stage, full, pap, avg = (
+        ident.get(name, {}).get('summary')
+        for name in ('kentreg_robust-no_refine', 'kentreg_robust', 'kentreg_paper',
+                     'kentreg_robust-averaged_no_refine')
+    )  # fmt: skip
+    if not (stage and full and pap):
         return ''
-    body = ''
-    ident = paper['datasets']['balm']['starts']['identity']
-    stage = ident.get('kentreg_robust-no_refine', {}).get('summary')
-    full = ident.get('kentreg_robust', {}).get('summary')
-    pap = ident.get('kentreg_paper', {}).get('summary')
-    avg = ident.get('kentreg_robust-averaged_no_refine', {}).get('summary')
-    if stage and full and pap:
+    body = (
+        f'\nFrom the identity on the {stage["n"]} sample pairs (paper Table 1 protocol, '
+        f'`benchmarks/paper_table.py`): the rotation from normals alone (the shared-'
+        f'rotation Kent mixture EM, no refinement) is off by '
+        f'{_stat(stage, "e_R_deg", "median")}° median, {_stat(stage, "e_R_deg", "max")}° '
+        f'at most; the full pipeline {_stat(full, "e_R_deg", "median")}° / '
+        f'{_stat(full, "e_t_m", "median", 1e3)} mm median ({full["failures"]} failed); '
+        "the paper's recipe as written (`mode: paper`) "
+        f'{_stat(pap, "e_R_deg", "median")}° / '
+        f'{_stat(pap, "e_t_m", "median", 1e3)} mm median, {pap["failures"]} of '
+        f'{pap["n"]} failed'
+    )
+    if avg:
         body += (
-            f'\nFrom the identity on the {stage["n"]} sample pairs (paper Table 1 protocol, '
-            f'`benchmarks/paper_table.py`): the rotation from normals alone (the shared-'
-            f'rotation Kent mixture EM, no refinement) is off by '
-            f'{_stat(stage, "e_R_deg", "median")}° median, {_stat(stage, "e_R_deg", "max")}° '
-            f'at most; the full pipeline {_stat(full, "e_R_deg", "median")}° / '
-            f'{_stat(full, "e_t_m", "median", 1e3)} mm median ({full["failures"]} failed); '
-            "the paper's recipe as written (`mode: paper`) "
-            f'{_stat(pap, "e_R_deg", "median")}° / '
-            f'{_stat(pap, "e_t_m", "median", 1e3)} mm median, {pap["failures"]} of '
-            f'{pap["n"]} failed'
+            "; the same rotation stage with the paper's per-cluster EM and averaging "
+            f'instead of the shared M-step {_stat(avg, "e_R_deg", "median")}° median, '
+            f'{_stat(avg, "e_R_deg", "max")}° at most'
         )
-        if avg:
-            body += (
-                "; the same rotation stage with the paper's per-cluster EM and averaging "
-                f'instead of the shared M-step {_stat(avg, "e_R_deg", "median")}° median, '
-                f'{_stat(avg, "e_R_deg", "max")}° at most'
-            )
-        body += '.\n'
-    return body
+    return body + '.\n'
 
 
 def headline_block(
@@ -81,109 +82,55 @@ def headline_block(
     """The README's headline table: every number from a committed result file."""
     if robustness is None:
         return None
-    rows = []
-    methods = ('kentreg', 'gicp', 'icp_pt2pl', 'kiss_icp')
-    names = {
-        'kentreg': 'kentreg (defaults)',
-        'gicp': 'GICP (small_gicp)',
-        'icp_pt2pl': 'point-to-plane ICP (Open3D)',
-        'kiss_icp': 'KISS-ICP',
-    }
     strides = robustness['strides']['strides']
-    levels = robustness['outliers']['levels']
-    angles = robustness['turned']['angles']
-    top = max(levels, key=float)
-    head = (
-        '| | ' + ' | '.join(names[m] for m in methods) + ' |\n|---|' + '---|' * len(methods) + '\n'
-    )
+    levels, angles = robustness['outliers']['levels'], robustness['turned']['angles']
+    top, s1 = max(levels, key=float), strides['1']['methods']
 
-    def row(label: str, cells: list[str]) -> None:
-        rows.append(f'| {label} | ' + ' | '.join(cells) + ' |')
-
-    s1 = strides['1']['methods']
-    row(
-        'odometry on the 50 sample scans: median e_R / e_t, failed pairs',
-        [
-            f'{_stat(s1[m], "e_R_deg", "median")}° / {_stat(s1[m], "e_t_m", "median", 1e3)} mm, '
-            f'{s1[m]["failed"]}/{s1[m]["n_pairs"]}'
-            if m in s1
-            else '–'
-            for m in methods
-        ],
-    )
-    row(
-        'frame skipping, every 2nd / 3rd / 4th scan: failed pairs',
-        [
-            ' / '.join(
-                f'{strides[n]["methods"][m]["failed"]}/{strides[n]["methods"][m]["n_pairs"]}'
-                for n in ('2', '3', '4')
-            )
-            if m in s1
-            else '–'
-            for m in methods
-        ],
-    )
-    cells = []
-    for m in methods:
-        summ = levels[top]['methods'].get(m, {}).get('summary')
-        if summ is None:
-            cells.append('–')
-            continue
-        cells.append(
-            f'{_stat(summ, "e_R_deg", "median")}° ({summ["median_e_R_ratio_to_clean"]:.1f}× '
-            f'clean), {summ["failures"]}/{summ["n"]} failed'
+    def strided(m: str) -> str:
+        return ' / '.join(
+            '{failed}/{n_pairs}'.format(**strides[n]['methods'][m]) for n in ('2', '3', '4')
         )
-    row(f'{float(top) * 100:.0f} % outliers added to the raw scans: median e_R', cells)
-    cells = []
-    for m in methods:
-        got = [angles[a]['methods'].get(m, {}).get('summary') for a in angles]
-        if any(g is None for g in got):
-            cells.append('–')
-            continue
-        rec = sum(g['recovered'] for g in got)
-        total = sum(g['n'] for g in got)
-        cells.append(f'{rec}/{total} ({100 * rec / total:.0f} %)')
-    row(
-        f'source turned {min(angles, key=float)}–{max(angles, key=float)}°, no start: recovered',
-        cells,
-    )
+
+    def outliers(m: str) -> str:
+        s = levels[top]['methods'][m]['summary']
+        return (f'{_stat(s, "e_R_deg", "median")}° ({s["median_e_R_ratio_to_clean"]:.1f}× '
+                f'clean), {s["failures"]}/{s["n"]} failed')  # fmt: skip
+
+    def turned(m: str) -> str:
+        got = [angles[a]['methods'][m]['summary'] for a in angles]
+        recovered, total = sum(g['recovered'] for g in got), sum(g['n'] for g in got)
+        return f'{recovered}/{total} ({100 * recovered / total:.0f} %)'
+
+    rows = [
+        ('odometry on the 50 sample scans: median e_R / e_t, failed pairs', s1,
+         lambda m: f'{_stat(s1[m], "e_R_deg", "median")}° / '
+         f'{_stat(s1[m], "e_t_m", "median", 1e3)} mm, {s1[m]["failed"]}/{s1[m]["n_pairs"]}'),
+        ('frame skipping, every 2nd / 3rd / 4th scan: failed pairs', s1, strided),
+        (f'{float(top) * 100:.0f} % outliers added to the raw scans: median e_R',
+         levels[top]['methods'], outliers),
+        (f'source turned {min(angles, key=float)}–{max(angles, key=float)}°, no start: recovered',
+         {m for m in HEADLINE if all(m in b['methods'] for b in angles.values())}, turned),
+    ]  # fmt: skip
+    ps = per_scan['methods'] if per_scan is not None else {}
+    base = ps.get('gicp', {}).get('ms_per_scan', {}).get('p50')
     if per_scan is not None:
-        ps = per_scan['methods']
-        base = ps.get('gicp', {}).get('ms_per_scan', {}).get('p50')
-        cells = []
-        for m in methods:
-            t = ps.get(m, {}).get('ms_per_scan')
-            if t is None or not base:
-                cells.append('–')
-                continue
-            cells.append(f'{t["p50"] / base:.1f}× GICP; p95 {t["p95"]:.0f} ms')
-        row('time per raw scan, 1 thread: p50 as a ratio to GICP in the same run; p95', cells)
-    body = head + '\n'.join(rows) + '\n' + _paper_paragraph(paper)
+        rows.append((
+            'time per raw scan, 1 thread: p50 as a ratio to GICP in the same run; p95',
+            {m for m in ps if base and 'ms_per_scan' in ps[m]},
+            lambda m: '{:.1f}× GICP; p95 {:.0f} ms'.format(
+                ps[m]['ms_per_scan']['p50'] / base, ps[m]['ms_per_scan']['p95']),
+        ))  # fmt: skip
+    lines = ['| | ' + ' | '.join(HEADLINE.values()) + ' |', '|---|' + '---|' * len(HEADLINE)]
+    lines += [f'| {label} | ' + ' | '.join(cell(m) if m in have else '–' for m in HEADLINE) + ' |'
+              for label, have, cell in rows]  # fmt: skip
     commits = sorted(
-        {
-            _commit(d['meta'])
-            for d in (robustness, paper, per_scan)
-            if d is not None and 'meta' in d
-        }
+        {_commit(d['meta']) for d in (robustness, paper, per_scan) if d and 'meta' in d}
     )
-    body += (
-        f'\nGenerated by `benchmarks/render_readme.py` from `benchmarks/results/` (runs at '
+    return (
+        '\n'.join(lines) + '\n' + _paper_paragraph(paper)
+        + '\nGenerated by `benchmarks/render_readme.py` from `benchmarks/results/` (runs at '
         f'{", ".join(commits)}); the commands and full tables are in benchmarks/README.md.\n'
-    )
-    return body
-
-
-def _load(path: Path) -> dict[str, Any] | None:
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
-def _paste(body: str) -> Callable[[re.Match[str]], str]:
-    """A ``re.sub`` replacement putting ``body`` between a block's markers."""
-
-    def paste(m: re.Match[str]) -> str:
-        return m.group(1) + body.rstrip('\n') + '\n' + m.group(2)
-
-    return paste
+    )  # fmt: skip
 
 
 def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
@@ -193,10 +140,11 @@ def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
         pattern = re.compile(
             rf'(<!-- BEGIN {re.escape(name)} -->\n).*?(<!-- END {re.escape(name)} -->)', re.S
         )
-        if not pattern.search(text):
+        found = pattern.search(text)
+        if found is None:
             missing.append(name)
             continue
-        text = pattern.sub(_paste(body), text)
+        text = text[: found.end(1)] + body.rstrip('\n') + '\n' + text[found.start(2) :]
     return text, missing
 
 
@@ -209,14 +157,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--only', nargs='+', metavar='NAME', help='render only these blocks')
     args = parser.parse_args(argv)
     blocks = {p.stem: p.read_text() for p in sorted(args.results.glob('*.md'))}
-    main_blocks: dict[str, str] = {}
+    loaded = [args.results / f'{n}.json' for n in ('robustness', 'paper_table', 'per_scan')]
     headline = headline_block(
-        _load(args.results / 'robustness.json'),
-        _load(args.results / 'paper_table.json'),
-        _load(args.results / 'per_scan.json'),
+        *(json.loads(p.read_text()) if p.is_file() else None for p in loaded)
     )
-    if headline is not None:
-        main_blocks['headline'] = headline
+    main_blocks = {} if headline is None else {'headline': headline}
     if args.only:
         blocks = {k: v for k, v in blocks.items() if k in args.only}
         main_blocks = {k: v for k, v in main_blocks.items() if k in args.only}
@@ -229,16 +174,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in missing:
             print(f'note: no <!-- BEGIN {name} --> / <!-- END {name} --> markers in {readme}')
         if args.check:
-            if new != old:
-                stale.append(readme)
+            stale += [readme] if new != old else []
             continue
         readme.write_text(new)
         print(f'rendered {", ".join(n for n in these if n not in missing)} into {readme}')
-    if stale:
-        for readme in stale:
-            print(f'{readme} is out of date; run python3 benchmarks/render_readme.py')
-        return 1
-    return 0
+    for readme in stale:
+        print(f'{readme} is out of date; run python3 benchmarks/render_readme.py')
+    return 1 if stale else 0
 
 
 if __name__ == '__main__':
