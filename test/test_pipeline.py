@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -133,6 +134,34 @@ def test_dropped_scans_reset_and_reconfigure_keep_the_sequential_poses(
         # Whether the worker had prepared a scan before its inputs changed (then it is
         # prepared again here) depends on timing; the poses must not.
         got = run(odometry)
+    assert all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
+
+
+def test_a_caller_more_than_max_open_jobs_behind_gets_every_scan(
+    balm_50: list[tuple[np.ndarray, int]],
+) -> None:
+    """A node with a long queue (``queue_size`` above :data:`MAX_OPEN_JOBS`) prefetches more
+    scans than the pipeline keeps open: the oldest jobs are discarded and handed over again
+    when stepped, with newer ids than the scans prefetched after them. The replies of those
+    later scans arrive first and must be kept (they were dropped, and the next step waited
+    forever)."""
+    from kentreg_ros.core.odometry.pipeline import MAX_OPEN_JOBS
+
+    scans = balm_50[: MAX_OPEN_JOBS + 4]
+    sequential = Odometry(KentRegConfig())
+    expected = [sequential.step(p, t).T_world_lidar for p, t in scans]
+    got: list[np.ndarray] = []
+    with PipelinedOdometry(KentRegConfig()) as odometry:
+        for points, stamp in scans:
+            odometry.prefetch(points, stamp)  # all of them before the first step
+
+        def step_all() -> None:
+            got.extend(odometry.step(p, t).T_world_lidar for p, t in scans)
+
+        runner = threading.Thread(target=step_all, daemon=True)
+        runner.start()
+        runner.join(timeout=120.0)
+        assert not runner.is_alive(), f'a step waits forever (after {len(got)} scans)'
     assert all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
 
 

@@ -331,7 +331,7 @@ class PipelinedOdometry(Odometry):
                 _unlink(path)
                 return None
             while len(self._open) >= MAX_OPEN_JOBS:
-                self._send(('discard', self._open.popleft().id))
+                self._drop(self._open.popleft().id)
             # The hint the loop will use is known when no earlier scan is still to be prepared.
             hint = None if (self._open or self._stepping) else self.voxel_size_hint
             message = ('job', job, path, times is not None, field_name, int(stamp_ns), hint)
@@ -346,7 +346,7 @@ class PipelinedOdometry(Odometry):
             for item in self._open:
                 if item.points is points:
                     self._open.remove(item)
-                    self._send(('discard', item.id))
+                    self._drop(item.id)
                     return
 
     # -- the loop --------------------------------------------------------------------------------
@@ -430,7 +430,7 @@ class PipelinedOdometry(Odometry):
             mine = next((o for o in self._open if o.points is points), None)
             if mine is not None:
                 while self._open[0] is not mine:
-                    self._send(('discard', self._open.popleft().id))
+                    self._drop(self._open.popleft().id)
                 self._open.popleft()
                 if mine.worker == self._n_workers:
                     return mine
@@ -476,6 +476,21 @@ class PipelinedOdometry(Odometry):
             return False
         return prep.twist is None or bool(np.array_equal(prep.twist, self.twist_for_next))
 
+    def _drop(self, job: int) -> None:
+        """Tell the worker to skip ``job`` and forget its reply if it came (under the lock)."""
+        self._send(('discard', job))
+        self._results.pop(job, None)
+
+    def _keep(self, job: int, done: int, reply: tuple[str, int, Any]) -> None:
+        """Keep the reply for ``done`` while waiting for ``job``: this job's, a later one's, or
+        that of a scan still to be stepped although its job is older (a scan handed over again
+        after its first job was discarded, by a caller more than :data:`MAX_OPEN_JOBS` behind;
+        dropping that reply left the scan's step waiting forever). The others are replies for
+        discarded jobs."""
+        with self._lock:
+            if done >= job or any(item.id == done for item in self._open):
+                self._results[done] = reply
+
     def _wait(self, job: int) -> tuple[str, int, Any] | None:
         """The worker's reply for ``job``; None when the worker died before answering."""
         while job not in self._results:
@@ -489,8 +504,7 @@ class PipelinedOdometry(Odometry):
                 message, ready = None, False
             if message is not None:
                 kind, done, generation, payload = message
-                if done >= job:  # replies for jobs before this one were discarded here
-                    self._results[done] = (kind, generation, payload)
+                self._keep(job, done, (kind, generation, payload))
             elif self._proc is None or self._proc.poll() is not None:
                 self._worker_died()
                 return None
