@@ -56,12 +56,9 @@ class KentregPipeline:
         self.points_used: list[int] = []
         self.health: dict[str, Any] = dict.fromkeys(HEALTHS, 0)
         initial = 'constant velocity' if config.odometry.constant_velocity else 'previous pose'
-        self.settings = {
-            'mode': config.mode,
-            'config': config.to_flat_dict(),
-            'model': config.odometry.model.replace('_', ' '),
-            'initial_guess': initial,
-        }
+        self.settings = {'mode': config.mode, 'config': config.to_flat_dict(),
+                         'model': config.odometry.model.replace('_', ' '),
+                         'initial_guess': initial}  # fmt: skip
 
     def step(self, scan: Scan) -> FloatArray:
         times = point_time_field(getattr(scan, 'extras', None))
@@ -124,16 +121,10 @@ def gicp(voxel: float, threads: int = 1) -> ScanToScan:
     """small_gicp GICP scan-to-scan at small_gicp's defaults (see the module docstring)."""
     import small_gicp
 
-    settings = {
-        'registration_type': 'GICP',
-        'downsampling_resolution': voxel,
-        'num_neighbors': 10,
-        'max_correspondence_distance': 1.0,
-        'max_iterations': 20,
-        'num_threads': threads,
-        'model': 'previous scan',
-        'initial_guess': 'constant velocity',
-    }
+    settings = {'registration_type': 'GICP', 'downsampling_resolution': voxel,
+                'num_neighbors': 10, 'max_correspondence_distance': 1.0, 'max_iterations': 20,
+                'num_threads': threads, 'model': 'previous scan',
+                'initial_guess': 'constant velocity'}  # fmt: skip
     health = {'not_converged': 0}
 
     def prepare(points: FloatArray) -> Any:
@@ -142,14 +133,8 @@ def gicp(voxel: float, threads: int = 1) -> ScanToScan:
         )
 
     def align(source: Any, target: Any, init: FloatArray) -> FloatArray:
-        result = small_gicp.align(
-            target[0],
-            source[0],
-            target[1],
-            init_T_target_source=init,
-            registration_type='GICP',
-            num_threads=threads,
-        )
+        result = small_gicp.align(target[0], source[0], target[1], init_T_target_source=init,
+                                  registration_type='GICP', num_threads=threads)  # fmt: skip
         health['not_converged'] += not result.converged
         return np.array(result.T_target_source, dtype=np.float64)
 
@@ -215,17 +200,14 @@ class KissPipeline:
         self.settings = {
             'config': f'kiss_icp.config.load_config: default KISSConfig{where}, '
             'voxel_size = max_range / 100',
-            'max_range': cfg.data.max_range,
-            'min_range': cfg.data.min_range,
-            'deskew': cfg.data.deskew,
-            'voxel_size': cfg.mapping.voxel_size,
+            'max_range': cfg.data.max_range, 'min_range': cfg.data.min_range,
+            'deskew': cfg.data.deskew, 'voxel_size': cfg.mapping.voxel_size,
             'max_points_per_voxel': cfg.mapping.max_points_per_voxel,
             'initial_threshold': cfg.adaptive_threshold.initial_threshold,
             'max_num_iterations': cfg.registration.max_num_iterations,
             'max_num_threads': cfg.registration.max_num_threads,
-            'model': 'local voxel-hash map',
-            'initial_guess': 'constant velocity',
-        }
+            'model': 'local voxel-hash map', 'initial_guess': 'constant velocity',
+        }  # fmt: skip
 
     def step(self, scan: Scan) -> FloatArray:
         times = point_times(scan)
@@ -269,13 +251,8 @@ PIPELINES: dict[str, Callable[..., Pipeline]] = {
 
 
 def make_pipeline(name: str, **options: Any) -> Pipeline:
-    """The pipeline ``name`` of :data:`PIPELINES` with the options it takes (others ignored).
-
-    Raises
-    ------
-    ValueError
-        An unknown name.
-    """
+    """The pipeline ``name`` of :data:`PIPELINES` with the options it takes (others ignored);
+    ``ValueError`` for an unknown name."""
     if name not in PIPELINES:
         raise ValueError(f'Unknown pipeline {name!r}; valid names are {sorted(PIPELINES)}.')
     if name.startswith('kentreg'):

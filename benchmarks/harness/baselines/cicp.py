@@ -48,18 +48,10 @@ def cicp_prepare(points: FloatArray) -> CICPScan:
 
 
 def weighted_rigid_fit(x: FloatArray, y: FloatArray, w: FloatArray) -> FloatArray:
-    """The rigid ``T`` (4, 4) minimising ``sum w |T x - y|^2`` (weighted Kabsch).
-
-    Parameters
-    ----------
-    x, y : ndarray, shape (N, 3)
-        Corresponding points.
-    w : ndarray, shape (N,)
-        Non-negative weights, not all zero.
-    """
+    """The rigid ``T`` (4, 4) minimising ``sum w |T x - y|^2`` (weighted Kabsch) over
+    corresponding points ``x``, ``y`` (N, 3) with non-negative weights ``w``, not all zero."""
     wsum = float(w.sum())
-    mx = (w @ x) / wsum
-    my = (w @ y) / wsum
+    mx, my = (w @ x) / wsum, (w @ y) / wsum
     C = ((x - mx) * w[:, None]).T @ (y - my)
     U, _, Vt = np.linalg.svd(C)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
@@ -71,33 +63,17 @@ def weighted_rigid_fit(x: FloatArray, y: FloatArray, w: FloatArray) -> FloatArra
 
 
 def cicp_register(
-    source: CICPScan | FloatArray,
-    target: CICPScan | FloatArray,
-    init: FloatArray | None = None,
-    *,
-    sigma0: float = CICP_DEFAULTS['sigma0'],
-    decay: float = CICP_DEFAULTS['decay'],
+    source: CICPScan | FloatArray, target: CICPScan | FloatArray, init: FloatArray | None = None,
+    *, sigma0: float = CICP_DEFAULTS['sigma0'], decay: float = CICP_DEFAULTS['decay'],
     max_iterations: int = CICP_DEFAULTS['max_iterations'],
-    min_sigma: float = CICP_DEFAULTS['min_sigma'],
-    tolerance: float = CICP_DEFAULTS['tolerance'],
-) -> FloatArray:
-    """Estimate ``T_target_source`` (4, 4) by correntropy ICP.
+    min_sigma: float = CICP_DEFAULTS['min_sigma'], tolerance: float = CICP_DEFAULTS['tolerance'],
+) -> FloatArray:  # fmt: skip
+    """Estimate ``T_target_source`` (4, 4) by correntropy ICP from ``init`` (default identity).
 
-    Parameters
-    ----------
-    source, target : CICPScan or ndarray, shape (N, 3)
-    init : ndarray, shape (4, 4), optional
-        Initial guess (default identity).
-    sigma0 : float
-        Initial kernel width (m).
-    decay : float
-        Factor applied to the kernel width after every iteration.
-    max_iterations : int
-    min_sigma : float
-        Stop once the kernel width has decayed below this (m); the benchmarks use a tenth of
-        the voxel edge, below which hardly any pair keeps a weight.
-    tolerance : float
-        Stop when an iteration moves the estimate by less than this (m + rad).
+    The kernel width starts at ``sigma0`` (m) and is multiplied by ``decay`` after every
+    iteration; the iterations stop once it has decayed below ``min_sigma`` (the benchmarks use a
+    tenth of the voxel edge, below which hardly any pair keeps a weight) or when one moves the
+    estimate by less than ``tolerance`` (m + rad).
     """
     src = source if isinstance(source, CICPScan) else cicp_prepare(source)
     tgt = target if isinstance(target, CICPScan) else cicp_prepare(target)

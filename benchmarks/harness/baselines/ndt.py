@@ -69,20 +69,9 @@ def gaussian_constants(resolution: float, outlier_ratio: float) -> tuple[float, 
 
 @dataclass(frozen=True)
 class NDTGrid:
-    """Gaussians of the occupied cells of one resolution.
-
-    Attributes
-    ----------
-    resolution : float
-        Cell edge (m).
-    keys : ndarray of int64, shape (C,)
-        Sorted cell keys.
-    means : ndarray, shape (C, 3)
-    inv_covs : ndarray, shape (C, 3, 3)
-        Inverses of the regularised covariances.
-    d2 : float
-        Magnusson's ``d2`` for this resolution.
-    """
+    """Gaussians of the occupied cells of one resolution (cell edge, m): the sorted cell keys
+    (C,), the means (C, 3), the inverses of the regularised covariances (C, 3, 3) and
+    Magnusson's ``d2`` for this resolution."""
 
     resolution: float
     keys: IntArray
@@ -92,13 +81,11 @@ class NDTGrid:
 
 
 def build_grid(
-    points: FloatArray,
-    resolution: float,
-    *,
+    points: FloatArray, resolution: float, *,
     min_points: int = NDT_DEFAULTS['min_points_per_cell'],
     eigen_ratio: float = NDT_DEFAULTS['eigen_ratio'],
     outlier_ratio: float = NDT_DEFAULTS['outlier_ratio'],
-) -> NDTGrid:
+) -> NDTGrid:  # fmt: skip
     """Per-cell Gaussians of ``points`` (N, 3) on a grid of edge ``resolution``.
 
     Cells with fewer than ``min_points`` points are dropped; covariance eigenvalues below
@@ -149,8 +136,7 @@ def _pairs(grid: NDTGrid, y: FloatArray) -> tuple[IntArray, IntArray]:
     """(point index, cell index) of every point and occupied DIRECT7 cell around it."""
     ijk = np.floor(y / grid.resolution).astype(np.int64)
     keys = _cell_keys(ijk[:, None, :] + _DIRECT7[None, :, :])  # (N, 7)
-    pos = np.searchsorted(grid.keys, keys)
-    pos = np.minimum(pos, len(grid.keys) - 1)
+    pos = np.minimum(np.searchsorted(grid.keys, keys), len(grid.keys) - 1)
     hit = grid.keys[pos] == keys
     point_idx, which = np.nonzero(hit)
     return point_idx, pos[point_idx, which]
@@ -230,14 +216,11 @@ def _newton_step(gradient: FloatArray, hessian: FloatArray) -> FloatArray:
 
 
 def ndt_align_level(
-    grid: NDTGrid,
-    x: FloatArray,
-    T: FloatArray,
-    *,
+    grid: NDTGrid, x: FloatArray, T: FloatArray, *,
     max_iterations: int = NDT_DEFAULTS['max_iterations'],
     tolerance: float = NDT_DEFAULTS['tolerance'],
     max_step_rotation: float = NDT_DEFAULTS['max_step_rotation'],
-) -> tuple[FloatArray, int]:
+) -> tuple[FloatArray, int]:  # fmt: skip
     """Newton iterations on one grid from ``T`` (4, 4); returns ``(T, iterations)``."""
     score, gradient, hessian = ndt_derivatives(grid, _transform(T, x))
     it = 0
@@ -268,36 +251,21 @@ def ndt_align_level(
 
 
 def ndt_register(
-    source: NDTScan | FloatArray,
-    target: NDTScan | FloatArray,
-    init: FloatArray | None = None,
-    *,
-    resolutions: Sequence[float] = NDT_DEFAULTS['resolutions'],
+    source: NDTScan | FloatArray, target: NDTScan | FloatArray, init: FloatArray | None = None,
+    *, resolutions: Sequence[float] = NDT_DEFAULTS['resolutions'],
     max_iterations: int = NDT_DEFAULTS['max_iterations'],
     tolerance: float = NDT_DEFAULTS['tolerance'],
-) -> FloatArray:
-    """Estimate ``T_target_source`` (4, 4) by coarse-to-fine NDT over ``resolutions``.
-
-    Parameters
-    ----------
-    source, target : NDTScan or ndarray, shape (N, 3)
-        Prepared scans (:func:`ndt_prepare`) or raw points.
-    init : ndarray, shape (4, 4), optional
-        Initial guess (default identity).
-    resolutions : sequence of float
-        Grid edges in the order they run (the paper's 2, 4, 2, 1 m).
-    max_iterations : int
-        Newton iterations per level.
-    tolerance : float
-        Stop a level when a step moves less than this (m + rad).
-    """
+) -> FloatArray:  # fmt: skip
+    """Estimate ``T_target_source`` (4, 4) by coarse-to-fine NDT over ``resolutions`` (grid
+    edges in the order they run, the paper's 2, 4, 2, 1 m), from ``init`` (default identity);
+    ``source`` and ``target`` prepared (:func:`ndt_prepare`) or raw points (N, 3);
+    ``max_iterations`` Newton iterations per level, each ending when a step moves less than
+    ``tolerance`` (m + rad)."""
     src = source if isinstance(source, NDTScan) else ndt_prepare(source, resolutions)
     tgt = target if isinstance(target, NDTScan) else ndt_prepare(target, resolutions)
     T = np.eye(4) if init is None else np.array(init, dtype=np.float64)
     for r in resolutions:
-        grid = tgt.grids.get(float(r))
-        if grid is None:
-            grid = build_grid(tgt.points, float(r))
+        grid = tgt.grids.get(float(r)) or build_grid(tgt.points, float(r))
         T, _ = ndt_align_level(
             grid, src.points, T, max_iterations=max_iterations, tolerance=tolerance
         )
