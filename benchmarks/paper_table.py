@@ -36,22 +36,16 @@ Ints: TypeAlias = Sequence[int]
 Strs: TypeAlias = Sequence[str]
 #: The paper's Table 1 (ETH Hauptgebaeude, from identity): average e_R (deg), e_t (m).
 PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
-    'icp_pt2pt': ('ICP', 1.27, 0.403),
-    'icp_pt2pl': ('ICPp2pl', 0.57, 0.164),
-    'cicp': ('CICP', 1.162, 0.260),
-    'gicp': ('GICP', 0.23, 0.025),
-    'ndt': ('NDT', 0.52, 0.070),
+    'icp_pt2pt': ('ICP', 1.27, 0.403), 'icp_pt2pl': ('ICPp2pl', 0.57, 0.164),
+    'cicp': ('CICP', 1.162, 0.260), 'gicp': ('GICP', 0.23, 0.025), 'ndt': ('NDT', 0.52, 0.070),
     'kentreg_paper': ('Ours', 0.66, 0.018),
-}
+}  # fmt: skip
 
 
 def run_pair(
-    method: methods.Method,
-    prepared: dict[int, tuple[Any, float]],
-    seq: datasets.Sequence,
-    pair: int,
-    starts: Sequence[str],
-) -> dict[str, dict[str, Any]]:
+    method: methods.Method, prepared: dict[int, tuple[Any, float]], seq: Data, pair: int,
+    starts: Strs,
+) -> dict[str, dict[str, Any]]:  # fmt: skip
     """One pair with one method from every start: ``{start: record}``."""
     target, _ = prepared[pair]
     source, prep_ms = prepared[pair + 1]
@@ -94,36 +88,39 @@ def run_sequence(seq: Data, built: Methods, pairs: Ints, starts: Strs, voxel: fl
             for start, rec in run_pair(m, prepared, seq, pair, starts).items():
                 records[m.name][start].append(rec)
     motion = runner.motion_stats(np.stack([seq.truth(p) for p in pairs]))
+    points = {'min': min(sizes), 'median': float(np.median(sizes)), 'max': max(sizes)}
     return {
-        'note': seq.note,
-        'voxel_m': voxel,
-        'pairs': list(pairs),
-        'points_per_scan': {
-            'min': min(sizes),
-            'median': float(np.median(sizes)),
-            'max': max(sizes),
-        },
+        'note': seq.note, 'voxel_m': voxel, 'pairs': list(pairs), 'points_per_scan': points,
         'reference_motion': motion,
         'starts': {
             s: {m: {'summary': runner.summarize(r[s]), 'pairs': r[s]} for m, r in records.items()}
             for s in starts
         },
-    }
+    }  # fmt: skip
+
+
+def _paper(entry: dict[str, Any]) -> str:
+    paper = PAPER_TABLE1.get(entry['name'])
+    return f'{paper[0]}: {paper[1]}° / {paper[2]} m' if paper else ''
+
+
+def _failures(entry: dict[str, Any]) -> str:
+    s = entry['summary']
+    return f'{s["failures"]}/{s["n"]}' + (f' ({s["n_errors"]} raised)' if s['n_errors'] else '')
+
+
+#: The columns of a table: a row per method.
+COLUMNS: list[report.Column] = [
+    ('method', 'name:s'), ('mean e_R (°)', 'summary.e_R_deg.mean:.3f'),
+    ('median e_R (°)', 'summary.e_R_deg.median:.3f'), ('mean e_t (m)', 'summary.e_t_m.mean:.4f'),
+    ('median e_t (m)', 'summary.e_t_m.median:.4f'), ('failures', _failures),
+    ('median ms/pair', 'summary.ms.median:.0f'), ('paper Table 1 (ETH): avg e_R / e_t', _paper),
+]  # fmt: skip
 
 
 def markdown(results: dict[str, Any]) -> str:
     """The markdown tables of a results dict (what ``paper_table.md`` holds)."""
     lines = []
-    head = [
-        'method',
-        'mean e_R (°)',
-        'median e_R (°)',
-        'mean e_t (m)',
-        'median e_t (m)',
-        'failures',
-        'median ms/pair',
-        'paper Table 1 (ETH): avg e_R / e_t',
-    ]
     for name, block in results['datasets'].items():
         mot, pts = block['reference_motion'], block['points_per_scan']
         lines += [
@@ -135,24 +132,8 @@ def markdown(results: dict[str, Any]) -> str:
             '',
         ]
         for start, by_method in block['starts'].items():
-            rows = []
-            for method, entry in by_method.items():
-                s, paper = entry['summary'], PAPER_TABLE1.get(method)
-                errs = f' ({s["n_errors"]} raised)' if s['n_errors'] else ''
-                rows.append(
-                    [
-                        method,
-                        report.fmt(s['e_R_deg']['mean'], '.3f'),
-                        report.fmt(s['e_R_deg']['median'], '.3f'),
-                        report.fmt(s['e_t_m']['mean'], '.4f'),
-                        report.fmt(s['e_t_m']['median'], '.4f'),
-                        f'{s["failures"]}/{s["n"]}{errs}',
-                        report.fmt(s['ms']['median'], '.0f'),
-                        f'{paper[0]}: {paper[1]}° / {paper[2]} m' if paper else '',
-                    ]
-                )
             title = f'*{name}, start: {start.replace("_", " ")}*'
-            lines += [title, '', *report.table(head, rows), '']
+            lines += [title, '', *report.column_table(COLUMNS, report.named(by_method)), '']
     meta = results['meta']
     lines.append(
         f'Failure: e_R > 2° or e_t > 0.2 m. Time: preparing the new scan + registering it, '
@@ -179,12 +160,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     logging.basicConfig(level=logging.INFO, format='%(message)s')
     names = list(args.datasets) + ([f'eth:{args.eth}'] if args.eth is not None else [])
     table1 = {k: {'name': v[0], 'e_R_deg': v[1], 'e_t_m': v[2]} for k, v in PAPER_TABLE1.items()}
-    meta = {
-        'command': ' '.join(['python3 benchmarks/paper_table.py', *argv]),
-        'threads': args.threads,
-        'machine': report.machine_info(),
-        'paper_table1': table1,
-    }
+    command = ' '.join(['python3 benchmarks/paper_table.py', *argv])
+    meta = {'command': command, 'threads': args.threads, 'machine': report.machine_info(),
+            'paper_table1': table1}  # fmt: skip
     results: dict[str, Any] = {'meta': meta, 'datasets': {}}
     for name in names:
         seq = datasets.load_dataset(name)
