@@ -15,6 +15,7 @@ import os
 import platform
 import subprocess
 import tempfile
+from argparse import RawDescriptionHelpFormatter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import version
@@ -71,18 +72,12 @@ def machine_info() -> dict[str, Any]:
     except OSError:
         commit = ''
     return {
-        'git': git_describe(),
-        'cpu': cpu,
-        'cores': os.cpu_count(),
-        'cores_used': len(os.sched_getaffinity(0)),
-        'load_avg_at_start': list(os.getloadavg()),
-        'machine': platform.machine(),
-        'system': f'{platform.system()} {platform.release()}',
-        'python': platform.python_version(),
-        'versions': versions,
-        'git_commit': commit,
+        'git': git_describe(), 'cpu': cpu, 'cores': os.cpu_count(),
+        'cores_used': len(os.sched_getaffinity(0)), 'load_avg_at_start': list(os.getloadavg()),
+        'machine': platform.machine(), 'system': f'{platform.system()} {platform.release()}',
+        'python': platform.python_version(), 'versions': versions, 'git_commit': commit,
         'date': datetime.datetime.now(datetime.UTC).isoformat(timespec='seconds'),
-    }
+    }  # fmt: skip
 
 
 def finish_machine(machine: dict[str, Any]) -> None:
@@ -241,15 +236,13 @@ Option = tuple[str, dict[str, Any]]
 
 
 def experiment_main(
-    doc: str,
-    stem: str | Callable[[argparse.Namespace], str],
-    options: Sequence[Option],
+    doc: str, stem: str | Callable[[argparse.Namespace], str], options: Sequence[Option],
     run: Callable[[argparse.Namespace, list[str]], dict[str, Any]],
     markdown: Callable[[dict[str, Any]], str],
     plot: Callable[[dict[str, Any], Path], None] | None = None,
     argv: Sequence[str] | None = None,
     worker: Callable[[argparse.Namespace], dict[str, Any]] | None = None,
-) -> int:
+) -> int:  # fmt: skip
     """The command line of an experiment: parse ``options`` (plus ``--out`` and ``--table``),
     ``run(args, argv)`` to a results dict, write ``<stem>.json``, ``<stem>.md`` (and
     ``<stem>.png`` with ``plot``) into ``--out``; ``--table JSON`` only prints its tables.
@@ -258,13 +251,11 @@ def experiment_main(
     import sys
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(
-        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=doc, formatter_class=RawDescriptionHelpFormatter)
     common: list[Option] = [
         ('--out', {'type': Path, 'default': RESULTS, 'help': 'folder for the results'}),
         ('--table', {'type': Path, 'metavar': 'JSON', 'help': 'only print the tables of a file'}),
-    ]
+    ]  # fmt: skip
     if worker is not None:
         common.append(('--worker', {'type': Path, 'help': argparse.SUPPRESS}))
     for flag, kwargs in (*options, *common):
@@ -285,13 +276,9 @@ def experiment_main(
 
 
 def method_panel(
-    blocks: dict[str, Any] | None,
-    value: Callable[[dict[str, Any]], float],
-    *,
-    scale: float = 1.0,
-    log: str = '',
-    **axes: Any,
-) -> Panel:
+    blocks: dict[str, Any] | None, value: Callable[[dict[str, Any]], float], *,
+    scale: float = 1.0, log: str = '', **axes: Any,
+) -> Panel:  # fmt: skip
     """One line per method of ``blocks`` (``{x: {'methods': {name: entry}}}``, as the results
     JSON nests them): ``value(entry)`` against ``x * scale``; an empty panel without blocks."""
     panel = Panel(log=log, axes=axes)

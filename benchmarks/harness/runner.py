@@ -7,8 +7,12 @@ counted in ``n_errors``) and the experiment goes on.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -66,15 +70,10 @@ def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
 def motion_stats(T_rel: FloatArray) -> dict[str, float]:
     """Median and max rotation (deg) and translation (m) of relative motions (P, 4, 4)."""
     angle, dist = pair_errors(T_rel, np.broadcast_to(np.eye(4), T_rel.shape))
-    out = {
-        'rotation_deg_median': float(np.median(angle)),
-        'rotation_deg_max': float(np.max(angle)),
-    }
-    out |= {
-        'translation_m_median': float(np.median(dist)),
-        'translation_m_max': float(np.max(dist)),
-    }
-    return out
+    return {'rotation_deg_median': float(np.median(angle)),
+            'rotation_deg_max': float(np.max(angle)),
+            'translation_m_median': float(np.median(dist)),
+            'translation_m_max': float(np.max(dist))}  # fmt: skip
 
 
 def _stats(v: FloatArray) -> dict[str, float]:
@@ -100,19 +99,15 @@ def summarize(
     if finite_times:
         ms = ms[np.isfinite(ms)]
     ok = np.isfinite(e_R) & np.isfinite(e_t)
-    fails = sum(is_failure(a, b) for a, b in zip(e_R, e_t, strict=True))
+    fails = int(failure_mask(e_R, e_t).sum())
+    nan = float('nan')
     return {
-        'n': len(rows),
-        'n_errors': int((~ok).sum()),
-        'failures': int(fails),
-        'failure_rate': fails / len(rows) if rows else float('nan'),
-        'e_R_deg': _stats(e_R[ok]),
-        'e_t_m': _stats(e_t[ok]),
-        'ms': {
-            'median': float(np.median(ms)) if len(ms) else float('nan'),
-            'mean': float(ms.mean()) if len(ms) else float('nan'),
-        },
-    }
+        'n': len(rows), 'n_errors': int((~ok).sum()), 'failures': int(fails),
+        'failure_rate': fails / len(rows) if rows else nan,
+        'e_R_deg': _stats(e_R[ok]), 'e_t_m': _stats(e_t[ok]),
+        'ms': {'median': float(np.median(ms)) if len(ms) else nan,
+               'mean': float(ms.mean()) if len(ms) else nan},
+    }  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,14 +196,8 @@ def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup:
         poses.append(np.array(pose, dtype=np.float64))
         ms.append(t)
     used = np.array(pipeline.points_used, dtype=np.float64)
-    return Run(
-        pipeline.name,
-        np.stack(poses),
-        np.array(ms),
-        used,
-        pipeline.settings,
-        dict(pipeline.health),
-    )
+    health = dict(pipeline.health)
+    return Run(pipeline.name, np.stack(poses), np.array(ms), used, pipeline.settings, health)
 
 
 def combine_rounds(runs: list[Run]) -> Run:
@@ -222,12 +211,9 @@ def combine_rounds(runs: list[Run]) -> Run:
         (float(np.abs(r.poses[:, :3, 3] - first.poses[:, :3, 3]).max()) for r in runs[1:]),
         default=0.0,
     )
-    health = {
-        **first.health,
-        'rounds': len(runs),
-        'pose_spread_between_rounds_m': spread,
-        'mean_ms_per_scan_per_round': [float(r.ms_per_scan.mean()) for r in runs],
-    }
+    per_round = [float(r.ms_per_scan.mean()) for r in runs]
+    health = {**first.health, 'rounds': len(runs), 'pose_spread_between_rounds_m': spread,
+              'mean_ms_per_scan_per_round': per_round}  # fmt: skip
     ms = np.median(np.stack([r.ms_per_scan for r in runs]), axis=0)
     return Run(first.name, first.poses, ms, first.points_used, first.settings, health)
 
@@ -261,16 +247,12 @@ def evaluate_run(run: Run, T_gt: FloatArray) -> dict[str, Any]:
     # consecutive scans where scan-to-scan has one, but should drift less over a stretch.
     if len(run.poses) > SEGMENT_FRAMES:
         seg = metrics.rpe(run.poses, T_gt, delta=SEGMENT_FRAMES)
-        result['rpe_segment'] = {
-            'frames': SEGMENT_FRAMES,
-            'rotation_deg': metrics.summarize(seg['e_R_deg']),
-            'translation_m': metrics.summarize(seg['e_t']),
-        }
+        result['rpe_segment'] = {'frames': SEGMENT_FRAMES,
+                                 'rotation_deg': metrics.summarize(seg['e_R_deg']),
+                                 'translation_m': metrics.summarize(seg['e_t'])}  # fmt: skip
     result['n_matched'] = len(run.poses)
-    result['speed'] = {
-        'ms_per_scan': metrics.summarize(run.ms_per_scan),
-        'points_used_per_scan': metrics.summarize(run.points_used),
-    }
+    result['speed'] = {'ms_per_scan': metrics.summarize(run.ms_per_scan),
+                       'points_used_per_scan': metrics.summarize(run.points_used)}  # fmt: skip
     return result
 
 
@@ -279,19 +261,11 @@ def in_subprocess(
 ) -> dict[str, Any]:
     """Run ``script --worker OUT *args`` in a fresh interpreter (one library or method per
     process, pinned by the worker itself); its JSON result, or ``{'error': ...}``."""
-    import json
-    import subprocess
-    import sys
-    import tempfile
-    from pathlib import Path
-
     with tempfile.TemporaryDirectory(prefix='kentreg-bench-') as tmp:
         out = Path(tmp) / 'result.json'
         cmd = [sys.executable, script, '--worker', str(out), *args]
         try:
-            proc = subprocess.run(
-                cmd, env=env, capture_output=True, text=True, timeout=timeout, check=False
-            )
+            proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
         except subprocess.TimeoutExpired:
             return {'error': f'timed out after {timeout:.0f} s'}
         if proc.returncode != 0 or not out.is_file():
