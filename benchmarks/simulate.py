@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from argparse import RawDescriptionHelpFormatter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.harness.simulator import (  # noqa: E402
+from benchmarks.harness.simulator import (  # noqa: E402  # noqa: E402
     DEFAULT_INPUT,
     WORLD_VOXEL,
     Sensor,
@@ -53,9 +54,7 @@ SENSOR_OPTIONS = {'occlusion_bin': 'deg', 'beam_bin': 'deg', 'range_noise': 'm, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=RawDescriptionHelpFormatter)
     p.add_argument('--input', type=Path, default=DEFAULT_INPUT, help='recording to re-simulate')
     p.add_argument('--out', type=Path, required=True, help='scan folder to write')
     p.add_argument('--step', type=float, default=0.6, help='metres per scan (default 0.6)')
@@ -64,10 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0, help='seed of the sampling and the noise')
     p.add_argument('--world-voxel', type=float, default=WORLD_VOXEL, help='world thinning, m')
     for name, unit in SENSOR_OPTIONS.items():
-        value = getattr(Sensor(), name)
-        p.add_argument(
-            '--' + name.replace('_', '-'), type=float, default=value, help=f'{unit} ({value})'
-        )
+        value, flag = getattr(Sensor(), name), '--' + name.replace('_', '-')
+        p.add_argument(flag, type=float, default=value, help=f'{unit} ({value})')
     return p
 
 

@@ -70,15 +70,8 @@ class Sequence:
 
 def _file_scans(paths: list[Path], period_s: float = 0.1) -> list[Scan]:
     """Scans read from files (x, y, z; non-finite points dropped), stamped every ``period_s``."""
-    return [
-        Scan(
-            int(round(i * period_s * 1e9)),
-            'lidar',
-            drop_nonfinite(read_scan(p, fields=()).points)[0],
-            {},
-        )
-        for i, p in enumerate(paths)
-    ]
+    points = (drop_nonfinite(read_scan(p, fields=()).points)[0] for p in paths)
+    return [Scan(int(round(i * period_s * 1e9)), 'lidar', p, {}) for i, p in enumerate(points)]
 
 
 def load_recording(path: Path, *, name: str | None = None, topic: str | None = None) -> Sequence:
@@ -132,18 +125,16 @@ def load_eth(folder: Path) -> Sequence:
     pose_file = folder / 'pose_scanner_leica.csv'
     if not pose_file.is_file():
         raise ValueError(f'{folder}: no pose_scanner_leica.csv.')
-    paths = [
-        p for p in list_scans(folder, suffixes=['.csv']) if p.name.lower().startswith('hokuyo_')
-    ]
+    scans = list_scans(folder, suffixes=['.csv'])
+    paths = [p for p in scans if p.name.lower().startswith('hokuyo_')]
     if len(paths) < 2:
         raise ValueError(
             f'{folder}: expected at least two Hokuyo_<i>.csv scans, got {len(paths)}.'
         )
     poses = orthonormalize(read_poses(pose_file, format='eth'), str(pose_file)).T_world_sensor
     if len(poses) != len(paths):
-        raise ValueError(
-            f'{folder}: {len(paths)} Hokuyo scans but {len(poses)} poses in {pose_file.name}.'
-        )
+        found = f'{len(paths)} Hokuyo scans but {len(poses)} poses'
+        raise ValueError(f'{folder}: {found} in {pose_file.name}.')
     T = np.asarray(poses, dtype=np.float64)
     note = 'ETH local-frame scans, Leica-tracked poses'
     return Sequence(f'eth:{folder.name}', _file_scans(paths), T, note, str(folder), paths=paths)

@@ -47,49 +47,30 @@ def raw_outliers(
     """:func:`inject_raw_outliers` on every scan in turn (one ``rng``); the extra fields are
     dropped (an outlier has no time)."""
 
-    def run(scans: list[Scan]) -> list[Scan]:
-        return [
-            Scan(
-                s.stamp_ns,
-                s.frame_id,
-                inject_raw_outliers(
-                    np.asarray(s.points, dtype=np.float64), fraction, rng, shell_share=shell_share
-                )[0],
-                {},
-            )
-            for s in scans
-        ]
+    def one(scan: Scan) -> Scan:
+        points = np.asarray(scan.points, dtype=np.float64)
+        noisy, _ = inject_raw_outliers(points, fraction, rng, shell_share=shell_share)
+        return Scan(scan.stamp_ns, scan.frame_id, noisy, {})
 
-    return run
+    return lambda scans: [one(s) for s in scans]
 
 
 def merge(k: int, T_world: FloatArray) -> Perturbation:
     """Scan ``i`` joined with scans ``i-k+1 .. i-1`` moved into its frame by the reference
     poses ``T_world`` (from scan ``k-1`` on): denser real scans with the same motion."""
 
-    def run(scans: list[Scan]) -> list[Scan]:
-        out = []
-        for i in range(k - 1, len(scans)):
-            inv = np.linalg.inv(T_world[i])
-            parts = [np.asarray(scans[i].points, dtype=np.float64)]
-            for j in range(i - k + 1, i):
-                T = inv @ T_world[j]
-                parts.append(
-                    np.asarray(scans[j].points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-                )
-            points = np.ascontiguousarray(np.vstack(parts))
-            out.append(Scan(scans[i].stamp_ns, scans[i].frame_id, points, {}))
-        return out
+    def one(scans: list[Scan], i: int) -> Scan:
+        inv = np.linalg.inv(T_world[i])
+        parts = [np.asarray(scans[i].points, dtype=np.float64)]
+        parts += [transform(inv @ T_world[j], scans[j].points) for j in range(i - k + 1, i)]
+        points = np.ascontiguousarray(np.vstack(parts))
+        return Scan(scans[i].stamp_ns, scans[i].frame_id, points, {})
 
-    return run
+    return lambda scans: [one(scans, i) for i in range(k - 1, len(scans))]
 
 
 def inject_raw_outliers(
-    points: FloatArray,
-    fraction: float,
-    rng: np.random.Generator,
-    *,
-    shell_share: float = 0.0,
+    points: FloatArray, fraction: float, rng: np.random.Generator, *, shell_share: float = 0.0
 ) -> tuple[FloatArray, BoolArray]:
     """A raw scan (N, 3), sensor at the origin, with uniform outliers making up exactly
     ``fraction`` of the returned cloud: ``K = round(N f / (1 - f))`` points (so ``K / (N + K)``
@@ -208,9 +189,10 @@ def _unit(rng: np.random.Generator) -> FloatArray:
     return np.asarray(v / np.linalg.norm(v), dtype=np.float64)
 
 
-def transform(T: FloatArray, points: FloatArray) -> FloatArray:
-    """``T`` applied to ``points`` (N, 3)."""
-    return np.asarray(points @ T[:3, :3].T + T[:3, 3], dtype=np.float64)
+def transform(T: FloatArray, points: Any) -> FloatArray:
+    """``T`` applied to ``points`` (N, 3), as float64."""
+    pts = np.asarray(points, dtype=np.float64)
+    return np.asarray(pts @ T[:3, :3].T + T[:3, 3], dtype=np.float64)
 
 
 def draw_pairs(n_pairs: int, count: int, seed: int, test: int) -> list[int]:
