@@ -156,6 +156,24 @@ def test_benchmarks_never_import_a_command_line(path: Path) -> None:
     assert bad == [], f'{path.name} imports {bad}'
 
 
+#: The house issue's bar on the benchmark harness: datasets, methods, pipelines, perturbations,
+#: one runner and one renderer, every benchmark a short spec on them; it stays small.
+BENCHMARK_LINES = 4500
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason='benchmarks/ is still over the bar (about 5,100 lines with live.py); drop this mark '
+    'when it passes',
+)
+def test_the_benchmarks_stay_under_the_house_issues_line_bar() -> None:
+    total = sum(len(p.read_text().splitlines()) for p in BENCHMARKS.rglob('*.py'))
+    assert total < BENCHMARK_LINES, (
+        f'benchmarks/ has {total} lines of Python, the house issue allows under '
+        f'{BENCHMARK_LINES}: one small harness with every benchmark a short spec on it'
+    )
+
+
 #: Top-level names of ROS 2 Python packages: rclpy and the message/service packages.
 _ROS_PACKAGES = ('rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_srvs', 'tf2_ros')
 
