@@ -195,6 +195,10 @@ def measure_live(
         'cpu_pct_per_core': cores,
         'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
         'exit_code': proc.returncode,
+        'missing': [i for i, s in enumerate(stamps) if s not in received],
+        'latency_by_scan_ms': [
+            round(1e3 * (received[s] - sent[s]), 1) if s in received else None for s in stamps
+        ],
     }
 
 
