@@ -6,11 +6,6 @@ waiting for it over Fast DDS (the shipped shared-memory profile, or loopback UDP
 (:func:`measure_live`): drops, publish-to-odometry latency, CPU per core and of the node; beside
 it the sequential loop's stages (:func:`measure_stages`), sequential against pipelined
 throughput (:func:`measure_throughput`) and ``per_scan.py``'s table from the same run.
-
-Usage::
-
-    python3 benchmarks/live.py                       # everything, ~10 min
-    python3 benchmarks/live.py --streams kitti_hdl64 --models local_map --no-per-scan
 """
 
 from __future__ import annotations

@@ -3,11 +3,6 @@
 The pipelines get the same scans in memory (kentreg with the replay's configuration, or
 ``--config`` / ``--set``), ``--rounds`` rotated rounds after a two-scan warm-up, evaluated with
 the replay's metrics; ``--strides``: once more on every N-th scan (README section 3).
-
-Usage::
-
-    python3 benchmarks/odometry.py                          # bags/balm_50, 1 thread
-    python3 benchmarks/odometry.py --input ../shared/data/balm --threads 2
 """
 
 from __future__ import annotations

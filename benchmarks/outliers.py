@@ -2,11 +2,6 @@
 
 Seeded BALM pairs (the same at every level) from the constant-velocity start, both scans with
 ``perturb.inject_free_voxel_outliers`` at each level (README section 2).
-
-Usage::
-
-    nice python3 benchmarks/outliers.py                # 5 levels x 100 trials
-    python3 benchmarks/outliers.py --trials 3 --methods gicp kentreg_robust   # quick look
 """
 
 from __future__ import annotations

@@ -3,11 +3,6 @@
 ``balm`` (49 pairs), ``small_gicp_pair`` and ``--eth PATH``, from the identity and from the
 constant-velocity guess; time per pair = preparing the new scan + registering it (README
 section 1).
-
-Usage::
-
-    nice python3 benchmarks/paper_table.py                      # full run (~15 min)
-    python3 benchmarks/paper_table.py --pairs 5 --methods gicp kentreg_robust   # quick look
 """
 
 from __future__ import annotations

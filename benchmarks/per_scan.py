@@ -4,11 +4,6 @@ The pipelines (``kentreg``, ``kentreg_numpy``, ``gicp``, ``icp_pt2pl``, ``kiss_i
 same raw BALM scans, ``--rounds`` rotated rounds: ms per scan, resident memory, memory growth
 over a long run (``--long-steps``), pair errors (README section 3). ``--merge K``: denser scans
 (``perturb.merge``), written as ``per_scan_merge<K>.*``.
-
-Usage::
-
-    python3 benchmarks/per_scan.py                    # all methods, 2 rounds, ~5 min
-    python3 benchmarks/per_scan.py --methods kentreg gicp --scans 20
 """
 
 from __future__ import annotations

@@ -3,11 +3,6 @@
 Every ``results/<name>.md`` replaces the text between ``<!-- BEGIN <name> -->`` and
 ``<!-- END <name> -->`` in benchmarks/README.md; the main README's ``headline`` table is built
 from the results JSON. Goals are prose in the READMEs, not code.
-
-Usage::
-
-    python3 benchmarks/render_readme.py          # rewrite the READMEs
-    python3 benchmarks/render_readme.py --check  # exit 1 if they are out of date
 """
 
 from __future__ import annotations

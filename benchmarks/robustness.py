@@ -4,12 +4,6 @@ Every method as a user gets it (``methods.at_defaults``) on the 50 BALM scans (`
 odometry over every N-th scan; ``outliers``: ``perturb.inject_raw_outliers`` on seeded pairs from
 a start 5 deg / 0.2 m off; ``turned``: the source turned 30..180 deg, from the identity); the
 protocol is in benchmarks/README.md, section 4.
-
-Usage::
-
-    nice python3 benchmarks/robustness.py            # full run -> benchmarks/results/
-    python3 benchmarks/robustness.py --quick         # smoke test, a few minutes -> /tmp
-    python3 benchmarks/robustness.py --only turned --methods kentreg gicp
 """
 
 from __future__ import annotations

@@ -4,11 +4,9 @@ The sample's scene re-simulated (``harness/simulator.py``) at ``--steps`` m per 
 ``--seeds`` samplings each, clean, with ``--outliers`` raw outliers (``perturb.raw_outliers``)
 and swept (``--sweep`` s, points timed); the odometry pipelines run on each, one round (README
 section 3b, which also says what the simulation leaves out).
-
-Usage::
-
-    python3 benchmarks/simulated.py                # 0.15 0.3 0.6 m; clean, 40 %, swept
-    python3 benchmarks/simulated.py --steps 0.6 --seeds 2 --out /tmp/sim
+``--write DIR``: one sequence as a scan folder instead (``scan_<i>.pcd``, ``t`` with sweeps, and
+``alidarPose.csv`` with the exact poses, stamped at the input's scan rate), which
+``kentreg_replay`` and ``benchmarks/odometry.py`` read like any recording.
 """
 
 from __future__ import annotations
@@ -32,6 +30,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.harness import methods, perturb, pipelines, report, runner, simulator  # noqa: E402
 from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
+from kentreg_ros.io.scanfiles import write_pcd  # noqa: E402
 
 #: Pipelines run on the clean sequences only, and not on the swept ones (module docstring).
 CLEAN_ONLY = ('kiss_icp',)
@@ -167,12 +166,28 @@ OPTIONS: list[report.Option] = [
     ('--steps', {'type': float, 'nargs': '+', 'default': [0.15, 0.3, 0.6], 'metavar': 'M'}),
     ('--outliers', {'type': float, 'nargs': '+', 'default': [0.0, 0.4], 'metavar': 'SHARE',
                     'help': 'raw outlier shares, each a run of every step (default 0 0.4)'}),
-    ('--sweep', {'type': float, 'default': 0.1, 'metavar': 'S',
-                 'help': 'also every step with sweeps of S seconds (0: none)'}),
+    ('--sweep', {'type': float, 'metavar': 'S', 'help': 'also every step with sweeps of S '
+                 'seconds (default 0.1; 0: none; with --write: the sweep, default none)'}),
     ('--seeds', {'type': int, 'default': 5, 'help': 'sequences per step (default 5)'}),
     ('--methods', {'nargs': '+', 'choices': pipelines.ODOMETRY,
                    'default': list(pipelines.ODOMETRY)}),
+    ('--write', {'type': Path, 'metavar': 'DIR', 'help': 'only write the sequence of the first '
+                 '--steps value as a scan folder (clean; swept with --sweep)'}),
+    ('--seed', {'type': int, 'default': 0, 'help': 'the sequence --write writes (default 0)'}),
 ]  # fmt: skip
+
+
+def write_sequence(folder: Path, scans: list[Any], gt: Any) -> None:
+    """``scan_<i>.pcd`` per scan and ``alidarPose.csv``: the 3x4 ``[R | t]`` and
+    ``0,0,0,<time>`` per pose (17 digits)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, scan in enumerate(scans):
+        write_pcd(folder / f'scan_{i:04d}.pcd', scan.points.astype(np.float32), scan.extras)
+    lines: list[str] = []
+    for Ti, ns in zip(gt.trajectory.T_world_sensor, gt.trajectory.stamps_ns, strict=True):
+        lines.extend(','.join(f'{v:.17g}' for v in row) + ',' for row in Ti[:3])
+        lines.append(f'0,0,0,{ns * 1e-9:.9f},')
+    (folder / 'alidarPose.csv').write_text('\n'.join(lines) + '\n')
 
 
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
@@ -180,6 +195,12 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         raise SystemExit('--seeds must be >= 1 and --steps > 0')
     if any(not 0.0 <= f < 1.0 for f in args.outliers) or 'kentreg' not in args.methods:
         raise SystemExit('--outliers must be in [0, 1) and --methods must include kentreg')
+    sweep = args.sweep if args.sweep is not None else 0.0 if args.write else 0.1
+    if args.write:
+        world = simulator.build_world(args.input, simulator.WORLD_VOXEL)
+        sensor = simulator.Sensor(sweep_period=sweep)
+        write_sequence(args.write, *simulator.simulate(world, args.steps[0], args.seed, sensor))
+        raise SystemExit(0)
     methods.pin_threads(1, argv, __file__)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(levelname)s: %(message)s')
     t_start = time.perf_counter()
@@ -195,8 +216,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         'steps': [],
     }  # fmt: skip
     conditions = [(share, sensor) for share in args.outliers]
-    if args.sweep > 0.0:
-        conditions.append((0.0, dataclasses.replace(sensor, sweep_period=args.sweep)))
+    if sweep > 0.0:
+        conditions.append((0.0, dataclasses.replace(sensor, sweep_period=sweep)))
     for step in args.steps:
         for share, sens in conditions:
             doc['steps'].append(

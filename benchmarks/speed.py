@@ -7,13 +7,6 @@ prepared + registered ``--repeats`` times; each library runs in its own pinned s
 ``--rounds`` rotated rounds; ratios are to small_gicp GICP in the same run (README section 3).
 ``--stages``: kentreg's median time per stage at each N instead (``results/bench_register.json``);
 ``--io``: the best and median time of kentreg_ros.io's conversions and readers (printed).
-
-Usage::
-
-    python3 benchmarks/speed.py                       # all methods, 1 thread, ~10 min
-    python3 benchmarks/speed.py --methods gicp kentreg_robust --sizes 10000 --pairs 3
-    python3 benchmarks/speed.py --stages --sizes 3000 10000 30000 --pairs 10
-    python3 benchmarks/speed.py --io                  # a 100k-point PointCloud2 in well under 5 ms
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""benchmarks/harness/simulator.py, simulate.py, simulated.py: re-simulated sequences, exact poses.
+"""benchmarks/harness/simulator.py, simulated.py: re-simulated sequences, exact poses.
 
 The simulated sensor is checked on a synthetic room (points on the surfaces within the range
 noise, occluded points hidden), the trajectory against its definition, and the whole chain on
@@ -17,6 +17,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.harness import report  # noqa: E402
 from benchmarks.harness.simulator import (  # noqa: E402
     Sensor,
     World,
@@ -26,8 +27,7 @@ from benchmarks.harness.simulator import (  # noqa: E402
     simulate_scan,
     trajectory,
 )
-from benchmarks.simulate import main  # noqa: E402
-from benchmarks.simulated import format_table, summarize_step  # noqa: E402
+from benchmarks.simulated import OPTIONS, format_table, run, summarize_step  # noqa: E402
 from kentreg_ros.core import (  # noqa: E402
     Odometry,  # noqa: E402
     exp_so3,
@@ -192,7 +192,10 @@ def test_deskewing_follows_a_sudden_change_of_velocity(
 
 def test_simulate_writes_a_folder_the_replay_reads(tmp_path: Path) -> None:
     out = tmp_path / 'sim'
-    assert main(['--input', str(BAG), '--out', str(out), '--step', '3.0', '--seed', '2']) == 0
+    argv = ['--input', str(BAG), '--write', str(out), '--steps', '3.0', '--seed', '2']
+    with pytest.raises(SystemExit) as done:
+        report.experiment_main('', 'simulated', OPTIONS, run, format_table, argv=argv)
+    assert done.value.code == 0
     recording = open_recording(out)
     scans = list(recording.source)
     assert recording.reference is not None

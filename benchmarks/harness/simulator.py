@@ -8,7 +8,7 @@ reference's orientation (slerp) turned by an optional yaw oscillation; (3) the s
 360 deg spinning LiDAR sees from each pose (points in range and in the sample's elevation band,
 occlusion per direction bin with a tolerance for grazing surfaces, one point per beam bin drawn
 at random, Gaussian range noise), optionally over a sweep with every point timed. The poses
-are exact: they define the sequence. ``benchmarks/simulate.py`` writes one as a scan folder.
+are exact: they define the sequence. ``simulated.py --write`` writes one as a scan folder.
 """
 
 from __future__ import annotations
