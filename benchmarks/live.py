@@ -11,6 +11,7 @@ throughput (:func:`measure_throughput`) and ``per_scan.py``'s table from the sam
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -32,7 +33,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.harness import report, runner  # noqa: E402
 from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
-from benchmarks.harness.report import RESULTS, git_describe, machine_info, table  # noqa: E402
+from benchmarks.harness.report import RESULTS, git_describe, machine_info  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 Scans = Sequence[NDArray[Any]]
@@ -59,10 +60,6 @@ SETTLE_S = 4.0
 DRAIN_S = 3.0
 
 
-# ------------------------------------------------------------------------------------------------
-# data
-
-
 def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int], float]:
     """The first ``n`` scans of a stream as float32 (N, 3), their stamps (ns) and its rate."""
     loaders = {'kitti_hdl64': load_kitti_hdl64, 'balm_10hz': load_balm}
@@ -74,37 +71,21 @@ def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int]
     return scans, stamps, rate
 
 
-# ------------------------------------------------------------------------------------------------
-# CPU
-
-
-# ------------------------------------------------------------------------------------------------
-# the node, live
-
-
 def _node_env(profile: str, tmp: Path) -> dict[str, str]:
-    env = dict(os.environ)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    if profile == 'shm':
-        env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(SHM_PROFILE)
-    else:
-        path = tmp / 'fastdds_udp.xml'
+    env = dict(os.environ) | {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    path = SHM_PROFILE if profile == 'shm' else tmp / 'fastdds_udp.xml'
+    if profile != 'shm':
         path.write_text(UDP_PROFILE)
-        env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
+    env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
     env.setdefault('ROS_DOMAIN_ID', os.environ.get('KENTREG_TEST_ROS_DOMAIN_ID', '77'))
     env['PYTHONPATH'] = os.pathsep.join(p for p in (str(ROOT), env.get('PYTHONPATH')) if p)
     return env
 
 
 def measure_live(
-    scans: Scans,
-    stamps: Sequence[int],
-    *,
-    rate_hz: float,
-    model: str,
-    pipeline: str,
+    scans: Scans, stamps: Sequence[int], *, rate_hz: float, model: str, pipeline: str,
     profile: str = 'shm',
-) -> dict[str, Any]:
+) -> dict[str, Any]:  # fmt: skip
     """Publish ``scans`` at ``rate_hz`` to a ``kentreg_node`` subprocess; what came back.
 
     The benchmark process must run with the DDS environment of ``profile`` (see :func:`main`,
@@ -132,9 +113,8 @@ def measure_live(
     diagnostics: list[dict[str, str]] = []
 
     def on_odom(msg: Any) -> None:
-        received.setdefault(
-            msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, time.monotonic()
-        )
+        stamp = msg.header.stamp
+        received.setdefault(stamp.sec * 10**9 + stamp.nanosec, time.monotonic())
 
     def on_diag(msg: Any) -> None:
         for status in msg.status:
@@ -177,24 +157,17 @@ def measure_live(
         rclpy.try_shutdown()
         _stop_node(proc)
     latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
-    cores = [
-        round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
-        for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)
-    ]
+    cores = [round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
+             for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)]  # fmt: skip
+    by_scan = [round(1e3 * (received[s] - sent[s]), 1) if s in received else None for s in stamps]
     return {
-        'model': model,
-        'pipeline': pipeline,
-        'dds': profile,
-        'rate_hz': rate_hz,
-        **_delivery(len(sent), latency, diagnostics),
-        'cpu_pct_per_core': cores,
+        'model': model, 'pipeline': pipeline, 'dds': profile, 'rate_hz': rate_hz,
+        **_delivery(len(sent), latency, diagnostics), 'cpu_pct_per_core': cores,
         'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
         'exit_code': proc.returncode,
         'missing': [i for i, s in enumerate(stamps) if s not in received],
-        'latency_by_scan_ms': [
-            round(1e3 * (received[s] - sent[s]), 1) if s in received else None for s in stamps
-        ],
-    }
+        'latency_by_scan_ms': by_scan,
+    }  # fmt: skip
 
 
 def _node_command(ns: str, diagnostics: str, model: str, pipeline: str) -> list[str]:
@@ -222,16 +195,14 @@ def _delivery(
     last = diagnostics[-1] if diagnostics else {}
     keys = ('received', 'published', 'dropped_queue', 'errors', 'fell_back')
     return {
-        'published': n_sent,
-        'processed': int(len(latency)),
+        'published': n_sent, 'processed': int(len(latency)),
         'dropped': n_sent - int(len(latency)),
         'dropped_pct': round(100.0 * (n_sent - len(latency)) / max(n_sent, 1), 1),
         'latency_ms': _quantiles(latency),
         'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
-        'node_latency_ms_mean_max': [
-            (d.get('latency_ms_mean'), d.get('latency_ms_max')) for d in diagnostics
-        ],
-    }
+        'node_latency_ms_mean_max': [(d.get('latency_ms_mean'), d.get('latency_ms_max'))
+                                     for d in diagnostics],
+    }  # fmt: skip
 
 
 def _log_text(log: Any) -> str:
@@ -244,10 +215,6 @@ def _quantiles(values: NDArray[Any]) -> dict[str, float]:
         return dict.fromkeys(('p50', 'p95', 'max'), float('nan'))
     p50, p95 = (round(float(np.percentile(values, q)), 1) for q in (50, 95))
     return {'p50': p50, 'p95': p95, 'max': round(float(np.max(values)), 1)}
-
-
-# ------------------------------------------------------------------------------------------------
-# the loop offline
 
 
 def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[str, Any]:
@@ -265,14 +232,10 @@ def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[s
         if step.index == 0:
             continue
         pre, reg = step.timings.get('preprocess', 0.0), step.timings.get('register', 0.0)
-        for key, value in (
-            ('prepare', pre),
-            ('register', reg),
-            ('model', wall - pre - reg),
-            ('total', wall),
-            # CPU time of the step: what the step costs, whatever else shares the core.
-            ('cpu', cpu),
-        ):
+        # cpu: the CPU time of the step, what it costs whatever else shares the core.
+        values = {'prepare': pre, 'register': reg, 'model': wall - pre - reg, 'total': wall,
+                  'cpu': cpu}  # fmt: skip
+        for key, value in values.items():
             rows.setdefault(key, []).append(value)
     return {k: round(float(np.median(v)), 1) for k, v in rows.items()} | {
         'total_p95': round(float(np.percentile(rows['total'], 95)), 1),
@@ -295,12 +258,8 @@ def measure_model_ratio(scans: Scans, stamps: Sequence[int], *, rounds: int = 3)
                 if i:
                     cpu[model].append(1e3 * (time.process_time() - c0))
     prev, local = (float(np.median(cpu[m])) for m in ('previous_scan', 'local_map'))
-    return {
-        'rounds': rounds,
-        'previous_scan_cpu_ms': round(prev, 1),
-        'local_map_cpu_ms': round(local, 1),
-        'ratio': round(local / prev, 3),
-    }
+    return {'rounds': rounds, 'previous_scan_cpu_ms': round(prev, 1),
+            'local_map_cpu_ms': round(local, 1), 'ratio': round(local / prev, 3)}  # fmt: skip
 
 
 def measure_throughput(
@@ -319,9 +278,8 @@ def measure_throughput(
     for _ in range(rounds):
         sequential = Odometry(config)
         t0, c0 = time.perf_counter(), time.process_time()
-        poses['sequential'] = [
-            sequential.step(p, s).T_world_lidar for p, s in zip(scans, stamps, strict=True)
-        ]
+        pairs = zip(scans, stamps, strict=True)
+        poses['sequential'] = [sequential.step(p, s).T_world_lidar for p, s in pairs]
         times['sequential'].append(1e3 * (time.perf_counter() - t0) / n)
         cpu['sequential'].append(1e3 * (time.process_time() - c0) / n)
         with PipelinedOdometry(config) as pipelined:
@@ -342,43 +300,26 @@ def measure_throughput(
             cpu['worker'].append(1e3 * (w1 - w0) / n)
             poses['pipelined'] = got
     seq, pipe = (float(np.median(times[k])) for k in ('sequential', 'pipelined'))
-    identical = all(
-        np.array_equal(a, b) for a, b in zip(poses['sequential'], poses['pipelined'], strict=True)
-    )
+    compared = zip(poses['sequential'], poses['pipelined'], strict=True)
+    identical = all(np.array_equal(a, b) for a, b in compared)
+    # CPU per scan (all threads of the process; the worker's from /proc): what each core would
+    # have to give, whatever else runs on the machine.
     return {
-        'sequential_ms': round(seq, 1),
-        'pipelined_ms': round(pipe, 1),
-        'speedup': round(seq / pipe, 2),
-        'poses_identical': identical,
+        'sequential_ms': round(seq, 1), 'pipelined_ms': round(pipe, 1),
+        'speedup': round(seq / pipe, 2), 'poses_identical': identical,
         'rounds_ms': {k: [round(v, 1) for v in vs] for k, vs in times.items()},
-        # CPU per scan (all threads of the process; the worker's from /proc): what each core
-        # would have to give, whatever else runs on the machine.
-        'sequential_cpu_ms': round(float(np.median(cpu['sequential'])), 1),
-        'main_cpu_ms': round(float(np.median(cpu['main'])), 1),
-        'worker_cpu_ms': round(float(np.median(cpu['worker'])), 1),
-    }
-
-
-# ------------------------------------------------------------------------------------------------
-# running and writing
+        **{f'{k}_cpu_ms': round(float(np.median(cpu[k])), 1) for k in cpu},
+    }  # fmt: skip
 
 
 def _in_child(
-    kind: str,
-    stream: str,
-    n: int,
-    kwargs: dict[str, Any],
-    env: dict[str, str],
+    kind: str, stream: str, n: int, kwargs: dict[str, Any], env: dict[str, str],
     niceness: int = 10,
-) -> Any:
+) -> Any:  # fmt: skip
     """Run one measurement in a fresh process (its own DDS environment, no state carried)."""
+    cmd = ['nice', '-n', str(niceness), sys.executable, __file__, '--child', kind, stream, str(n)]
     out = subprocess.run(
-        ['nice', '-n', str(niceness), sys.executable, __file__, '--child', kind, stream, str(n)]
-        + [json.dumps(kwargs)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=900,
+        [*cmd, json.dumps(kwargs)], capture_output=True, text=True, env=env, timeout=900
     )
     for line in out.stdout.splitlines():
         if line.startswith('RESULT'):
@@ -393,46 +334,29 @@ def _load() -> tuple[float, float, float]:
 def run(options: argparse.Namespace) -> dict[str, Any]:
     """Every measurement of the options; the result document."""
     tmp = Path(tempfile.mkdtemp(prefix='kentreg_live_'))
-    doc: dict[str, Any] = {
-        'benchmark': 'live',
-        'commit': git_describe(),
-        'machine': machine_info(),
-        'scans': options.scans,
-        'live_niceness': options.live_nice,
-        'streams': {},
-    }
+    doc: dict[str, Any] = {'benchmark': 'live', 'commit': git_describe(),
+                           'machine': machine_info(), 'scans': options.scans,
+                           'live_niceness': options.live_nice, 'streams': {}}  # fmt: skip
     for stream in options.streams:
         entry: dict[str, Any] = {'live': [], 'stages': {}, 'throughput': {}}
         for model in options.models:
             print(f'live: {stream} {model} stages/throughput (load {_load()[0]:.2f})', flush=True)
-            entry['stages'][model] = _in_child(
-                'stages', stream, options.scans, {'model': model}, _node_env('shm', tmp)
-            )
-            entry['throughput'][model] = _in_child(
-                'throughput', stream, options.scans, {'model': model}, _node_env('shm', tmp)
-            )
-            for profile in options.dds:
-                for pipeline in options.pipelines:
-                    for r in range(options.rounds):
-                        load = _load()[0]
-                        res = _in_child(
-                            'live',
-                            stream,
-                            options.scans,
-                            {'model': model, 'pipeline': pipeline, 'profile': profile},
-                            _node_env(profile, tmp),
-                            niceness=options.live_nice,
-                        )
-                        res['round'], res['load_before'] = r, round(load, 2)
-                        res['load_after'] = round(_load()[0], 2)
-                        entry['live'].append(res)
-                        print(
-                            f'live: {stream} {model} {pipeline} {profile}: dropped '
-                            f'{res["dropped"]}/{res["published"]}, latency p50 '
-                            f'{res["latency_ms"]["p50"]} p95 {res["latency_ms"]["p95"]} ms, cores '
-                            f'{res["cpu_pct_per_core"]} (load {load:.2f})',
-                            flush=True,
-                        )
+            for kind in ('stages', 'throughput'):
+                entry[kind][model] = _in_child(
+                    kind, stream, options.scans, {'model': model}, _node_env('shm', tmp)
+                )
+            runs = itertools.product(options.dds, options.pipelines, range(options.rounds))
+            for profile, pipeline, r in runs:
+                load, how = _load()[0], {'model': model, 'pipeline': pipeline, 'profile': profile}
+                env = _node_env(profile, tmp)
+                res = _in_child('live', stream, options.scans, how, env, options.live_nice)
+                res['round'], res['load_before'] = r, round(load, 2)
+                res['load_after'] = round(_load()[0], 2)
+                entry['live'].append(res)
+                lat = res['latency_ms']
+                print(f'live: {stream} {model} {pipeline} {profile}: dropped {res["dropped"]}/'
+                      f'{res["published"]}, latency p50 {lat["p50"]} p95 {lat["p95"]} ms, cores '
+                      f'{res["cpu_pct_per_core"]} (load {load:.2f})', flush=True)  # fmt: skip
         doc['streams'][stream] = entry
     if options.per_scan:
         out = tmp / 'per_scan'
@@ -449,23 +373,60 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
     return doc
 
 
-def _live_row(stream: str, r: dict[str, Any]) -> list[Any]:
-    lat, cores = r['latency_ms'], ' / '.join(str(c) for c in r['cpu_pct_per_core'])
-    dropped = f'{r["dropped"]}/{r["published"]} ({r["dropped_pct"]} %)'
-    latency = f'{lat["p50"]} / {lat["p95"]} / {lat["max"]}'
-    return [stream, r['model'], r['pipeline'], r['dds'], dropped, latency, cores,
-            r['node_cpu_pct'], r['load_before']]  # fmt: skip
+#: The columns of the live table: a row per run.
+LIVE: list[report.Column] = [
+    ('stream', 'stream:s'), ('model', 'model:s'), ('pipeline', 'pipeline:s'), ('DDS', 'dds:s'),
+    ('dropped', lambda r: f'{r["dropped"]}/{r["published"]} ({r["dropped_pct"]} %)'),
+    ('latency p50 / p95 / max (ms)', lambda r: '{p50} / {p95} / {max}'.format(**r['latency_ms'])),
+    ('cores busy (%)', lambda r: ' / '.join(str(c) for c in r['cpu_pct_per_core'])),
+    ('node CPU (%)', 'node_cpu_pct:'), ('load', 'load_before:'),
+]  # fmt: skip
+#: The columns of the offline table: a row per stream and model (stages and throughput).
+OFFLINE: list[report.Column] = [
+    ('stream', 'stream:s'), ('model', 'model:s'), ('prepare', 'prepare:'),
+    ('register', 'register:'), ('model upkeep', 'model_ms:'),
+    ('total p50 / p95', lambda r: f'{r["total"]} / {r["total_p95"]}'),
+    ('CPU p50 / p95', lambda r: f'{r["cpu"]} / {r["cpu_p95"]}'),
+    ('sequential / pipelined fed at once (ms/scan)',
+     lambda r: f'{r["th"]["sequential_ms"]} / {r["th"]["pipelined_ms"]}'),
+    ('speed-up', lambda r: f'{r["th"]["speedup"]}x'), ('poses identical', 'th.poses_identical:'),
+]  # fmt: skip
 
 
-def _stage_row(stream: str, model: str, st: dict[str, Any], th: dict[str, Any]) -> list[Any]:
-    total, cpu = f'{st["total"]} / {st["total_p95"]}', f'{st["cpu"]} / {st["cpu_p95"]}'
-    fed = f'{th["sequential_ms"]} / {th["pipelined_ms"]}'
-    return [stream, model, st['prepare'], st['register'], st['model'], total, cpu, fed,
-            f'{th["speedup"]}x', th['poses_identical']]  # fmt: skip
+def _notes(stream: str, entry: dict[str, Any]) -> list[str]:
+    """The sentences under the offline table: the local map's cost and the pipelined bound."""
+    lines, st = [], entry['stages']
+    if 'model_ratio' in entry:
+        mr = entry['model_ratio']
+        lines.append(
+            f'- {stream}: local map / previous scan per scan, CPU time in {mr["rounds"]} '
+            f'alternating rounds: {mr["local_map_cpu_ms"]} / {mr["previous_scan_cpu_ms"]} ms '
+            f'= {mr["ratio"]:.2f}x (load {mr["load_before"]}).'
+        )
+    if {'previous_scan', 'local_map'} <= set(st):
+        wall = st['local_map']['total'] / st['previous_scan']['total']
+        cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
+        lines.append(
+            f'- {stream}: local map / previous scan per scan (sequential, one thread): '
+            f'{cpu:.2f}x in CPU time, {wall:.2f}x in wall time.'
+        )
+    for model, th in entry['throughput'].items():
+        bound = max(th['main_cpu_ms'], th['worker_cpu_ms'], 1e-9)
+        lines.append(
+            f'- {stream}, {model}, fed at once: CPU per scan {th["sequential_cpu_ms"]} ms '
+            f'sequential; pipelined {th["main_cpu_ms"]} ms in the main process and '
+            f'{th["worker_cpu_ms"]} ms in the worker, so with two free cores one scan every '
+            f'{bound:.1f} ms at best ({th["sequential_cpu_ms"] / bound:.2f}x).'
+        )
+    return lines
 
 
 def render(doc: dict[str, Any]) -> str:
     """The Markdown report of a result document."""
+    streams = doc['streams'].items()
+    runs = [{'stream': s, **r} for s, e in streams for r in e['live']]
+    offline = [{**st, 'stream': s, 'model': m, 'model_ms': st['model'], 'th': e['throughput'][m]}
+               for s, e in streams for m, st in e['stages'].items()]  # fmt: skip
     lines = [
         '# Live at sensor rate',
         '',
@@ -477,67 +438,26 @@ def render(doc: dict[str, Any]) -> str:
         'each core over the stream (the machine is shared: the load average is the 1-minute '
         "one before each run), and the node's processes (100 % = one core).",
         '',
-        *table(
-            'stream | model | pipeline | DDS | dropped | latency p50 / p95 / max (ms) '
-            '| cores busy (%) | node CPU (%) | load',
-            [_live_row(stream, r) for stream, e in doc['streams'].items() for r in e['live']],
-        ),
+        *report.column_table(LIVE, runs),
         '',
         '## Per scan on this machine (one thread; sequential loop stages, median ms)',
         '',
-        *table(
-            'stream | model | prepare | register | model upkeep | total p50 / p95 '
-            '| CPU p50 / p95 | sequential / pipelined fed at once (ms/scan) | speed-up '
-            '| poses identical',
-            [
-                _stage_row(stream, model, st, e['throughput'][model])
-                for stream, e in doc['streams'].items()
-                for model, st in e['stages'].items()
-            ],
-        ),
+        *report.column_table(OFFLINE, offline),
+        '',
+        *(line for stream, entry in streams for line in _notes(stream, entry)),
     ]
-    lines.append('')
-    for stream, entry in doc['streams'].items():
-        st = entry['stages']
-        if 'model_ratio' in entry:
-            mr = entry['model_ratio']
-            lines.append(
-                f'- {stream}: local map / previous scan per scan, CPU time in {mr["rounds"]} '
-                f'alternating rounds: {mr["local_map_cpu_ms"]} / {mr["previous_scan_cpu_ms"]} ms '
-                f'= {mr["ratio"]:.2f}x (load {mr["load_before"]}).'
-            )
-        if {'previous_scan', 'local_map'} <= set(st):
-            wall = st['local_map']['total'] / st['previous_scan']['total']
-            cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
-            lines.append(
-                f'- {stream}: local map / previous scan per scan (sequential, one thread): '
-                f'{cpu:.2f}x in CPU time, {wall:.2f}x in wall time.'
-            )
-        for model, th in entry['throughput'].items():
-            bound = max(th['main_cpu_ms'], th['worker_cpu_ms'], 1e-9)
-            lines.append(
-                f'- {stream}, {model}, fed at once: CPU per scan {th["sequential_cpu_ms"]} ms '
-                f'sequential; pipelined {th["main_cpu_ms"]} ms in the main process and '
-                f'{th["worker_cpu_ms"]} ms in the worker, so with two free cores one scan every '
-                f'{bound:.1f} ms at best ({th["sequential_cpu_ms"] / bound:.2f}x).'
-            )
     if 'per_scan_table' in doc:
-        lines += [
-            '',
-            '## Per raw scan against GICP and KISS-ICP (`benchmarks/per_scan.py`, same run)',
-            '',
-        ]
+        head = '## Per raw scan against GICP and KISS-ICP (`benchmarks/per_scan.py`, same run)'
+        lines += ['', head, '']
         lines += [ln for ln in doc['per_scan_table'].splitlines() if not ln.startswith('# ')]
     lines += ['', f'Load average at the end: {doc["load_end"]}.', '']
     return '\n'.join(lines)
 
 
 MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
-    'ratio': measure_model_ratio,
-    'live': measure_live,
-    'stages': measure_stages,
+    'ratio': measure_model_ratio, 'live': measure_live, 'stages': measure_stages,
     'throughput': measure_throughput,
-}
+}  # fmt: skip
 OPTIONS: list[tuple[str, dict[str, Any]]] = [
     ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),
     ('--models', {'nargs': '+', 'default': ['previous_scan', 'local_map']}),
