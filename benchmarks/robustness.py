@@ -83,8 +83,8 @@ def run_strides(data: Data, built: Methods, strides: Sequence[int], max_input: i
         idx = np.arange(0, len(scans), n)
         T_gt = data.T_world[idx]
         motion = runner.motion_stats(np.linalg.inv(T_gt[:-1]) @ T_gt[1:])
-        block: dict[str, Any] = {'input_indices': idx.tolist(), 'reference_motion': motion}
-        block['methods'] = {}
+        block: dict[str, Any] = {'input_indices': idx.tolist(), 'reference_motion': motion,
+                                 'methods': {}}  # fmt: skip
         for method in built:
             what, batch = f'{method.name} stride {n}', perturb.stride(n)(scans)
             entry = runner.guarded(what, _stride_entry, method, batch, T_gt, idx)
@@ -95,6 +95,11 @@ def run_strides(data: Data, built: Methods, strides: Sequence[int], max_input: i
                             fmt(ate, '.3f'))  # fmt: skip
         out[str(n)] = block
     return out
+
+
+def _spread(values: Sequence[float], stats: Sequence[str]) -> dict[str, float]:
+    """The numpy statistics ``stats`` ('mean', 'median', 'min', 'max') of ``values``."""
+    return {s: float(getattr(np, s)(values)) for s in stats}
 
 
 def _outlier_summary(recs: list[dict[str, Any]], shares: list[float]) -> dict[str, Any]:
@@ -118,9 +123,8 @@ def run_outliers(
         realised = []
         for trial, pair in enumerate(pairs):
             truth = data.truth(pair)
-            offset = perturb.offset_transform(
-                np.random.default_rng([seed, 2, trial]), START_OFFSET_DEG, START_OFFSET_M
-            )
+            rng = np.random.default_rng([seed, 2, trial])
+            offset = perturb.offset_transform(rng, START_OFFSET_DEG, START_OFFSET_M)
             rng = np.random.default_rng([seed, 2, trial, int(round(level * 1000))])
             inject = perturb.inject_raw_outliers
             target, tgt_out = inject(data.raw(pair), level, rng, shell_share=shell_share)
@@ -135,9 +139,8 @@ def run_outliers(
                     row['outlier_share_after_downsampling'] = share
                     shares[method.name].append(share)
                 rows[method.name].append(row)
-        spread = {'mean': np.mean(realised), 'min': np.min(realised), 'max': np.max(realised)}
         out[f'{level:.2f}'] = {
-            'realised_share': {k: float(v) for k, v in spread.items()},
+            'realised_share': _spread(realised, ('mean', 'min', 'max')),
             'methods': {
                 n: {'summary': _outlier_summary(r, shares[n]), 'pairs': r} for n, r in rows.items()
             },
@@ -166,9 +169,8 @@ def run_turned(
         truth = data.truth(pair)
         targets = {m.name: runner.prepare_target(m, data.raw(pair)) for m in built}
         for angle, key in zip(angles, keys, strict=True):
-            T_turn = perturb.turn_transform(
-                np.random.default_rng([seed, 3, trial, int(angle)]), angle
-            )
+            rng = np.random.default_rng([seed, 3, trial, int(angle)])
+            T_turn = perturb.turn_transform(rng, angle)
             turned = perturb.transform(T_turn, data.raw(pair + 1))
             ref = truth @ np.linalg.inv(T_turn)
             angle_deg = np.degrees(Rotation.from_matrix(ref[:3, :3]).magnitude())
@@ -182,14 +184,8 @@ def run_turned(
         logger.info('turned: pair %d (%d/%d) done', pair, trial + 1, len(pairs))
     out: dict[str, Any] = {}
     for key, by_method in rows.items():
-        ref_angles = np.array(reference_angle[key])
-        spread = {
-            'min': ref_angles.min(),
-            'median': np.median(ref_angles),
-            'max': ref_angles.max(),
-        }
-        out[key] = {'reference_rotation_deg': {k: float(v) for k, v in spread.items()}}
-        out[key]['methods'] = {}
+        spread = _spread(reference_angle[key], ('min', 'median', 'max'))
+        out[key] = {'reference_rotation_deg': spread, 'methods': {}}
         for name, recs in by_method.items():
             summ = runner.summarize(recs, finite_times=True)
             summ['recovered'] = summ['n'] - summ['failures']
@@ -257,14 +253,14 @@ def _strides_md(strides: dict[str, Any]) -> list[str]:
 
 
 def _e_R(entry: dict[str, Any]) -> str:
-    s = entry['summary']
-    ratio = fmt(s['median_e_R_ratio_to_clean'], '.1f')
-    return f'{fmt(s["e_R_deg"]["median"], ".3f")} ({ratio}×) / {fmt(s["e_R_deg"]["mean"], ".3f")}'
+    median, ratio, mean = report.cells(
+        entry['summary'], 'e_R_deg.median:.3f', 'median_e_R_ratio_to_clean:.1f', 'e_R_deg.mean:.3f'
+    )
+    return f'{median} ({ratio}×) / {mean}'  # fmt: skip
 
 
 def _e_t(entry: dict[str, Any]) -> str:
-    s = entry['summary']
-    return f'{fmt(s["e_t_m"]["median"], ".4f")} / {fmt(s["e_t_m"]["mean"], ".4f")}'
+    return ' / '.join(report.cells(entry['summary'], 'e_t_m.median:.4f', 'e_t_m.mean:.4f'))
 
 
 def _failures(entry: dict[str, Any]) -> str:

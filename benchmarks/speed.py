@@ -226,13 +226,9 @@ def plot(doc: dict[str, Any], path: Path) -> None:
             if failed:
                 circles = {'ls': 'none', 'marker': 'o', 'ms': 14, 'mfc': 'none', 'mec': 'red'}
                 panel.add(None, [n[i] for i in failed], [y[i] for i in failed], **circles)
-    x = [c['points']['median'] for c in doc['clouds'].values()]
-    ratios.add('goal: 1.5× GICP', [min(x), max(x)], [1.5, 1.5], color='red', ls='--', lw=0.8)
-    times.axes = {
-        'xlabel': 'points per cloud',
-        'ylabel': 'ms per pair (prepare source + register)',
-        'title': f'time per registration, {doc["threads"]} thread(s)',
-    }
+    times.axes = {'xlabel': 'points per cloud',
+                  'ylabel': 'ms per pair (prepare source + register)',
+                  'title': f'time per registration, {doc["threads"]} thread(s)'}  # fmt: skip
     ratios.axes = {'xlabel': 'points per cloud', 'ylabel': 'time / small_gicp GICP time',
                    'title': 'ratio to small_gicp GICP (same run)'}  # fmt: skip
     ratios.legend = {'fontsize': 8, 'loc': 'upper left', 'bbox_to_anchor': (1.01, 1.0)}
@@ -270,10 +266,8 @@ def stage_times(args: argparse.Namespace) -> None:
         med = {k: float(np.median([e[k] for e in per_pair])) for k in per_pair[0]}
         rows.append(med | {'target_points': size})
     load_after = os.getloadavg()[0]
-    print(
-        f'kentreg per-stage median ms over {args.pairs} pairs of {source}; 1-min load '
-        f'average {load_before:.1f} before / {load_after:.1f} after'
-    )
+    print(f'kentreg per-stage median ms over {args.pairs} pairs of {source}; 1-min load '
+          f'average {load_before:.1f} before / {load_after:.1f} after')  # fmt: skip
     print(f'{"stage":<22}' + ''.join(f'{int(r["target_points"]):>10}' for r in rows))
     print(f'{"points after prep":<22}' + ''.join(f'{r["points"]:>10.0f}' for r in rows))
     prep, reg = (f'prep.{k}' for k in PREP_STAGES), (f'reg.{k}' for k in REG_STAGES)
@@ -339,13 +333,8 @@ def io_times(repeat: int) -> None:
             )
         )
     if datasets.SAMPLE_BAG.is_dir():
-        operations.append(
-            (
-                'open_scan_source bags/balm_50: all 50 scans (zstd MCAP)',
-                lambda: list(open_scan_source(datasets.SAMPLE_BAG)),
-                3,
-            )
-        )
+        operations.append(('open_scan_source bags/balm_50: all 50 scans (zstd MCAP)',
+                           lambda: list(open_scan_source(datasets.SAMPLE_BAG)), 3))  # fmt: skip
     width = max(len(name) for name, *_ in operations)
     print(f'{"operation":<{width}}  {"best ms":>8}  {"median ms":>9}')
     for name, fn, times in operations:
@@ -374,11 +363,9 @@ OPTIONS: list[report.Option] = [
 
 
 def run_libraries(
-    doc: dict[str, Any],
-    arrays: dict[str, Any],
-    args: argparse.Namespace,
+    doc: dict[str, Any], arrays: dict[str, Any], args: argparse.Namespace,
     libraries: dict[str, list[str]],
-) -> dict[str, dict[str, list[Any]]]:
+) -> dict[str, dict[str, list[Any]]]:  # fmt: skip
     """Every library's worker in rotated rounds; the samples per method and size."""
     samples: dict[str, dict[str, list[Any]]] = {}
     env = dict(os.environ) | {name: str(args.threads) for name in methods.THREAD_ENV}
@@ -393,9 +380,8 @@ def run_libraries(
             t0 = time.perf_counter()
             result = runner.in_subprocess(__file__, options, env=env)
             result['wall_s'] = time.perf_counter() - t0
-            doc['workers'][f'{library}-round{r}'] = {
-                k: v for k, v in result.items() if k != 'sizes'
-            }
+            worker = {k: v for k, v in result.items() if k != 'sizes'}
+            doc['workers'][f'{library}-round{r}'] = worker
             print(f'[{library}] round {r}: {result.get("error", "done")}', file=sys.stderr)
             for size, cells in result.get('sizes', {}).items():
                 for name, sample in cells.items():
@@ -438,9 +424,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     for name in names:
         libraries.setdefault(LIBRARY_OF[name], []).append(name)
     t_start = time.perf_counter()
-    arrays, clouds = build_clouds(
-        datasets.load_recording(args.input), sorted(set(args.sizes)), args.pairs
-    )
+    seq = datasets.load_recording(args.input)
+    arrays, clouds = build_clouds(seq, sorted(set(args.sizes)), args.pairs)
     doc: dict[str, Any] = {
         'benchmark': 'speed', 'command': ['python3', 'benchmarks/speed.py', *argv],
         'date': datetime.datetime.now().isoformat(timespec='seconds'),
@@ -457,8 +442,5 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
 
 
 if __name__ == '__main__':
-    raise SystemExit(
-        report.experiment_main(
-            __doc__, 'speed', OPTIONS, run, format_table, plot, worker=run_worker
-        )
-    )
+    main = report.experiment_main
+    raise SystemExit(main(__doc__, 'speed', OPTIONS, run, format_table, plot, worker=run_worker))
