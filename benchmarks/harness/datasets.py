@@ -117,10 +117,7 @@ def load_kitti_hdl64(folder: Path = SHARED_DATA / 'kitti_raw_hdl64') -> Sequence
 
 def load_eth(folder: Path) -> Sequence:
     """An ETH "challenging data sets" sequence: ``Hokuyo_<i>.csv`` scans (natural order) and
-    ``pose_scanner_leica.csv`` (``poseId, timestamp, T00..T33`` per scan, ``T_world_scanner``).
-
-    Raises ``ValueError`` without Hokuyo scans or pose file, or when their counts differ.
-    """
+    ``pose_scanner_leica.csv`` (``poseId, timestamp, T00..T33`` per scan, ``T_world_scanner``)."""
     folder = Path(folder)
     pose_file = folder / 'pose_scanner_leica.csv'
     if not pose_file.is_file():

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -66,11 +67,7 @@ ABLATIONS: dict[str, dict[str, Any]] = {
 
 ALL_METHODS: tuple[str, ...] = BASE_METHODS + tuple(f'kentreg_robust-{a}' for a in ABLATIONS)
 
-_ALLOWED_CPUS: tuple[int, ...] = (
-    tuple(sorted(os.sched_getaffinity(0)))
-    if hasattr(os, 'sched_getaffinity')
-    else tuple(range(os.cpu_count() or 1))
-)
+_ALLOWED_CPUS = tuple(sorted(os.sched_getaffinity(0)))
 
 
 @dataclass(frozen=True)
@@ -113,16 +110,13 @@ def limit_threads(threads: int) -> None:
         raise ValueError(f'Expected `threads` >= 1, got {threads}.')
     for var in THREAD_ENV:
         os.environ[var] = str(threads)
-    if hasattr(os, 'sched_setaffinity'):
-        os.sched_setaffinity(0, set(_ALLOWED_CPUS[:threads]))
+    os.sched_setaffinity(0, set(_ALLOWED_CPUS[:threads]))
 
 
 def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
     """Make this process run on at most ``threads`` cores, re-executing ``script`` with ``argv``
     once so that the BLAS/OpenMP variables apply before numpy loads; the second call (marked
     by ``KENTREG_BENCH_THREADS``) only sets the CPU affinity."""
-    import sys
-
     if os.environ.get(PINNED_ENV) != str(threads):
         env = dict(os.environ) | {name: str(threads) for name in (*THREAD_ENV, PINNED_ENV)}
         sys.stdout.flush()
@@ -160,13 +154,9 @@ def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> 
             result = reg.registration_icp(source, target, gate, init, estimation, criteria)
             return np.array(result.transformation, dtype=np.float64)
 
-        params = {
-            'max_correspondence_distance': gate,
-            'max_iterations': MAX_ITERATIONS,
-            'relative_fitness': 1e-6,
-            'relative_rmse': 1e-6,
-            'open3d': o3d.__version__,
-        }
+        params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS,
+                  'relative_fitness': 1e-6, 'relative_rmse': 1e-6,
+                  'open3d': o3d.__version__}  # fmt: skip
         normals = name == 'icp_pt2pl'
         return Method(name, 'open3d', functools.partial(prepare, normals=normals), run,
                       params | more)  # fmt: skip
@@ -221,9 +211,8 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
 
     gate = GATE_VOXELS * voxel
     map_voxel = 2.0 * voxel
-    registration = Registration(
-        max_num_iterations=MAX_ITERATIONS, convergence_criterion=1e-4, max_num_threads=threads or 0
-    )
+    registration = Registration(max_num_iterations=MAX_ITERATIONS, convergence_criterion=1e-4,
+                                max_num_threads=threads or 0)  # fmt: skip
 
     def prepare(points: FloatArray) -> Any:
         pts = np.asarray(points, dtype=np.float64)
@@ -232,15 +221,13 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
         return pts, voxel_map
 
     def run(source: Any, target: Any, init: FloatArray) -> FloatArray:
-        T = registration.align_points_to_map(
-            source[0], target[1], np.asarray(init, dtype=np.float64), gate, gate / 3.0
+        T = np.asarray(init, dtype=np.float64)
+        return np.array(
+            registration.align_points_to_map(source[0], target[1], T, gate, gate / 3.0)
         )
-        return np.array(T, dtype=np.float64)
 
-    note = (
-        "KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
-        'KISS-ICP sets it) against a voxel hash map of the target scan'
-    )
+    note = ("KISS-ICP's registration (point-to-point, Geman-McClure kernel = gate / 3 as "
+            'KISS-ICP sets it) against a voxel hash map of the target scan')  # fmt: skip
     params = {'max_correspondence_distance': gate, 'kernel': gate / 3.0, 'map_voxel': map_voxel,
               'max_iterations': MAX_ITERATIONS, 'convergence_criterion': 1e-4,
               'note': note}  # fmt: skip
@@ -343,11 +330,8 @@ def make_methods(
         try:
             methods = factory(mine, voxel, threads)
         except ImportError as exc:
-            skipped = ', '.join(mine)
-            hint = '`pip install -e .[bench]`'
-            logger.warning(
-                'Skipping %s: %s cannot be imported (%s); %s.', skipped, library, exc, hint
-            )
+            logger.warning('Skipping %s: %s cannot be imported (%s); `pip install -e .[bench]`.',
+                           ', '.join(mine), library, exc)  # fmt: skip
             continue
         built.update({m.name: m for m in methods})
     return [built[n] for n in wanted if n in built]

@@ -72,16 +72,10 @@ def merge(k: int, T_world: FloatArray) -> Perturbation:
 def inject_raw_outliers(
     points: FloatArray, fraction: float, rng: np.random.Generator, *, shell_share: float = 0.0
 ) -> tuple[FloatArray, BoolArray]:
-    """A raw scan (N, 3), sensor at the origin, with uniform outliers making up exactly
-    ``fraction`` of the returned cloud: ``K = round(N f / (1 - f))`` points (so ``K / (N + K)``
-    is ``f`` to ``0.5 / (N + K)``) in the scan's bounding box, a share ``shell_share`` of them in
-    the sensor's range shell instead (directions in the scan's elevation band, ranges between
-    its nearest and farthest return, as rain or dust returns are), shuffled in as a sensor
-    interleaves them. Returns the cloud (N + K, 3) and its outlier mask; every draw from ``rng``.
-
-    Raises ``ValueError`` for ``fraction`` outside [0, 1), ``shell_share`` outside [0, 1] or an
-    empty scan.
-    """
+    """A raw scan (N, 3), sensor at the origin, with ``K = round(N f / (1 - f))`` uniform
+    outliers (``fraction`` of the result to ``0.5 / (N + K)``) in its bounding box, a share
+    ``shell_share`` of them in the sensor's range shell instead (the scan's elevation band and
+    range span, as rain or dust returns are), shuffled in; the cloud and its outlier mask."""
     pts = np.asarray(points, dtype=np.float64)
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f'Expected `fraction` in [0, 1), got {fraction}.')
@@ -101,9 +95,8 @@ def inject_raw_outliers(
     azimuth = rng.uniform(0.0, 2.0 * np.pi, n_shell)
     ranges = rng.uniform(float(r.min()), float(r.max()), n_shell)
     horizontal = np.sqrt(np.clip(1.0 - z**2, 0.0, None))
-    shell = ranges[:, None] * np.column_stack(
-        [horizontal * np.cos(azimuth), horizontal * np.sin(azimuth), z]
-    )
+    directions = [horizontal * np.cos(azimuth), horizontal * np.sin(azimuth), z]
+    shell = ranges[:, None] * np.column_stack(directions)
     cloud = np.concatenate([pts, box, shell])
     is_outlier = np.arange(len(cloud)) >= n
     order = rng.permutation(len(cloud))
@@ -113,13 +106,9 @@ def inject_raw_outliers(
 def inject_free_voxel_outliers(
     points: FloatArray, fraction: float, voxel: float, rng: np.random.Generator
 ) -> tuple[FloatArray, float]:
-    """The raw scan with ``K = round(M f / (1 - f))`` uniform outliers, downsampled at the
-    shared ``voxel`` to ``M`` points plus the outliers, and the realised share ``K / (M + K)``.
-
-    The outliers lie in the raw box, in voxels the scan does not occupy, one per voxel
-    (rejection sampling): one inside an occupied voxel would only move its centroid, so each
-    survives downsampling as one point and the share is exact (the paper's protocol).
-    """
+    """The raw scan downsampled at ``voxel`` to ``M`` points plus ``K = round(M f / (1 - f))``
+    uniform outliers, one per voxel the scan does not occupy (so each survives downsampling and
+    the share is exact: the paper's protocol), and the realised share ``K / (M + K)``."""
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f'Expected `fraction` in [0, 1), got {fraction}.')
     clean = voxel_downsample(points, voxel)
@@ -167,11 +156,8 @@ def outlier_voxel_share(cloud: FloatArray, is_outlier: BoolArray, voxel: float) 
 
 
 def offset_transform(rng: np.random.Generator, degrees: float, metres: float) -> FloatArray:
-    """A rotation of ``degrees`` about a random axis and a translation of ``metres``.
-
-    ``T_true @ offset_transform(...)`` is a start whose errors against ``T_true`` are exactly
-    ``degrees`` (e_R) and ``metres`` (e_t).
-    """
+    """A rotation of ``degrees`` about a random axis and a translation of ``metres``: a start
+    ``T_true @ offset_transform(...)`` is off by exactly that (e_R, e_t)."""
     axis, direction = _unit(rng), _unit(rng)
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()

@@ -86,12 +86,9 @@ def _stats(v: FloatArray) -> dict[str, float]:
 def summarize(
     records: Iterable[Mapping[str, Any]], *, finite_times: bool = False
 ) -> dict[str, Any]:
-    """Mean/median/p90/max of e_R, e_t, failure count and median time of per-pair records.
-
-    Records with NaN errors (the method raised) count as failures and are left out of the
-    error statistics (their count is ``n_errors``); ``finite_times``: the times are over the
-    pairs that ran (else one raised pair makes the median NaN).
-    """
+    """Mean/median/p90/max of e_R, e_t, failure count and median time of per-pair records;
+    NaN errors (raised) are failures, counted in ``n_errors``, and left out of the statistics;
+    ``finite_times``: times over the pairs that ran (else one raised pair makes them NaN)."""
     rows = list(records)
     e_R = np.array([r['e_R_deg'] for r in rows], dtype=np.float64)
     e_t = np.array([r['e_t_m'] for r in rows], dtype=np.float64)
@@ -180,11 +177,8 @@ class Run:
 
 
 def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup: int = 0) -> Run:
-    """Every scan through a fresh pipeline, each step timed (wall clock, reading excluded).
-
-    ``warmup`` > 0: a throwaway pipeline first processes that many scans, untimed (imports,
-    allocators, caches).
-    """
+    """Every scan through a fresh pipeline, each step timed (wall clock, reading excluded);
+    ``warmup`` > 0: a throwaway pipeline first steps that many scans, untimed."""
     if warmup:
         throwaway = make()
         for scan in scans[:warmup]:
@@ -201,16 +195,11 @@ def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup:
 
 
 def combine_rounds(runs: list[Run]) -> Run:
-    """One run from several rounds: first round's poses, per-scan median of the times.
-
-    Every pipeline is deterministic, so later rounds repeat the first one's poses; the largest
-    difference is recorded in ``health['pose_spread_between_rounds_m']``.
-    """
+    """One run from several rounds: first round's poses (the largest difference from later
+    rounds' in ``health``), per-scan median of the times."""
     first = runs[0]
-    spread = max(
-        (float(np.abs(r.poses[:, :3, 3] - first.poses[:, :3, 3]).max()) for r in runs[1:]),
-        default=0.0,
-    )
+    moved = (float(np.abs(r.poses[:, :3, 3] - first.poses[:, :3, 3]).max()) for r in runs[1:])
+    spread = max(moved, default=0.0)
     per_round = [float(r.ms_per_scan.mean()) for r in runs]
     health = {**first.health, 'rounds': len(runs), 'pose_spread_between_rounds_m': spread,
               'mean_ms_per_scan_per_round': per_round}  # fmt: skip
@@ -221,11 +210,8 @@ def combine_rounds(runs: list[Run]) -> Run:
 def rotated(names: Sequence[T], rounds: int) -> list[tuple[int, T]]:
     """``(round, name)`` over ``rounds`` rounds, each in an order rotated by one, so that a
     change in the shared machine's load does not land on one method only."""
-    out = []
-    for r in range(rounds):
-        k = r % len(names) if names else 0
-        out += [(r, n) for n in list(names[k:]) + list(names[:k])]
-    return out
+    shifts = ((r, r % len(names) if names else 0) for r in range(rounds))
+    return [(r, n) for r, k in shifts for n in [*names[k:], *names[:k]]]
 
 
 #: Frames of the drift segment (RPE over scans i, i + SEGMENT_FRAMES): one second at 10 Hz.
@@ -293,19 +279,15 @@ def tree_cpu_s(pid: int) -> float:
     """CPU seconds (user + system) of ``pid`` and its descendants so far."""
     parents: dict[int, int] = {}
     times: dict[int, float] = {}
-    tick = os.sysconf('SC_CLK_TCK')
-    for entry in Path('/proc').iterdir():
-        if not entry.name.isdigit():
-            continue
+    for entry in (e for e in Path('/proc').iterdir() if e.name.isdigit()):
         try:
             fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
         except OSError:
             continue
         parents[int(entry.name)] = int(fields[1])
-        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / tick
-    mine, grew = {pid}, True
-    while grew:
+        times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    mine, more = {pid}, {pid}
+    while more:
         more = {p for p, pp in parents.items() if pp in mine} - mine
-        grew = bool(more)
         mine |= more
     return sum(times.get(p, 0.0) for p in mine)

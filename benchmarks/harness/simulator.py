@@ -122,26 +122,17 @@ def direction_bins(q: FloatArray, r: FloatArray, size_deg: float) -> NDArray[np.
     az = np.degrees(np.arctan2(q[:, 1], q[:, 0])) + 180.0
     el = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0))) + 90.0
     n_az = int(np.ceil(360.0 / size_deg))
-    return np.floor(el / size_deg).astype(np.int64) * n_az + np.floor(az / size_deg).astype(
-        np.int64
-    )
+    return np.asarray(np.floor(el / size_deg) * n_az + np.floor(az / size_deg), dtype=np.int64)
 
 
 def simulate_scan(
-    world: FloatArray,
-    T: FloatArray,
-    rng: np.random.Generator,
-    args: Sensor,
+    world: FloatArray, T: FloatArray, rng: np.random.Generator, args: Sensor,
     twist: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
     """The points a spinning LiDAR at pose ``T`` sees of ``world`` (sensor frame), and their
-    times from the stamp (s).
-
-    With ``args.sweep_period > 0`` and the sensor's ``twist`` (the 4x4 ``se(3)`` matrix of its
-    body velocity, per second), a point taken at time ``tau`` is expressed in the frame of the
-    pose ``T exp(tau twist)`` it was taken from; which points are visible is decided from
-    ``T``.
-    """
+    times from the stamp (s). With ``args.sweep_period > 0`` and the ``twist`` (4x4 ``se(3)``
+    body velocity per second), a point taken at ``tau`` is in the frame of the pose
+    ``T exp(tau twist)``; which points are visible is decided from ``T``."""
     q = (world - T[:3, 3]) @ T[:3, :3]
     r = np.linalg.norm(q, axis=1)
     el = np.degrees(np.arcsin(np.clip(q[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0)))
@@ -180,14 +171,9 @@ def simulate_scan(
 
 
 def simulate(
-    world: World,
-    step: float,
-    seed: int,
-    sensor: Sensor = Sensor(),
-    *,
-    yaw_amplitude: float = 0.0,
-    yaw_period: float = 9.0,
-) -> tuple[list[Scan], GroundTruth]:
+    world: World, step: float, seed: int, sensor: Sensor = Sensor(), *,
+    yaw_amplitude: float = 0.0, yaw_period: float = 9.0,
+) -> tuple[list[Scan], GroundTruth]:  # fmt: skip
     """The scans of a sensor travelling the world's path at ``step`` metres per scan, and
     their exact poses (stamped at the world's scan period from 1e9 s after the epoch)."""
     T = trajectory(world.T_ref, step, yaw_amplitude, yaw_period)
@@ -214,9 +200,6 @@ def motion_stats(T: FloatArray) -> dict[str, float]:
     rel = np.einsum('nji,njk->nik', T[:-1, :3, :3], T[1:, :3, :3])  # R_i^T R_{i+1}
     angles = np.degrees(Rotation.from_matrix(rel).magnitude())
     steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
-    return {
-        'step_median_m': float(np.median(steps)),
-        'rotation_median_deg': float(np.median(angles)),
-        'rotation_max_deg': float(angles.max()),
-        'path_m': float(steps.sum()),
-    }
+    return {'step_median_m': float(np.median(steps)),
+            'rotation_median_deg': float(np.median(angles)),
+            'rotation_max_deg': float(angles.max()), 'path_m': float(steps.sum())}  # fmt: skip

@@ -5,11 +5,8 @@ pair by the correntropy kernel ``exp(-d^2 / (2 sigma^2))`` and solves the weight
 alignment in closed form (weighted Kabsch/Umeyama). The kernel width starts at ``sigma0`` and
 is multiplied by ``decay`` every iteration, so distant pairs count early (wide basin) and are
 ignored later (robustness). The paper's Table 1 runs CICP with sigma = 1.0 m and decay 0.96.
-
-References
-----------
-Du, S., Xu, G., Zhang, S., Zhang, X., Gao, Y., Chen, B. (2018). Robust rigid registration
-algorithm based on pointwise correspondence and correntropy. Pattern Recognition Letters.
+Reference: Du, S. et al. (2018), Robust rigid registration algorithm based on pointwise
+correspondence and correntropy, Pattern Recognition Letters.
 """
 
 from __future__ import annotations
@@ -68,13 +65,9 @@ def cicp_register(
     max_iterations: int = CICP_DEFAULTS['max_iterations'],
     min_sigma: float = CICP_DEFAULTS['min_sigma'], tolerance: float = CICP_DEFAULTS['tolerance'],
 ) -> FloatArray:  # fmt: skip
-    """Estimate ``T_target_source`` (4, 4) by correntropy ICP from ``init`` (default identity).
-
-    The kernel width starts at ``sigma0`` (m) and is multiplied by ``decay`` after every
-    iteration; the iterations stop once it has decayed below ``min_sigma`` (the benchmarks use a
-    tenth of the voxel edge, below which hardly any pair keeps a weight) or when one moves the
-    estimate by less than ``tolerance`` (m + rad).
-    """
+    """Estimate ``T_target_source`` (4, 4) by correntropy ICP from ``init`` (default identity):
+    the kernel width ``sigma0`` (m) times ``decay`` per iteration, until it is below
+    ``min_sigma`` or an iteration moves the estimate by less than ``tolerance`` (m + rad)."""
     src = source if isinstance(source, CICPScan) else cicp_prepare(source)
     tgt = target if isinstance(target, CICPScan) else cicp_prepare(target)
     x = src.points

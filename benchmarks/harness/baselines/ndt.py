@@ -10,13 +10,8 @@ The summed score is maximised by Newton's method with the analytic gradient and 
 with the Hessian made positive definite when it is not and a backtracking line search.
 
 The paper (Fahandezh-Saadi et al., Table 1) runs NDT "with grid sizes 2.0, 4.0, 2.0, 1.0 m"; the
-levels run in that order, each started from the previous level's result.
-
-References
-----------
-Magnusson, M. (2009). The three-dimensional normal-distributions transform: an efficient
-representation for registration, surface analysis, and loop detection. PhD thesis, Orebro
-University, ch. 6.
+levels run in that order, each started from the previous level's result. Reference: Magnusson,
+M. (2009), The three-dimensional normal-distributions transform, PhD thesis, Orebro, ch. 6.
 """
 
 from __future__ import annotations
@@ -34,15 +29,10 @@ IntArray = NDArray[np.int64]
 
 #: Settings used by :func:`ndt_register` (recorded in the benchmark results).
 NDT_DEFAULTS: dict[str, Any] = {
-    'resolutions': (2.0, 4.0, 2.0, 1.0),
-    'outlier_ratio': 0.55,
-    'min_points_per_cell': 6,
-    'eigen_ratio': 0.01,
-    'max_iterations': 50,
-    'tolerance': 1e-4,
-    'max_step_rotation': 0.2,
+    'resolutions': (2.0, 4.0, 2.0, 1.0), 'outlier_ratio': 0.55, 'min_points_per_cell': 6,
+    'eigen_ratio': 0.01, 'max_iterations': 50, 'tolerance': 1e-4, 'max_step_rotation': 0.2,
     'neighbourhood': 'DIRECT7 (own cell + 6 face neighbours)',
-}
+}  # fmt: skip
 
 _OFFSET = 1 << 20
 _BASE = 1 << 21
@@ -86,11 +76,9 @@ def build_grid(
     eigen_ratio: float = NDT_DEFAULTS['eigen_ratio'],
     outlier_ratio: float = NDT_DEFAULTS['outlier_ratio'],
 ) -> NDTGrid:  # fmt: skip
-    """Per-cell Gaussians of ``points`` (N, 3) on a grid of edge ``resolution``.
-
-    Cells with fewer than ``min_points`` points are dropped; covariance eigenvalues below
-    ``eigen_ratio`` times the largest are raised to it (Magnusson 2009, sec. 6.2).
-    """
+    """Per-cell Gaussians of ``points`` (N, 3) on a grid of edge ``resolution``: cells with
+    fewer than ``min_points`` points dropped, covariance eigenvalues below ``eigen_ratio``
+    times the largest raised to it (Magnusson 2009, sec. 6.2)."""
     pts = np.asarray(points, dtype=np.float64)
     keys = _cell_keys(np.floor(pts / resolution).astype(np.int64))
     uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
@@ -105,9 +93,8 @@ def build_grid(
     keep = counts >= min_points
     n = counts[keep].astype(np.float64)
     means = sums[keep] / n[:, None]
-    covs = (outer[keep] - n[:, None, None] * means[:, :, None] * means[:, None, :]) / (
-        n[:, None, None] - 1.0
-    )
+    scatter = outer[keep] - n[:, None, None] * means[:, :, None] * means[:, None, :]
+    covs = scatter / (n[:, None, None] - 1.0)
     evals, evecs = np.linalg.eigh(covs)
     floor = np.maximum(eigen_ratio * evals[:, 2:3], 1e-9)
     evals = np.maximum(evals, floor)
@@ -153,12 +140,9 @@ def ndt_score(grid: NDTGrid, y: FloatArray) -> float:
 
 
 def ndt_derivatives(grid: NDTGrid, y: FloatArray) -> tuple[float, FloatArray, FloatArray]:
-    """Negative score, its gradient (6,) and Hessian (6, 6) at transformed points ``y`` (N, 3).
-
-    The parameters are ``(dt, w)``: ``y -> exp([w]x) y + dt`` (Magnusson eqs. 6.12-6.13 with
-    the point Jacobian ``[I, -[y]x]`` and the point Hessian
-    ``d2y/dw_i dw_j = (e_j y_i + e_i y_j) / 2 - y delta_ij``).
-    """
+    """Negative score, its gradient (6,) and Hessian (6, 6) at transformed points ``y`` (N, 3),
+    in ``(dt, w)``: ``y -> exp([w]x) y + dt`` (Magnusson eqs. 6.12-6.13, point Jacobian
+    ``[I, -[y]x]``, point Hessian ``d2y/dw_i dw_j = (e_j y_i + e_i y_j) / 2 - y delta_ij``)."""
     if len(grid.keys) == 0:
         return 0.0, np.zeros(6), np.zeros((6, 6))
     p, c = _pairs(grid, y)
