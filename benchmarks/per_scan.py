@@ -103,10 +103,8 @@ def markdown(doc: dict[str, Any]) -> str:
         if meta.get('merge', 1) > 1
         else ''
     )
-    long_run = (
-        f'memory growth over the second half of {meta.get("long_steps") or "–"} steps MB: '
-        'live numpy/Python (tracemalloc) / resident'
-    )
+    long_run = (f'memory growth over the second half of {meta.get("long_steps") or "–"} steps '
+                'MB: live numpy/Python (tracemalloc) / resident')  # fmt: skip
     columns: list[report.Column] = [
         ('method', 'name:s'), ('p50 ms/scan', 'ms_per_scan.p50:.1f'),
         ('p95', 'ms_per_scan.p95:.1f'), ('max', 'ms_per_scan.max:.1f'),
@@ -182,11 +180,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         for r, method in runner.rotated(list(args.methods), args.rounds):
             res, took_ms = runner.timed(_in_worker, method, scans_file, 0)
             samples[method].append(res)
-            p50 = np.median(res['ms'][1:])
-            print(
-                f'round {r} {method}: p50 {p50:.1f} ms/scan ({took_ms / 1e3:.0f} s)',
-                file=sys.stderr,
-            )
+            p50, took_s = np.median(res['ms'][1:]), took_ms / 1e3
+            print(f'round {r} {method}: p50 {p50:.1f} ms/scan ({took_s:.0f} s)', file=sys.stderr)
         for method, rounds in samples.items():
             ms = [rounds[0]['ms'][0]] + [t for res in rounds for t in res['ms'][1:]]
             summary = summarize(ms, np.array(rounds[0]['poses']), truth)
@@ -209,6 +204,5 @@ def _stem(args: argparse.Namespace) -> str:
 
 
 if __name__ == '__main__':
-    raise SystemExit(
-        report.experiment_main(__doc__, _stem, OPTIONS, run, markdown, worker=run_worker)
-    )
+    main = report.experiment_main
+    raise SystemExit(main(__doc__, _stem, OPTIONS, run, markdown, worker=run_worker))
