@@ -157,6 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         *(json.loads(p.read_text()) if p.is_file() else None for p in loaded)
     )
     main_blocks = {} if headline is None else {'headline': headline}
+    if 'live' in blocks:  # live.md's opening paragraph and table, without its title
+        main_blocks['live'] = blocks['live'].split('\n## ')[0].split('\n', 2)[2]
     if args.only:
         blocks = {k: v for k, v in blocks.items() if k in args.only}
         main_blocks = {k: v for k, v in main_blocks.items() if k in args.only}
