@@ -243,25 +243,6 @@ def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[s
     }
 
 
-def measure_model_ratio(scans: Scans, stamps: Sequence[int], *, rounds: int = 3) -> dict[str, Any]:
-    """CPU time per scan of the sequential loop with the previous scan and with the local map,
-    in alternating rounds (so a change of load lands on both), and their ratio."""
-    from kentreg_ros.core import KentRegConfig, Odometry
-
-    cpu: dict[str, list[float]] = {'previous_scan': [], 'local_map': []}
-    for _ in range(rounds):
-        for model in cpu:
-            odometry = Odometry(KentRegConfig().with_updates({'odometry.model': model}))
-            for i, (points, stamp) in enumerate(zip(scans, stamps, strict=True)):
-                c0 = time.process_time()
-                odometry.step(points, stamp)
-                if i:
-                    cpu[model].append(1e3 * (time.process_time() - c0))
-    prev, local = (float(np.median(cpu[m])) for m in ('previous_scan', 'local_map'))
-    return {'rounds': rounds, 'previous_scan_cpu_ms': round(prev, 1),
-            'local_map_cpu_ms': round(local, 1), 'ratio': round(local / prev, 3)}  # fmt: skip
-
-
 def measure_throughput(
     scans: Scans, stamps: Sequence[int], *, model: str, rounds: int = 2
 ) -> dict[str, Any]:
@@ -327,10 +308,6 @@ def _in_child(
     raise RuntimeError(f'{kind} {stream} {kwargs} failed:\n{out.stderr[-3000:]}')
 
 
-def _load() -> tuple[float, float, float]:
-    return os.getloadavg()
-
-
 def run(options: argparse.Namespace) -> dict[str, Any]:
     """Every measurement of the options; the result document."""
     tmp = Path(tempfile.mkdtemp(prefix='kentreg_live_'))
@@ -340,18 +317,24 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
     for stream in options.streams:
         entry: dict[str, Any] = {'live': [], 'stages': {}, 'throughput': {}}
         for model in options.models:
-            print(f'live: {stream} {model} stages/throughput (load {_load()[0]:.2f})', flush=True)
+            print(
+                f'live: {stream} {model} stages/throughput (load {os.getloadavg()[0]:.2f})',
+                flush=True,
+            )
             for kind in ('stages', 'throughput'):
                 entry[kind][model] = _in_child(
                     kind, stream, options.scans, {'model': model}, _node_env('shm', tmp)
                 )
             runs = itertools.product(options.dds, options.pipelines, range(options.rounds))
             for profile, pipeline, r in runs:
-                load, how = _load()[0], {'model': model, 'pipeline': pipeline, 'profile': profile}
+                load, how = (
+                    os.getloadavg()[0],
+                    {'model': model, 'pipeline': pipeline, 'profile': profile},
+                )
                 env = _node_env(profile, tmp)
                 res = _in_child('live', stream, options.scans, how, env, options.live_nice)
                 res['round'], res['load_before'] = r, round(load, 2)
-                res['load_after'] = round(_load()[0], 2)
+                res['load_after'] = round(os.getloadavg()[0], 2)
                 entry['live'].append(res)
                 lat = res['latency_ms']
                 print(f'live: {stream} {model} {pipeline} {profile}: dropped {res["dropped"]}/'
@@ -369,7 +352,7 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
         subprocess.run(cmd, check=True)
         doc['per_scan'] = json.loads((out / 'per_scan.json').read_text())
         doc['per_scan_table'] = (out / 'per_scan.md').read_text()
-    doc['load_end'] = [round(x, 2) for x in _load()]
+    doc['load_end'] = [round(x, 2) for x in os.getloadavg()]
     return doc
 
 
@@ -396,13 +379,6 @@ OFFLINE: list[report.Column] = [
 def _notes(stream: str, entry: dict[str, Any]) -> list[str]:
     """The sentences under the offline table: the local map's cost and the pipelined bound."""
     lines, st = [], entry['stages']
-    if 'model_ratio' in entry:
-        mr = entry['model_ratio']
-        lines.append(
-            f'- {stream}: local map / previous scan per scan, CPU time in {mr["rounds"]} '
-            f'alternating rounds: {mr["local_map_cpu_ms"]} / {mr["previous_scan_cpu_ms"]} ms '
-            f'= {mr["ratio"]:.2f}x (load {mr["load_before"]}).'
-        )
     if {'previous_scan', 'local_map'} <= set(st):
         wall = st['local_map']['total'] / st['previous_scan']['total']
         cpu = st['local_map']['cpu'] / st['previous_scan']['cpu']
@@ -455,8 +431,7 @@ def render(doc: dict[str, Any]) -> str:
 
 
 MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
-    'ratio': measure_model_ratio, 'live': measure_live, 'stages': measure_stages,
-    'throughput': measure_throughput,
+    'live': measure_live, 'stages': measure_stages, 'throughput': measure_throughput,
 }  # fmt: skip
 OPTIONS: list[tuple[str, dict[str, Any]]] = [
     ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),
@@ -471,8 +446,6 @@ OPTIONS: list[tuple[str, dict[str, Any]]] = [
                      'publisher; default 0, as a user runs them: on a shared machine, work at a '
                      'higher niceness then takes the leftover CPU); the offline measurements run '
                      'at 10'}),
-    ('--add-ratio', {'action': 'store_true', 'help': 'only measure the local-map / previous-scan '
-                     'ratio (alternating rounds) and add it to an existing live.json in --out'}),
     ('--out', {'type': Path, 'default': RESULTS}),
     ('--child', {'nargs': 4, 'help': argparse.SUPPRESS}),  # one measurement
 ]  # fmt: skip
@@ -489,17 +462,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         kw = json.loads(kwargs) | ({'rate_hz': rate} if kind == 'live' else {})
         print('RESULT' + json.dumps(MEASURES[kind](scans, stamps, **kw)))
         return 0
-    if options.add_ratio:
-        doc = json.loads((options.out / 'live.json').read_text())
-        env = _node_env('shm', Path(tempfile.mkdtemp(prefix='kentreg_live_')))
-        env |= dict.fromkeys(('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'), '1')
-        for stream in options.streams:
-            load = _load()[0]
-            ratio = _in_child('ratio', stream, options.scans, {}, env)
-            doc['streams'][stream]['model_ratio'] = ratio | {'load_before': round(load, 2)}
-            print(f'live: {stream} local map / previous scan {ratio["ratio"]}x (load {load:.2f})')
-    else:
-        doc = run(options)
+    doc = run(options)
     options.out.mkdir(parents=True, exist_ok=True)
     report.write_json(options.out / 'live.json', doc)
     (options.out / 'live.md').write_text(report.relative_paths(render(doc)))

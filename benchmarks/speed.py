@@ -5,7 +5,6 @@ beyond half the smallest scan, downsampled at the edge giving about N points) fr
 reference off by 1 deg / 5 cm; per pair the target is prepared once untimed and the source
 prepared + registered ``--repeats`` times; each library runs in its own pinned subprocess, in
 ``--rounds`` rotated rounds; ratios are to small_gicp GICP in the same run (README section 3).
-``--stages``: kentreg's median time per stage at each N instead (``results/bench_register.json``);
 ``--io``: the best and median time of kentreg_ros.io's conversions and readers (printed).
 """
 
@@ -13,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import functools
 import json
 import os
 import sys
@@ -31,7 +29,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.harness import datasets, methods, perturb, report, runner  # noqa: E402
-from kentreg_ros.core import KentRegConfig, count_voxels, prepare_scan, register  # noqa: E402
+from kentreg_ros.core import count_voxels  # noqa: E402
 from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # noqa: E402
 
 FloatArray = NDArray[np.float64]
@@ -235,50 +233,6 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     report.plot_panels(path, [[times, ratios]], size=(13.5, 5))
 
 
-PREP_STAGES = ('downsample', 'normals', 'outliers', 'clustering')
-REG_STAGES = ('rotation', 'translation', 'refine')
-
-
-def stage_times(args: argparse.Namespace) -> None:
-    """kentreg's median time per stage (ms) over ``--pairs`` consecutive raw pairs at each
-    ``preprocess.target_points`` of ``--sizes``: printed and written to bench_register.json."""
-    seq = datasets.load_dataset('balm_or_sample')
-    scans = [seq.raw(i) for i in range(args.pairs + 1)]
-    sizes = [len(s) for s in scans]
-    source = f'{seq.name} (real, {min(sizes)}-{max(sizes)} points per raw scan)'
-    load_before, rows = os.getloadavg()[0], []
-    for size in args.sizes:
-        cfg = KentRegConfig().with_updates({'preprocess.target_points': size})
-        prepare: Any = functools.partial(prepare_scan, config=cfg)
-        register(prepare(scans[1]), prepare(scans[0]), config=cfg)  # warm-up, not timed
-        per_pair = []
-        for i in range(args.pairs):
-            model = prepare(scans[i])
-            t0 = time.perf_counter()
-            scan = prepare(scans[i + 1])
-            result = register(scan, model, config=cfg)
-            wall = (time.perf_counter() - t0) * 1e3
-            entry = {f'prep.{k}': scan.timings.get(k, 0.0) for k in PREP_STAGES}
-            entry |= {f'reg.{k}': result.timings[k] for k in REG_STAGES}
-            entry |= {'prep.total': scan.timings['total'], 'reg.total': result.timings['total'],
-                      'prep+reg': wall, 'points': float(len(scan))}  # fmt: skip
-            per_pair.append(entry)
-        med = {k: float(np.median([e[k] for e in per_pair])) for k in per_pair[0]}
-        rows.append(med | {'target_points': size})
-    load_after = os.getloadavg()[0]
-    print(f'kentreg per-stage median ms over {args.pairs} pairs of {source}; 1-min load '
-          f'average {load_before:.1f} before / {load_after:.1f} after')  # fmt: skip
-    print(f'{"stage":<22}' + ''.join(f'{int(r["target_points"]):>10}' for r in rows))
-    print(f'{"points after prep":<22}' + ''.join(f'{r["points"]:>10.0f}' for r in rows))
-    prep, reg = (f'prep.{k}' for k in PREP_STAGES), (f'reg.{k}' for k in REG_STAGES)
-    for k in (*prep, 'prep.total', *reg, 'reg.total', 'prep+reg'):
-        print(f'{k:<22}' + ''.join(f'{r[k]:>10.1f}' for r in rows))
-    doc = {'source': source, 'pairs': args.pairs, 'rows': rows, 'cpus': os.cpu_count(),
-           'load_average_1min': [load_before, load_after]}  # fmt: skip
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / 'bench_register.json').write_text(json.dumps(doc, indent=2))
-
-
 def _ouster_like(n: int, rng: np.random.Generator) -> Any:
     """A rosbags PointCloud2 laid out like an Ouster driver's: 48-byte points, 128 rows."""
     from kentreg_ros.io.pointcloud2 import rosbags_factory
@@ -355,7 +309,6 @@ OPTIONS: list[report.Option] = [
                        'help': 'seconds per method and size: fewer repeats for slower cells'}),
     ('--threads', {'type': int, 'default': 1, 'help': 'threads per library process'}),
     ('--rounds', {'type': int, 'default': 2, 'help': 'rotated rounds (default 2)'}),
-    ('--stages', {'action': 'store_true', 'help': "kentreg's time per stage at each N"}),
     ('--io', {'type': int, 'nargs': '?', 'const': 200, 'metavar': 'REPEATS',
               'help': 'time kentreg_ros.io instead (default 200 repeats)'}),
     ('--data', {'type': Path, 'help': argparse.SUPPRESS}),
@@ -416,8 +369,8 @@ def summarize_results(doc: dict[str, Any], samples: dict[str, Any], names: list[
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if min(args.threads, args.pairs, args.repeats, args.rounds) < 1:
         raise SystemExit('--threads, --pairs, --repeats and --rounds must be >= 1')
-    if args.io or args.stages:
-        io_times(args.io) if args.io else stage_times(args)
+    if args.io:
+        io_times(args.io)
         raise SystemExit(0)
     names = [REFERENCE] + [m for m in args.methods if m != REFERENCE]
     libraries: dict[str, list[str]] = {}
