@@ -168,17 +168,26 @@ def _shared_e_step(
         if len(idx) == 0 or off[j + 1] == off[j]:
             continue
         zj, wj = z[idx], wx[idx]
-        g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
-        logits = (log_pi[ys] - log_c[j])[:, None] + kappa[j] * (y[ys] @ zj.T)
+        # One (model bins x observed bins) array, updated in place: the same values as the
+        # expressions written out (IEEE addition commutes), without a temporary per operation
+        # (16 % of the E-step on street scans, which run it about 8 times a step and 40 times
+        # in a start-free search).
+        logits = y[ys] @ zj.T
+        logits *= kappa[j]
+        logits += (log_pi[ys] - log_c[j])[:, None]
         if beta[j] > 0.0:
+            g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
             logits += beta[j] * ((zj @ g1) ** 2 - (zj @ g2) ** 2)[None, :]
-        top = np.maximum(logits.max(axis=0), log_out)
-        ex = np.exp(logits - top)
-        total = ex.sum(axis=0) + np.exp(log_out - top)
+        top = logits.max(axis=0)
+        np.maximum(top, log_out, out=top)
+        logits -= top
+        share = np.exp(logits, out=logits)
+        total = share.sum(axis=0)
+        total += np.exp(log_out - top)
         loglik += float(np.dot(wj, top + np.log(total)))
         # Posteriors per normal (constant across a bin), summed over the bin's normals
         # through its exact moments: sum_i tau x_i = (tau / w) * resultant.
-        share = ex / total
+        share /= total
         t_n = share.sum(axis=0)  # posterior mass per normal of bin n
         tn[idx] = t_n * wj
         t_unit[idx] = t_n
