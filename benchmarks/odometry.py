@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import logging
 import os
 import sys
@@ -24,7 +25,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.harness import datasets, methods, perturb, pipelines, report, runner  # noqa: E402
-from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
+from kentreg_ros.core import prepare_scan  # noqa: E402
 from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
 
@@ -36,21 +37,6 @@ TIMING = (
     'median over --rounds rounds, which run the pipelines in rotated order'
 )
 COLOURS = dict(zip(METHODS, ('tab:blue', 'tab:purple', 'tab:orange', 'tab:green'), strict=True))
-
-
-def runners_for(
-    scans: list[Any], cfg: KentRegConfig, voxel: float, args: argparse.Namespace
-) -> dict[str, Callable[[], runner.Run]]:
-    """Each pipeline's run over ``scans`` (a fresh pipeline per run, two-scan warm-up)."""
-    options = {'config': cfg, 'voxel': voxel, 'threads': args.threads,
-               'max_range': args.kiss_max_range}  # fmt: skip
-
-    def make(name: str) -> Callable[[], runner.Run]:
-        return lambda: runner.run_pipeline(
-            lambda: pipelines.make_pipeline(name, **options), scans, warmup=2
-        )
-
-    return {name: make(name) for name in METHODS}
 
 
 PAIRS = 'pairs.rotation_deg.median:.3f', 'pairs.translation_m.median:.4f'
@@ -168,30 +154,21 @@ OPTIONS: list[report.Option] = [
 ]  # fmt: skip
 
 
-def _evaluate_all(
-    names: Sequence[str], runs: dict[str, Callable[[], runner.Run]], T_gt: FloatArray,
-    rounds: int, combine: bool = True,
+def _entries(
+    names: Sequence[str], scans: list[Any], T_gt: FloatArray, options: dict[str, Any],
+    rounds: int, full: bool = True,
 ) -> dict[str, dict[str, Any]]:  # fmt: skip
-    """Every pipeline in ``rounds`` rotated rounds, evaluated (its error when it crashed)."""
-    done: dict[str, list[runner.Run]] = {n: [] for n in names}
-    failed: dict[str, str] = {}
-    for _, name in runner.rotated(list(names), rounds):
-        if name not in failed:
-            run = runner.guarded(name, runs[name])
-            if isinstance(run, dict):
-                failed[name] = run['error']
-            else:
-                done[name].append(run)
-    out: dict[str, dict[str, Any]] = {}
-    for name in names:
-        if name in failed:
-            out[name] = {'error': failed[name]}
-            continue
-        run = runner.combine_rounds(done[name]) if combine else done[name][0]
-        metrics = runner.evaluate_run(run, T_gt)
-        out[name] = {'settings': run.settings, 'health': run.health, 'metrics': metrics,
-                     'poses_T_world_lidar': run.poses}  # fmt: skip
-    return out
+    """Every pipeline in ``rounds`` rotated rounds after a two-scan warm-up, evaluated (its error
+    when it crashed); ``full``: the rounds combined, with the settings and poses."""
+    makers = {n: functools.partial(pipelines.make_pipeline, n, **options) for n in names}
+    scored = runner.score_pipelines(makers, scans, T_gt, rounds=rounds, warmup=2, combine=full)
+    for entry in scored.values():
+        if 'run' in entry:
+            run = entry.pop('run')
+            entry['health'] = run.health
+            if full:
+                entry |= {'settings': run.settings, 'poses_T_world_lidar': run.poses}
+    return scored
 
 
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
@@ -214,9 +191,10 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
                   'points_per_scan': points, 'ground_truth': seq.note},
         'ms_per_scan_measures': TIMING, 'rounds': args.rounds,
     }  # fmt: skip
-    runs = runners_for(scans, cfg, voxel, args)
+    options = {'config': cfg, 'voxel': voxel, 'threads': args.threads,
+               'max_range': args.kiss_max_range}  # fmt: skip
     doc['reference_T_world_lidar'] = T_gt
-    doc['methods'] = _evaluate_all(args.methods, runs, T_gt, args.rounds)
+    doc['methods'] = _entries(args.methods, scans, T_gt, options, args.rounds)
     if 'settings' in doc['methods'].get('gicp', {}):
         choice = "kentreg's automatic voxel size for the first scan"
         doc['methods']['gicp']['settings']['voxel_choice'] = choice
@@ -224,10 +202,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     doc['strides'] = {}
     for n in args.strides:
         batch = perturb.stride(n)(scans)
-        block = _evaluate_all(alive, runners_for(batch, cfg, voxel, args), T_gt[::n], 1, False)
-        for entry in block.values():
-            entry.pop('settings', None)
-            entry.pop('poses_T_world_lidar', None)
+        block = _entries(alive, batch, T_gt[::n], options, 1, full=False)
         doc['strides'][str(n)] = {'n_scans': len(batch), **block}
     report.finish_machine(doc['machine'])
     return doc

@@ -31,27 +31,13 @@ Floats: TypeAlias = Sequence[float]
 Ints: TypeAlias = Sequence[int]
 
 
-def _trial(m: methods.Method, target: Any, source: Any, init: Any, truth: Any) -> dict[str, Any]:
-    try:
-        tgt = m.prepare(target)
-        src, prep_ms = runner.timed(m.prepare, source)
-        T, reg_ms = runner.timed(m.register, src, tgt, init)
-        e_R, e_t = runner.errors(T, truth)
-    except Exception as exc:  # a method that raises fails the trial
-        logger.warning('%s: %s', m.name, exc)
-        nan = float('nan')
-        return {'e_R_deg': nan, 'e_t_m': nan, 'ms': nan, 'error': f'{type(exc).__name__}: {exc}'}
-    return {'e_R_deg': e_R, 'e_t_m': e_t, 'ms': prep_ms + reg_ms}
-
-
 def _summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
     summ = runner.summarize(recs)
+    ok = np.isfinite([r['e_R_deg'] for r in recs]) & np.isfinite([r['e_t_m'] for r in recs])
     for key in ('e_R_deg', 'e_t_m'):
-        v = np.array([r[key] for r in recs], dtype=np.float64)
-        v = v[np.isfinite([r['e_R_deg'] for r in recs]) & np.isfinite([r['e_t_m'] for r in recs])]
-        summ[key]['std'] = float(v.std()) if len(v) else float('nan')
-        summ[key]['q25'] = float(np.percentile(v, 25)) if len(v) else float('nan')
-        summ[key]['q75'] = float(np.percentile(v, 75)) if len(v) else float('nan')
+        v = np.array([r[key] for r in recs], dtype=np.float64)[ok]
+        std, q25, q75 = (v.std(), *np.percentile(v, [25, 75])) if len(v) else [np.nan] * 3
+        summ[key] |= {'std': float(std), 'q25': float(q25), 'q75': float(q75)}
     return summ
 
 
@@ -59,26 +45,24 @@ def run(
     seq: Data, built: Methods, levels: Floats, trial_pairs: Ints, voxel: float, seed: int
 ) -> dict:
     """Per level and method, the per-trial records and their summary."""
+    raw = [methods.at_fixed_voxel(m, voxel, downsample=False) for m in built]
+    inject = perturb.inject_free_voxel_outliers
     out: dict[str, Any] = {}
     for level in levels:
-        rows: dict[str, list[dict[str, Any]]] = {m.name: [] for m in built}
-        realised = []
+        trials, realised = [], []
         for trial, pair in enumerate(trial_pairs):
             rng = np.random.default_rng([seed, trial, int(round(level * 1000))])
-            target, r_t = perturb.inject_free_voxel_outliers(seq.raw(pair), level, voxel, rng)
-            source, r_s = perturb.inject_free_voxel_outliers(seq.raw(pair + 1), level, voxel, rng)
+            target, r_t = inject(seq.raw(pair), level, voxel, rng)
+            source, r_s = inject(seq.raw(pair + 1), level, voxel, rng)
             realised += [r_t, r_s]
-            init = seq.constant_velocity(pair)
-            for m in built:
-                record = _trial(m, target, source, init, seq.truth(pair))
-                rows[m.name].append({'trial': trial, 'pair': pair, **record})
+            start, extra = {'cv': seq.constant_velocity(pair)}, {'trial': trial, 'pair': pair}
+            trials.append(runner.Trial(target, source, seq.truth(pair), start, extra))
+        rows = {n: r['cv'] for n, r in runner.run_trials(raw, trials).items()}
         out[f'{level:.2f}'] = {
-            'realised_fraction': {
-                'mean': float(np.mean(realised)),
-                'min': float(np.min(realised)),
-            },
+            'realised_fraction': {'mean': float(np.mean(realised)),
+                                  'min': float(np.min(realised))},
             'methods': {n: {'summary': _summary(r), 'trials': r} for n, r in rows.items()},
-        }
+        }  # fmt: skip
         logger.info('level %.0f%% done', level * 100)
     return out
 

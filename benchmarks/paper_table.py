@@ -37,30 +37,6 @@ PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
 }  # fmt: skip
 
 
-def run_pair(
-    method: methods.Method, prepared: dict[int, tuple[Any, float]], seq: Data, pair: int,
-    starts: Strs,
-) -> dict[str, dict[str, Any]]:  # fmt: skip
-    """One pair with one method from every start: ``{start: record}``."""
-    target, _ = prepared[pair]
-    source, prep_ms = prepared[pair + 1]
-    out = {}
-    for start in starts:
-        init = np.eye(4) if start == 'identity' else seq.constant_velocity(pair)
-        record: dict[str, Any] = {'pair': pair, 'prepare_ms': prep_ms}
-        try:
-            T, reg_ms = runner.timed(method.register, source, target, init)
-            e_R, e_t = runner.errors(T, seq.truth(pair))
-        except Exception as exc:  # a method that raises (any error) is a failed pair
-            logger.warning('%s on %s pair %d (%s): %s', method.name, seq.name, pair, start, exc)
-            reg_ms, e_R, e_t = float('nan'), float('nan'), float('nan')
-            record['error'] = f'{type(exc).__name__}: {exc}'
-        record.update({'e_R_deg': e_R, 'e_t_m': e_t, 'register_ms': reg_ms})
-        record['ms'] = prep_ms + reg_ms
-        out[start] = record
-    return out
-
-
 def run_sequence(seq: Data, built: Methods, pairs: Ints, starts: Strs, voxel: float) -> dict:
     """Every method on ``pairs`` of ``seq``, pairs outer (every method sees the same load)."""
     needed = sorted({p for p in pairs} | {p + 1 for p in pairs})
@@ -68,20 +44,14 @@ def run_sequence(seq: Data, built: Methods, pairs: Ints, starts: Strs, voxel: fl
     sizes = [len(c) for c in clouds.values()]
     if seq.T_world is None:
         starts = [s for s in starts if s == 'identity']
-    records: dict[str, dict[str, list[dict[str, Any]]]] = {
-        m.name: {s: [] for s in starts} for m in built
-    }
-    cache: dict[str, dict[int, tuple[Any, float]]] = {m.name: {} for m in built}
-    for pair in pairs:
-        for m in built:
-            prepared = cache[m.name]
-            for old in [k for k in prepared if k < pair]:
-                del prepared[old]  # the target is the previous pair's source, prepared once
-            for i in (pair, pair + 1):
-                if i not in prepared:
-                    prepared[i] = runner.timed(m.prepare, clouds[i])
-            for start, rec in run_pair(m, prepared, seq, pair, starts).items():
-                records[m.name][start].append(rec)
+    trials = [
+        runner.Trial(clouds[p], clouds[p + 1], seq.truth(p),
+                     {s: np.eye(4) if s == 'identity' else seq.constant_velocity(p)
+                      for s in starts}, {'pair': p}, keys=(p, p + 1))
+        for p in pairs
+    ]  # fmt: skip
+    raw = [methods.at_fixed_voxel(m, voxel, downsample=False) for m in built]
+    records = runner.run_trials(raw, trials)
     motion = runner.motion_stats(np.stack([seq.truth(p) for p in pairs]))
     points = {'min': min(sizes), 'median': float(np.median(sizes)), 'max': max(sizes)}
     return {

@@ -9,12 +9,13 @@ protocol is in benchmarks/README.md, section 4.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeAlias
 
@@ -51,14 +52,8 @@ QUICK = {'max_input_scans': 25, 'outlier_pairs': 3, 'turned_pairs': 2}
 FAIL_RULE = f'e_R > {FAIL_ROTATION_DEG:g}° or e_t > {FAIL_TRANSLATION_M:g} m'
 
 
-def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: Any, idx: Any) -> dict:
-    """One method's odometry over ``scans`` evaluated like the replay."""
-    if method.name == 'kentreg':
-        run = runner.run_pipeline(lambda: pipelines.KentregPipeline(KentRegConfig()), scans)
-        extra: dict[str, Any] = {'health': run.health}
-    else:
-        run = runner.run_pipeline(lambda: pipelines.scan_to_scan(method), scans)
-        extra = dict(run.health)
+def _stride_entry(run: runner.Run, T_gt: Any, idx: Any) -> dict[str, Any]:
+    """One method's odometry over the strided scans, evaluated like the replay."""
     result = evaluate(run.poses, T_gt)
     e_R = np.asarray(result['pairs']['e_R_deg'], dtype=np.float64)
     e_t = np.asarray(result['pairs']['e_t_m'], dtype=np.float64)
@@ -70,30 +65,37 @@ def _stride_entry(method: methods.RawMethod, scans: list[Any], T_gt: Any, idx: A
         'e_t_m': {'median': float(np.median(e_t)), 'max': float(e_t.max())},
         'ate_rmse_m': None if result['ate'] is None else result['ate']['rmse'],
         'ms_per_scan_median': float(np.median(run.ms_per_scan)),
-        'per_pair': {'e_R_deg': e_R.tolist(), 'e_t_m': e_t.tolist()}, **extra,
+        'per_pair': {'e_R_deg': e_R.tolist(), 'e_t_m': e_t.tolist()},
     }  # fmt: skip
 
 
 def run_strides(data: Data, built: Methods, strides: Sequence[int], max_input: int | None) -> dict:
-    """Odometry of every method over every ``stride``-th scan, evaluated like the replay."""
+    """Odometry of every method over every ``stride``-th scan, evaluated like the replay
+    (kentreg: its ``Odometry`` at ``KentRegConfig()``; the peers scan to scan)."""
     assert data.T_world is not None
     scans = data.scans[:max_input]
+    makers: dict[str, Callable[[], pipelines.Pipeline]] = {
+        m.name: functools.partial(pipelines.scan_to_scan, m) for m in built
+    }
+    if 'kentreg' in makers:
+        makers['kentreg'] = functools.partial(pipelines.KentregPipeline, KentRegConfig())
     out: dict[str, Any] = {}
     for n in strides:
         idx = np.arange(0, len(scans), n)
         T_gt = data.T_world[idx]
         motion = runner.motion_stats(np.linalg.inv(T_gt[:-1]) @ T_gt[1:])
-        block: dict[str, Any] = {'input_indices': idx.tolist(), 'reference_motion': motion,
-                                 'methods': {}}  # fmt: skip
-        for method in built:
-            what, batch = f'{method.name} stride {n}', perturb.stride(n)(scans)
-            entry = runner.guarded(what, _stride_entry, method, batch, T_gt, idx)
-            block['methods'][method.name] = entry
-            if 'failed' in entry:
+        score = functools.partial(_stride_entry, idx=idx)
+        entries = runner.score_pipelines(makers, perturb.stride(n)(scans), T_gt, score=score)
+        for name, scored in entries.items():
+            if 'run' in scored:
+                health = scored['run'].health
+                entry = scored['metrics'] | ({'health': health} if name == 'kentreg' else health)
+                entries[name] = entry
                 failed, ate = f'{entry["failed"]}/{entry["n_pairs"]}', entry['ate_rmse_m']
-                logger.info('strides: N=%d %s: %s failed, ATE %s m', n, method.name, failed,
+                logger.info('strides: N=%d %s: %s failed, ATE %s m', n, name, failed,
                             fmt(ate, '.3f'))  # fmt: skip
-        out[str(n)] = block
+        out[str(n)] = {'input_indices': idx.tolist(), 'reference_motion': motion,
+                       'methods': entries}  # fmt: skip
     return out
 
 
@@ -102,13 +104,33 @@ def _spread(values: Sequence[float], stats: Sequence[str]) -> dict[str, float]:
     return {s: float(getattr(np, s)(values)) for s in stats}
 
 
-def _outlier_summary(recs: list[dict[str, Any]], shares: list[float]) -> dict[str, Any]:
+def _summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The runner's summary, times over the pairs that ran, and kentreg's own failure flags."""
     summ = runner.summarize(recs, finite_times=True)
-    summ['reported_failed'] = sum(r.get('status') == 'failed' for r in recs)
-    summ['outlier_share_after_downsampling'] = float(np.mean(shares)) if shares else float('nan')
-    voxels = [r['voxel_m'] for r in recs if np.isfinite(r['voxel_m'])]
-    summ['voxel_m_median'] = float(np.median(voxels)) if voxels else float('nan')
-    return summ
+    return summ | {'reported_failed': sum(r.get('status') == 'failed' for r in recs)}
+
+
+def _outlier_trial(
+    data: Data, level: float, i: int, pair: int, seed: int, shell_share: float,
+    realised: list[float],
+) -> runner.Trial:  # fmt: skip
+    """Pair ``pair`` (trial ``i``) with raw outliers at ``level`` in both scans, from a start
+    off by the offsets; the realised shares appended to ``realised``."""
+    rng = np.random.default_rng([seed, 2, i])
+    offset = perturb.offset_transform(rng, START_OFFSET_DEG, START_OFFSET_M)
+    rng = np.random.default_rng([seed, 2, i, int(round(level * 1000))])
+    inject = functools.partial(perturb.inject_raw_outliers, shell_share=shell_share)
+    target, tgt_out = inject(data.raw(pair), level, rng)
+    source, src_out = inject(data.raw(pair + 1), level, rng)
+    realised += [tgt_out.mean(), src_out.mean()]
+
+    def mark(row: dict[str, Any]) -> None:
+        if np.isfinite(row['voxel_m']):
+            share = perturb.outlier_voxel_share(source, src_out, row['voxel_m'])
+            row['outlier_share_after_downsampling'] = share
+
+    truth, extra = data.truth(pair), {'trial': i, 'pair': pair}
+    return runner.Trial(target, source, truth, {'': truth @ offset}, extra, mark=mark)
 
 
 def run_outliers(
@@ -118,33 +140,23 @@ def run_outliers(
     """Per level and method, the per-pair records, their summary and the clean-median ratio."""
     out: dict[str, Any] = {}
     for level in levels:
-        rows: dict[str, list[dict[str, Any]]] = {m.name: [] for m in built}
-        shares: dict[str, list[float]] = {m.name: [] for m in built}
-        realised = []
-        for trial, pair in enumerate(pairs):
-            truth = data.truth(pair)
-            rng = np.random.default_rng([seed, 2, trial])
-            offset = perturb.offset_transform(rng, START_OFFSET_DEG, START_OFFSET_M)
-            rng = np.random.default_rng([seed, 2, trial, int(round(level * 1000))])
-            inject = perturb.inject_raw_outliers
-            target, tgt_out = inject(data.raw(pair), level, rng, shell_share=shell_share)
-            source, src_out = inject(data.raw(pair + 1), level, rng, shell_share=shell_share)
-            realised += [tgt_out.mean(), src_out.mean()]
-            for method in built:
-                tgt, failed = runner.prepare_target(method, target)
-                rec = failed or runner.register_pair(method, source, tgt, truth @ offset)
-                row = runner.pair_record(rec, truth, trial=trial, pair=pair)
-                if np.isfinite(row['voxel_m']):
-                    share = perturb.outlier_voxel_share(source, src_out, row['voxel_m'])
-                    row['outlier_share_after_downsampling'] = share
-                    shares[method.name].append(share)
-                rows[method.name].append(row)
-        out[f'{level:.2f}'] = {
-            'realised_share': _spread(realised, ('mean', 'min', 'max')),
-            'methods': {
-                n: {'summary': _outlier_summary(r, shares[n]), 'pairs': r} for n, r in rows.items()
-            },
-        }
+        realised: list[float] = []
+        trials = (_outlier_trial(data, level, i, p, seed, shell_share, realised)
+                  for i, p in enumerate(pairs))  # fmt: skip
+        rows = runner.run_trials(built, trials)
+        methods_out = {}
+        for name, by_start in rows.items():
+            recs = by_start['']
+            shares = [r['outlier_share_after_downsampling'] for r in recs
+                      if 'outlier_share_after_downsampling' in r]  # fmt: skip
+            voxels = [r['voxel_m'] for r in recs if np.isfinite(r['voxel_m'])]
+            summ = _summary(recs) | {
+                'outlier_share_after_downsampling': float(np.mean(shares)) if shares else np.nan,
+                'voxel_m_median': float(np.median(voxels)) if voxels else np.nan,
+            }
+            methods_out[name] = {'summary': summ, 'pairs': recs}
+        spread = _spread(realised, ('mean', 'min', 'max'))
+        out[f'{level:.2f}'] = {'realised_share': spread, 'methods': methods_out}
         logger.info('outliers: %.0f %% done', 100 * level)
     clean = out.get(f'{min(levels):.2f}') if levels else None
     for block in out.values():
@@ -160,38 +172,29 @@ def run_turned(
     data: Data, built: Methods, angles: Sequence[float], pairs: Sequence[int], seed: int
 ) -> dict:
     """Per angle and method, the records of pairs whose source was turned, from the identity."""
-    keys = [f'{a:g}' for a in angles]
-    rows: dict[str, dict[str, list[dict[str, Any]]]] = {
-        k: {m.name: [] for m in built} for k in keys
-    }
-    reference_angle: dict[str, list[float]] = {k: [] for k in keys}
-    for trial, pair in enumerate(pairs):
-        truth = data.truth(pair)
-        targets = {m.name: runner.prepare_target(m, data.raw(pair)) for m in built}
-        for angle, key in zip(angles, keys, strict=True):
-            rng = np.random.default_rng([seed, 3, trial, int(angle)])
-            T_turn = perturb.turn_transform(rng, angle)
-            turned = perturb.transform(T_turn, data.raw(pair + 1))
-            ref = truth @ np.linalg.inv(T_turn)
-            angle_deg = np.degrees(Rotation.from_matrix(ref[:3, :3]).magnitude())
-            reference_angle[key].append(float(angle_deg))
-            for m in built:
-                tgt, failed = targets[m.name]
-                rec = runner.raised('the target could not be prepared') if failed else None
-                # No prior at all: kentreg's register() without init, the peers from identity.
-                rec = rec or runner.register_pair(m, turned, tgt, None)
-                rows[key][m.name].append(runner.pair_record(rec, ref, trial=trial, pair=pair))
-        logger.info('turned: pair %d (%d/%d) done', pair, trial + 1, len(pairs))
+    reference_angle: dict[str, list[float]] = {f'{a:g}': [] for a in angles}
+
+    def trial(i: int, pair: int, angle: float) -> runner.Trial:
+        T_turn = perturb.turn_transform(np.random.default_rng([seed, 3, i, int(angle)]), angle)
+        ref = data.truth(pair) @ np.linalg.inv(T_turn)
+        angle_deg = np.degrees(Rotation.from_matrix(ref[:3, :3]).magnitude())
+        reference_angle[f'{angle:g}'].append(float(angle_deg))
+        turned = perturb.transform(T_turn, data.raw(pair + 1))
+        # No prior at all: kentreg's register() without init, the peers from the identity.
+        extra = {'trial': i, 'pair': pair}
+        return runner.Trial(data.raw(pair), turned, ref, {f'{angle:g}': None}, extra, (pair, None))
+
+    trials = (trial(i, p, a) for i, p in enumerate(pairs) for a in angles)
+    rows = runner.run_trials(built, trials)
     out: dict[str, Any] = {}
-    for key, by_method in rows.items():
-        spread = _spread(reference_angle[key], ('min', 'median', 'max'))
+    for key, degrees in reference_angle.items():
+        spread = _spread(degrees, ('min', 'median', 'max'))
         out[key] = {'reference_rotation_deg': spread, 'methods': {}}
-        for name, recs in by_method.items():
-            summ = runner.summarize(recs, finite_times=True)
+        for name, by_angle in rows.items():
+            summ = _summary(by_angle[key])
             summ['recovered'] = summ['n'] - summ['failures']
             summ['recovered_fraction'] = summ['recovered'] / summ['n'] if summ['n'] else None
-            summ['reported_failed'] = sum(r.get('status') == 'failed' for r in recs)
-            out[key]['methods'][name] = {'summary': summ, 'pairs': recs}
+            out[key]['methods'][name] = {'summary': summ, 'pairs': by_angle[key]}
     return out
 
 

@@ -39,9 +39,8 @@ UNSWEPT_ONLY = ('kiss_icp',)
 NO_DESKEW = 'kentreg_local_map_no_deskew'
 
 
-def _entry(name: str, scans: list[Any], T_gt: Any, voxel: float, cfg: KentRegConfig) -> dict:
-    make = functools.partial(pipelines.make_pipeline, name, config=cfg, voxel=voxel, threads=1)
-    run = runner.run_pipeline(make, scans, warmup=2)
+def _entry(run: runner.Run, T_gt: Any) -> dict[str, Any]:
+    """The numbers of one pipeline on one sequence (:func:`runner.evaluate_run`)."""
     m = runner.evaluate_run(run, T_gt)
     return {'ate_m': m['ate']['rmse'], 'drift_pct': m['drift']['translation_pct'],
             'rpe_frame_m': m['rpe']['translation_m']['rmse'],
@@ -70,15 +69,14 @@ def run_condition(
             scans = perturb.raw_outliers(share, np.random.default_rng([seed, 1]))(scans)
         T_gt = np.asarray(gt.trajectory.T_world_sensor, dtype=np.float64)
         motion, n_scans = simulator.motion_stats(T_gt), len(scans)
-        voxel = prepare_scan(scans[0].points, config=cfg).voxel_size
-        entry: dict[str, Any] = {'seed': seed, 'methods': {}}
-        for name in (n for n in names if n not in skip):
-            what = f'{name} at step {step} seed {seed}'
-            result = runner.guarded(what, _entry, name, scans, T_gt, voxel, cfg)
-            entry['methods'][name] = result
-            if 'error' in result:
-                errors[name] = result['error']
-        runs.append(entry)
+        options = {'config': cfg, 'threads': 1,
+                   'voxel': prepare_scan(scans[0].points, config=cfg).voxel_size}  # fmt: skip
+        makers = {n: functools.partial(pipelines.make_pipeline, n, **options)
+                  for n in names if n not in skip}  # fmt: skip
+        scored = runner.score_pipelines(makers, scans, T_gt, warmup=2, score=_entry)
+        entries = {n: e.get('metrics', e) for n, e in scored.items()}
+        errors |= {n: e['error'] for n, e in entries.items() if 'error' in e}
+        runs.append({'seed': seed, 'methods': entries})
     return {'step_m': step, 'outliers': share, 'sweep_s': sensor.sweep_period,
             'n_scans': n_scans, 'motion': motion, 'runs': runs,
             'summary': summarize_step(runs, names), 'errors': errors}  # fmt: skip

@@ -367,14 +367,15 @@ def kentreg_at_defaults() -> RawMethod:
     return RawMethod('kentreg', prepare, run, lambda prep: float(prep.voxel_size), params)
 
 
-def at_fixed_voxel(method: Method, voxel: float) -> RawMethod:
-    """A registry method on the raw scan downsampled at the data set's fixed ``voxel``."""
+def at_fixed_voxel(method: Method, voxel: float, *, downsample: bool = True) -> RawMethod:
+    """A registry method on the raw scan downsampled at the data set's fixed ``voxel`` (without
+    ``downsample``: on points already downsampled at it)."""
 
     def run(source: Any, target: Any, init: FloatArray | None) -> tuple[FloatArray, dict]:
         return method.register(source, target, np.eye(4) if init is None else init), {}
 
     def prepare(points: FloatArray) -> Any:
-        return method.prepare(voxel_downsample(points, voxel))
+        return method.prepare(voxel_downsample(points, voxel) if downsample else points)
 
     params = {'library': method.library, 'voxel_m': voxel, **method.params}
     return RawMethod(method.name, prepare, run, lambda prep: voxel, params)

@@ -7,6 +7,7 @@ counted in ``n_errors``) and the experiment goes on.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -112,52 +113,62 @@ def summarize(
 
 
 @dataclass
-class Outcome:
-    """One registration: ``T`` (None when the method raised), the prepared source ``prep``
-    (None when its preparation raised), ``ms`` (source preparation + registration), the
-    source's ``voxel_m`` and what the method reported (``info``)."""
+class Trial:
+    """One pair of a pair experiment: raw ``target`` and ``source`` points, the reference
+    ``truth``, the ``starts`` (``{name: init}``; None: the method's own) and the fields of its
+    records (``extra``). ``keys`` name the two scans when trials share them (a target is
+    prepared once per method: the same pair's at several angles, or the previous pair's source);
+    ``mark(record)`` adds to each record."""
 
-    T: FloatArray | None
-    prep: Any = None
-    ms: float = float('nan')
-    voxel_m: float = float('nan')
-    info: dict[str, Any] = field(default_factory=dict)
-
-
-def raised(exc: BaseException | str, prep: Any = None) -> Outcome:
-    """The outcome of a registration that raised (no pose, no time)."""
-    text = exc if isinstance(exc, str) else f'{type(exc).__name__}: {exc}'
-    return Outcome(None, prep, info={'error': text})
+    target: FloatArray
+    source: FloatArray
+    truth: FloatArray
+    starts: Mapping[str, FloatArray | None]
+    extra: dict[str, Any] = field(default_factory=dict)
+    keys: tuple[Any, Any] = (None, None)
+    mark: Callable[[dict[str, Any]], None] | None = None
 
 
-def register_pair(
-    method: RawMethod, source_raw: FloatArray, target_prep: Any, init: FloatArray | None
-) -> Outcome:
-    """Prepare the raw source and register it to the prepared target from ``init``."""
-    src = None
+def _prepare(method: RawMethod, points: FloatArray) -> tuple[Any, float, str | None]:
+    """``(prep, ms, None)``, or ``(None, nan, 'Type: message')`` when the preparation raised."""
     try:
-        src, prep_ms = timed(method.prepare, source_raw)
-        (T, info), reg_ms = timed(method.register, src, target_prep, init)
-    except Exception as exc:  # a method that raises fails the pair
-        logger.warning('%s raised: %s', method.name, exc)
-        return raised(exc, src)
-    return Outcome(T, src, prep_ms + reg_ms, method.voxel(src), info)
-
-
-def pair_record(outcome: Outcome, truth: FloatArray, **extra: Any) -> dict[str, Any]:
-    """The JSON record of an outcome against ``truth``."""
-    e_R, e_t = (float('nan'),) * 2 if outcome.T is None else errors(outcome.T, truth)
-    record = {**extra, 'e_R_deg': e_R, 'e_t_m': e_t, 'ms': outcome.ms}
-    return record | {'voxel_m': outcome.voxel_m, **outcome.info}
-
-
-def prepare_target(method: RawMethod, raw: FloatArray) -> tuple[Any, Outcome | None]:
-    """``(prep, None)``, or ``(None, raised outcome)`` when the preparation raised."""
-    try:
-        return method.prepare(raw), None
+        return (*timed(method.prepare, points), None)
     except Exception as exc:
-        logger.warning('%s cannot prepare the target: %s', method.name, exc)
-        return None, raised(exc)
+        logger.warning('%s cannot prepare a scan: %s', method.name, exc)
+        return None, float('nan'), f'{type(exc).__name__}: {exc}'
+
+
+def run_trials(
+    built: Sequence[RawMethod], trials: Iterable[Trial]
+) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """Every method on every trial from each of its starts, methods inner (every method sees
+    the same load): ``{method: {start: records}}``, a record's ``ms`` the source's preparation
+    plus the registration; a method that raises fails the pair (NaN errors, no time)."""
+    out: dict[str, dict[str, list[dict[str, Any]]]] = {m.name: {} for m in built}
+    cache: dict[str, dict[Any, tuple[Any, float, str | None]]] = {m.name: {} for m in built}
+    for trial in trials:
+        for m in built:
+            old, (tkey, skey) = cache[m.name], trial.keys
+            tgt = old[tkey] if tkey is not None and tkey in old else _prepare(m, trial.target)
+            src = old[skey] if skey is not None and skey in old else _prepare(m, trial.source)
+            cache[m.name] = {tkey: tgt, skey: src}
+            for start, init in trial.starts.items():
+                T, info, reg_ms = None, {'error': tgt[2] or src[2]}, float('nan')
+                if not (tgt[2] or src[2]):
+                    try:
+                        (T, info), reg_ms = timed(m.register, src[0], tgt[0], init)
+                    except Exception as exc:  # a method that raises fails the pair
+                        logger.warning('%s raised: %s', m.name, exc)
+                        info = {'error': f'{type(exc).__name__}: {exc}'}
+                nan = float('nan')
+                e_R, e_t = (nan, nan) if T is None else errors(T, trial.truth)
+                record = {**trial.extra, 'e_R_deg': e_R, 'e_t_m': e_t, 'ms': src[1] + reg_ms}
+                record |= {'prepare_ms': src[1], 'register_ms': reg_ms}
+                record |= {'voxel_m': nan if T is None else m.voxel(src[0]), **info}
+                if trial.mark is not None:
+                    trial.mark(record)
+                out[m.name].setdefault(start, []).append(record)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -240,6 +251,33 @@ def evaluate_run(run: Run, T_gt: FloatArray) -> dict[str, Any]:
     result['speed'] = {'ms_per_scan': metrics.summarize(run.ms_per_scan),
                        'points_used_per_scan': metrics.summarize(run.points_used)}  # fmt: skip
     return result
+
+
+def score_pipelines(
+    makers: Mapping[str, Callable[[], Pipeline]], scans: Sequence[Scan], T_gt: FloatArray, *,
+    rounds: int = 1, warmup: int = 0, combine: bool = False,
+    score: Callable[[Run, FloatArray], dict[str, Any]] = evaluate_run,
+) -> dict[str, dict[str, Any]]:  # fmt: skip
+    """Every pipeline over ``scans`` (:func:`run_pipeline`) in ``rounds`` rotated rounds, its
+    run (the rounds' :func:`combine_rounds` with ``combine``, else the first) scored against
+    ``T_gt``: ``{name: {'run': Run, 'metrics': score(run, T_gt)}}``, or ``{'error': ...}`` for
+    a pipeline that raised (not run again)."""
+    runs: dict[str, list[Run]] = {name: [] for name in makers}
+    out: dict[str, dict[str, Any]] = {}
+    step = functools.partial(run_pipeline, warmup=warmup)
+    for _, name in rotated(list(makers), rounds):
+        if name not in out:
+            run = guarded(name, step, makers[name], scans)
+            if isinstance(run, dict):
+                out[name] = run
+            else:
+                runs[name].append(run)
+
+    def scored(runs: list[Run]) -> dict[str, Any]:
+        run = combine_rounds(runs) if combine else runs[0]
+        return {'run': run, 'metrics': score(run, T_gt)}
+
+    return {n: out[n] if n in out else guarded(n, scored, runs[n]) for n in makers}
 
 
 def in_subprocess(
