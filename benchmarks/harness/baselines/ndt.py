@@ -82,14 +82,9 @@ def build_grid(
     pts = np.asarray(points, dtype=np.float64)
     keys = _cell_keys(np.floor(pts / resolution).astype(np.int64))
     uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    n_cells = len(uniq)
-    sums = np.stack([np.bincount(inverse, pts[:, a], n_cells) for a in range(3)], axis=1)
-    outer = np.empty((n_cells, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            s = np.bincount(inverse, pts[:, a] * pts[:, b], n_cells)
-            outer[:, a, b] = s
-            outer[:, b, a] = s
+    weights = np.concatenate([pts, (pts[:, :, None] * pts[:, None, :]).reshape(-1, 9)], axis=1)
+    moments = np.stack([np.bincount(inverse, w, len(uniq)) for w in weights.T], axis=1)
+    sums, outer = moments[:, :3], moments[:, 3:].reshape(-1, 3, 3)
     keep = counts >= min_points
     n = counts[keep].astype(np.float64)
     means = sums[keep] / n[:, None]
@@ -159,10 +154,7 @@ def ndt_derivatives(grid: NDTGrid, y: FloatArray) -> tuple[float, FloatArray, Fl
     g_p = np.concatenate([b, np.cross(yp, b)], axis=1)  # q^T Sigma^-1 J, (P, 6)
     gradient = d2 * (e @ g_p)
     # sum_p e_p J^T A J with J = [I, -Y], Y = [y]x (Y^T = -Y): blocks A, -A Y, Y A, -Y A Y.
-    Y = np.zeros((len(yp), 3, 3))
-    Y[:, 0, 1], Y[:, 0, 2] = -yp[:, 2], yp[:, 1]
-    Y[:, 1, 0], Y[:, 1, 2] = yp[:, 2], -yp[:, 0]
-    Y[:, 2, 0], Y[:, 2, 1] = -yp[:, 1], yp[:, 0]
+    Y = np.cross(yp[:, None, :], np.eye(3)).transpose(0, 2, 1)  # column j: y x e_j
     AY = A @ Y
     eAY = np.einsum('p,pij->ij', e, AY)
     JtAJ = np.empty((6, 6))
