@@ -12,7 +12,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TypeAlias
+from typing import Any
 
 import numpy as np
 
@@ -25,10 +25,6 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('outliers')
 
 LEVELS = (0.0, 0.1, 0.2, 0.3, 0.4)
-Data: TypeAlias = datasets.Sequence
-Methods: TypeAlias = Sequence[methods.Method]
-Floats: TypeAlias = Sequence[float]
-Ints: TypeAlias = Sequence[int]
 
 
 def _summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -42,8 +38,9 @@ def _summary(recs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(
-    seq: Data, built: Methods, levels: Floats, trial_pairs: Ints, voxel: float, seed: int
-) -> dict:
+    seq: datasets.Sequence, built: Sequence[methods.Method], levels: Sequence[float],
+    trial_pairs: Sequence[int], voxel: float, seed: int,
+) -> dict:  # fmt: skip
     """Per level and method, the per-trial records and their summary."""
     raw = [methods.at_fixed_voxel(m, voxel, downsample=False) for m in built]
     inject = perturb.inject_free_voxel_outliers

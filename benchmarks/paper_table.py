@@ -12,7 +12,7 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TypeAlias
+from typing import Any
 
 import numpy as np
 
@@ -25,10 +25,6 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 logger = logging.getLogger('paper_table')
 
 STARTS = ('identity', 'constant_velocity')
-Data: TypeAlias = datasets.Sequence
-Methods: TypeAlias = Sequence[methods.Method]
-Ints: TypeAlias = Sequence[int]
-Strs: TypeAlias = Sequence[str]
 #: The paper's Table 1 (ETH Hauptgebaeude, from identity): average e_R (deg), e_t (m).
 PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
     'icp_pt2pt': ('ICP', 1.27, 0.403), 'icp_pt2pl': ('ICPp2pl', 0.57, 0.164),
@@ -37,7 +33,10 @@ PAPER_TABLE1: dict[str, tuple[str, float, float]] = {
 }  # fmt: skip
 
 
-def run_sequence(seq: Data, built: Methods, pairs: Ints, starts: Strs, voxel: float) -> dict:
+def run_sequence(
+    seq: datasets.Sequence, built: Sequence[methods.Method], pairs: Sequence[int],
+    starts: Sequence[str], voxel: float,
+) -> dict:  # fmt: skip
     """Every method on ``pairs`` of ``seq``, pairs outer (every method sees the same load)."""
     needed = sorted({p for p in pairs} | {p + 1 for p in pairs})
     clouds = {i: methods.voxel_downsample(seq.raw(i), voxel) for i in needed}

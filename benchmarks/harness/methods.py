@@ -239,22 +239,19 @@ def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -
 
 
 def _baseline_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
+    from benchmarks.harness.baselines import cicp, ndt
+
+    more = {'cicp': {'min_sigma': CICP_MIN_SIGMA_VOXELS * voxel}}
+    table: dict[str, tuple[Callable[..., Any], Callable[..., FloatArray], dict[str, Any]]] = {
+        'ndt': (ndt.ndt_prepare, ndt.ndt_register, ndt.NDT_DEFAULTS),
+        'cicp': (cicp.cicp_prepare, cicp.cicp_register, cicp.CICP_DEFAULTS),
+    }
     out = []
-    if 'ndt' in names:
-        from benchmarks.harness.baselines.ndt import NDT_DEFAULTS, ndt_prepare, ndt_register
-
-        run_ndt = functools.partial(ndt_register, max_iterations=MAX_ITERATIONS)
-        params = {**NDT_DEFAULTS, 'max_iterations': MAX_ITERATIONS}
-        out.append(Method('ndt', 'baseline', ndt_prepare, run_ndt, params))
-    if 'cicp' in names:
-        from benchmarks.harness.baselines.cicp import CICP_DEFAULTS, cicp_prepare, cicp_register
-
-        min_sigma = CICP_MIN_SIGMA_VOXELS * voxel
-        run_cicp = functools.partial(
-            cicp_register, max_iterations=MAX_ITERATIONS, min_sigma=min_sigma
-        )
-        params = {**CICP_DEFAULTS, 'max_iterations': MAX_ITERATIONS, 'min_sigma': min_sigma}
-        out.append(Method('cicp', 'baseline', cicp_prepare, run_cicp, params))
+    for name in names:
+        prepare, register, defaults = table[name]
+        settings = {'max_iterations': MAX_ITERATIONS, **more.get(name, {})}
+        run = functools.partial(register, **settings)
+        out.append(Method(name, 'baseline', prepare, run, {**defaults, **settings}))
     return out
 
 

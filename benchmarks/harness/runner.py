@@ -58,14 +58,9 @@ def errors(T_est: FloatArray, T_true: FloatArray) -> tuple[float, float]:
     return float(e_R[0]), float(e_t[0])
 
 
-def is_failure(e_R: float, e_t: float) -> bool:
-    """e_R > 2 deg or e_t > 0.2 m, or a method that raised (NaN errors)."""
-    return bool(failed_pairs(e_R, e_t))
-
-
-def failure_mask(e_R: FloatArray, e_t: FloatArray) -> NDArray[np.bool_]:
-    """:func:`is_failure` of arrays of errors, element by element (NaN counts as failed)."""
-    return failed_pairs(e_R, e_t)
+#: Failed pairs of arrays of errors, element by element: e_R > 2 deg or e_t > 0.2 m, or NaN
+#: errors (a method that raised).
+failure_mask = failed_pairs
 
 
 def motion_stats(T_rel: FloatArray) -> dict[str, float]:
@@ -153,7 +148,9 @@ def run_trials(
             src = old[skey] if skey is not None and skey in old else _prepare(m, trial.source)
             cache[m.name] = {tkey: tgt, skey: src}
             for start, init in trial.starts.items():
-                T, info, reg_ms = None, {'error': tgt[2] or src[2]}, float('nan')
+                T: FloatArray | None = None
+                info: dict[str, Any] = {'error': tgt[2] or src[2]}
+                reg_ms = float('nan')
                 if not (tgt[2] or src[2]):
                     try:
                         (T, info), reg_ms = timed(m.register, src[0], tgt[0], init)
