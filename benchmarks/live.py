@@ -4,7 +4,7 @@ The node started as a user starts it, a 10 Hz stream of raw scans (``kitti_hdl64
 street frames; ``balm_10hz``: the BALM scans at five times their rate) published without
 waiting for it over Fast DDS (the shipped shared-memory profile, or loopback UDP). Per run
 (:func:`measure_live`): drops, publish-to-odometry latency, CPU per core and of the node; beside
-it the sequential loop's stages (:func:`measure_stages`), sequential against pipelined
+it the sequential loop's stages and sequential against pipelined
 throughput (:func:`measure_throughput`) and ``per_scan.py``'s table from the same run.
 """
 
@@ -40,19 +40,8 @@ Scans = Sequence[NDArray[Any]]
 
 #: The shipped profile: shared memory plus UDP on 127.0.0.1.
 SHM_PROFILE = ROOT / 'config' / 'fastdds_shm.xml'
-#: UDP on loopback only (the tests' profile before shared memory), written where it is used.
-UDP_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors><transport_descriptor>
-    <transport_id>loopback_udp</transport_id><type>UDPv4</type>
-    <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
-  </transport_descriptor></transport_descriptors>
-  <participant profile_name="loopback_only" is_default_profile="true"><rtps>
-    <userTransports><transport_id>loopback_udp</transport_id></userTransports>
-    <useBuiltinTransports>false</useBuiltinTransports>
-  </rtps></participant>
-</profiles>
-"""
+#: UDP on loopback only (the tests' profile before shared memory): large clouds get lost.
+UDP_PROFILE = ROOT / 'benchmarks' / 'fastdds_udp.xml'
 #: Seconds the node gets after start-up before the stream (its worker process imports and
 #: loads the compiled kernels; a sensor does not wait for it, but a user starts the node first).
 SETTLE_S = 4.0
@@ -71,11 +60,9 @@ def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int]
     return scans, stamps, rate
 
 
-def _node_env(profile: str, tmp: Path) -> dict[str, str]:
+def _node_env(profile: str) -> dict[str, str]:
     env = dict(os.environ) | {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    path = SHM_PROFILE if profile == 'shm' else tmp / 'fastdds_udp.xml'
-    if profile != 'shm':
-        path.write_text(UDP_PROFILE)
+    path = SHM_PROFILE if profile == 'shm' else UDP_PROFILE
     env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(path)
     env.setdefault('ROS_DOMAIN_ID', os.environ.get('KENTREG_TEST_ROS_DOMAIN_ID', '77'))
     env['PYTHONPATH'] = os.pathsep.join(p for p in (str(ROOT), env.get('PYTHONPATH')) if p)
@@ -171,9 +158,11 @@ def measure_live(
 
 
 def _node_command(ns: str, diagnostics: str, model: str, pipeline: str) -> list[str]:
-    """``kentreg_node`` in namespace ``ns`` with the model and pipeline under test."""
+    """``kentreg_node`` in namespace ``ns`` with the model and pipeline under test (and the
+    ``name:=value`` parameters of ``KENTREG_LIVE_PARAMS``, space-separated, for a variant)."""
     remap = ['-r', f'__ns:={ns}', '-r', f'{diagnostics}:={ns}/diagnostics']
-    params = [f'model:={model}', f'pipeline:={pipeline}', 'diagnostics_period:=1.0']
+    params = [f'model:={model}', f'pipeline:={pipeline}', 'diagnostics_period:=1.0',
+              *os.environ.get('KENTREG_LIVE_PARAMS', '').split()]  # fmt: skip
     node = [sys.executable, '-m', 'kentreg_ros.ros.node', '--ros-args', *remap]
     return node + [arg for p in params for arg in ('-p', p)]
 
@@ -217,30 +206,20 @@ def _quantiles(values: NDArray[Any]) -> dict[str, float]:
     return {'p50': p50, 'p95': p95, 'max': round(float(np.max(values)), 1)}
 
 
-def measure_stages(scans: Scans, stamps: Sequence[int], *, model: str) -> dict[str, Any]:
-    """Median stage times per scan of the sequential loop, the first excluded: wall times of
-    the stages and the CPU time of the whole step (run it with one BLAS thread, as
-    :func:`main` does, for a one-thread figure)."""
-    from kentreg_ros.core import KentRegConfig, Odometry
-
-    odometry = Odometry(KentRegConfig().with_updates({'odometry.model': model}))
-    rows: dict[str, list[float]] = {}
-    for points, stamp in zip(scans, stamps, strict=True):
-        t0, c0 = time.perf_counter(), time.process_time()
-        step = odometry.step(points, stamp)
-        wall, cpu = 1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)
-        if step.index == 0:
-            continue
+def _timed_step(odometry: Any, points: Any, stamp: int, rows: dict[str, list[float]]) -> Any:
+    """One sequential step; its stage times (ms: prepare, register, model upkeep, total wall and
+    CPU time, what it costs whatever shares the core) appended to ``rows``, the first scan's
+    (prepare only) left out. Returns the pose."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    step = odometry.step(points, stamp)
+    wall, cpu = 1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)
+    if step.index:
         pre, reg = step.timings.get('preprocess', 0.0), step.timings.get('register', 0.0)
-        # cpu: the CPU time of the step, what it costs whatever else shares the core.
         values = {'prepare': pre, 'register': reg, 'model': wall - pre - reg, 'total': wall,
                   'cpu': cpu}  # fmt: skip
         for key, value in values.items():
             rows.setdefault(key, []).append(value)
-    return {k: round(float(np.median(v)), 1) for k, v in rows.items()} | {
-        'total_p95': round(float(np.percentile(rows['total'], 95)), 1),
-        'cpu_p95': round(float(np.percentile(rows['cpu'], 95)), 1),
-    }
+    return step.T_world_lidar
 
 
 def measure_throughput(
@@ -256,11 +235,13 @@ def measure_throughput(
     poses: dict[str, list[FloatArray]] = {}
     cpu: dict[str, list[float]] = {'sequential': [], 'main': [], 'worker': []}
     n = len(scans)
+    stages: dict[str, list[float]] = {}
     for _ in range(rounds):
         sequential = Odometry(config)
         t0, c0 = time.perf_counter(), time.process_time()
-        pairs = zip(scans, stamps, strict=True)
-        poses['sequential'] = [sequential.step(p, s).T_world_lidar for p, s in pairs]
+        poses['sequential'] = [
+            _timed_step(sequential, p, s, stages) for p, s in zip(scans, stamps, strict=True)
+        ]
         times['sequential'].append(1e3 * (time.perf_counter() - t0) / n)
         cpu['sequential'].append(1e3 * (time.process_time() - c0) / n)
         with PipelinedOdometry(config) as pipelined:
@@ -285,8 +266,11 @@ def measure_throughput(
     identical = all(np.array_equal(a, b) for a, b in compared)
     # CPU per scan (all threads of the process; the worker's from /proc): what each core would
     # have to give, whatever else runs on the machine.
+    quantiles = {k: round(float(np.median(v)), 1) for k, v in stages.items()}
+    for key in ('total', 'cpu'):
+        quantiles[f'{key}_p95'] = round(float(np.percentile(stages[key], 95)), 1)
     return {
-        'sequential_ms': round(seq, 1), 'pipelined_ms': round(pipe, 1),
+        'stages': quantiles, 'sequential_ms': round(seq, 1), 'pipelined_ms': round(pipe, 1),
         'speedup': round(seq / pipe, 2), 'poses_identical': identical,
         'rounds_ms': {k: [round(v, 1) for v in vs] for k, vs in times.items()},
         **{f'{k}_cpu_ms': round(float(np.median(cpu[k])), 1) for k in cpu},
@@ -321,17 +305,15 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
                 f'live: {stream} {model} stages/throughput (load {os.getloadavg()[0]:.2f})',
                 flush=True,
             )
-            for kind in ('stages', 'throughput'):
-                entry[kind][model] = _in_child(
-                    kind, stream, options.scans, {'model': model}, _node_env('shm', tmp)
-                )
+            th = _in_child('throughput', stream, options.scans, {'model': model}, _node_env('shm'))
+            entry['stages'][model], entry['throughput'][model] = th.pop('stages'), th
             runs = itertools.product(options.dds, options.pipelines, range(options.rounds))
             for profile, pipeline, r in runs:
                 load, how = (
                     os.getloadavg()[0],
                     {'model': model, 'pipeline': pipeline, 'profile': profile},
                 )
-                env = _node_env(profile, tmp)
+                env = _node_env(profile)
                 res = _in_child('live', stream, options.scans, how, env, options.live_nice)
                 res['round'], res['load_before'] = r, round(load, 2)
                 res['load_after'] = round(os.getloadavg()[0], 2)
@@ -431,7 +413,7 @@ def render(doc: dict[str, Any]) -> str:
 
 
 MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
-    'live': measure_live, 'stages': measure_stages, 'throughput': measure_throughput,
+    'live': measure_live, 'throughput': measure_throughput,
 }  # fmt: skip
 OPTIONS: list[tuple[str, dict[str, Any]]] = [
     ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),

@@ -5,7 +5,6 @@ beyond half the smallest scan, downsampled at the edge giving about N points) fr
 reference off by 1 deg / 5 cm; per pair the target is prepared once untimed and the source
 prepared + registered ``--repeats`` times; each library runs in its own pinned subprocess, in
 ``--rounds`` rotated rounds; ratios are to small_gicp GICP in the same run (README section 3).
-``--io``: the best and median time of kentreg_ros.io's conversions and readers (printed).
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -233,70 +231,6 @@ def plot(doc: dict[str, Any], path: Path) -> None:
     report.plot_panels(path, [[times, ratios]], size=(13.5, 5))
 
 
-def _ouster_like(n: int, rng: np.random.Generator) -> Any:
-    """A rosbags PointCloud2 laid out like an Ouster driver's: 48-byte points, 128 rows."""
-    from kentreg_ros.io.pointcloud2 import rosbags_factory
-
-    names = ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range']
-    formats = ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4']
-    offsets = [0, 4, 8, 16, 20, 24, 26, 28, 32]
-    layout = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': 48})
-    arr = np.zeros(n, layout)
-    for c in 'xyz':
-        arr[c] = rng.normal(scale=20, size=n)
-    arr['x'][::50] = np.nan  # 2 % invalid returns, as an organised cloud has
-    fac, codes = rosbags_factory(), {'f4': 7, 'u4': 6, 'u2': 4}
-    fields = [fac.point_field(name=name, offset=offset, datatype=codes[form[1:]], count=1)
-              for name, offset, form in zip(names, offsets, formats, strict=True)]  # fmt: skip
-    header = fac.header(stamp=fac.time(sec=0, nanosec=0), frame_id='os_lidar')
-    return fac.point_cloud2(header=header, height=128, width=n // 128, fields=fields,
-                            is_bigendian=False, point_step=48, row_step=48 * (n // 128),
-                            data=arr.view(np.uint8), is_dense=False)  # fmt: skip
-
-
-def io_times(repeat: int) -> None:
-    """Print the best and median ms of kentreg_ros.io's conversions and readers (the best is
-    the cost without interference from other processes on a shared machine)."""
-    from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, pointcloud2_to_array
-    from kentreg_ros.io.scanfiles import read_pcd
-    from kentreg_ros.io.sources import open_scan_source
-
-    rng, n = np.random.default_rng(0), 100_000
-    packed = array_to_pointcloud2(
-        rng.normal(scale=20, size=(n, 3)), extra={'intensity': rng.random(n).astype(np.float32)}
-    )
-    ouster, xyz = _ouster_like(n - n % 128, rng), rng.normal(size=(n, 3))
-    packed_name, balm = 'PointCloud2 100k xyz+intensity (16 B) -> (N,3)', datasets.SHARED_DATA
-    operations: list[tuple[str, Callable[[], Any], int]] = [
-        (f'{packed_name} float64, no extras', lambda: pointcloud2_to_array(packed, fields=()),
-         repeat),
-        (f'{packed_name} float64 + intensity', lambda: pointcloud2_to_array(packed), repeat),
-        (f'{packed_name} float32, no extras',
-         lambda: pointcloud2_to_array(packed, fields=(), dtype=np.float32), repeat),
-        ('PointCloud2 99,968 Ouster-like 48 B, 128 rows, 2 % NaN -> (N,3) + 6 fields',
-         lambda: pointcloud2_to_array(ouster), repeat),
-        ('(N,3) float64 100k -> PointCloud2 float32 (rosbags message)',
-         lambda: array_to_pointcloud2(xyz), repeat),
-    ]  # fmt: skip
-    if (balm / 'balm' / 'full0.pcd').is_file():
-        operations.append(
-            (
-                'read_pcd BALM full0.pcd (73,452 points, binary)',
-                lambda: read_pcd(balm / 'balm' / 'full0.pcd'),
-                max(repeat // 10, 5),
-            )
-        )
-    if datasets.SAMPLE_BAG.is_dir():
-        operations.append(('open_scan_source bags/balm_50: all 50 scans (zstd MCAP)',
-                           lambda: list(open_scan_source(datasets.SAMPLE_BAG)), 3))  # fmt: skip
-    width = max(len(name) for name, *_ in operations)
-    print(f'{"operation":<{width}}  {"best ms":>8}  {"median ms":>9}')
-    for name, fn, times in operations:
-        fn()  # warm up
-        ms = [runner.timed(fn)[1] for _ in range(times)]
-        print(f'{name:<{width}}  {min(ms):8.3f}  {float(np.median(ms)):9.3f}')
-
-
 OPTIONS: list[report.Option] = [
     ('--input', {'type': Path, 'default': datasets.SHARED_DATA / 'balm', 'metavar': 'FOLDER',
                  'help': 'raw scan folder with its pose file'}),
@@ -309,8 +243,6 @@ OPTIONS: list[report.Option] = [
                        'help': 'seconds per method and size: fewer repeats for slower cells'}),
     ('--threads', {'type': int, 'default': 1, 'help': 'threads per library process'}),
     ('--rounds', {'type': int, 'default': 2, 'help': 'rotated rounds (default 2)'}),
-    ('--io', {'type': int, 'nargs': '?', 'const': 200, 'metavar': 'REPEATS',
-              'help': 'time kentreg_ros.io instead (default 200 repeats)'}),
     ('--data', {'type': Path, 'help': argparse.SUPPRESS}),
 ]  # fmt: skip
 
@@ -369,9 +301,6 @@ def summarize_results(doc: dict[str, Any], samples: dict[str, Any], names: list[
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     if min(args.threads, args.pairs, args.repeats, args.rounds) < 1:
         raise SystemExit('--threads, --pairs, --repeats and --rounds must be >= 1')
-    if args.io:
-        io_times(args.io)
-        raise SystemExit(0)
     names = [REFERENCE] + [m for m in args.methods if m != REFERENCE]
     libraries: dict[str, list[str]] = {}
     for name in names:

@@ -24,8 +24,8 @@ frames and TF are :mod:`kentreg_ros.ros.frames`, the outputs and the map of the 
 diagnostics :mod:`kentreg_ros.ros.diagnostics`. ``qos_overrides.<topic>.<publisher|
 subscription>.{history,depth,reliability}`` apply to the input and every output topic.
 
-Threading: the subscription callback only decodes the message (a numpy view, ~0.3 ms for 100k
-points) and puts the scan into a bounded queue; one worker thread runs
+Threading: the subscription callback only decodes the message (numpy views of its buffer) and
+puts the scan into a bounded queue; one worker thread runs
 :class:`~kentreg_ros.core.odometry.Odometry` and publishes. When the queue is full the oldest
 scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
 is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
