@@ -11,7 +11,6 @@ throughput (:func:`measure_throughput`) and ``per_scan.py``'s table from the sam
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import os
 import subprocess
@@ -20,7 +19,8 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from itertools import product
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.harness import report, runner  # noqa: E402
 from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
-from benchmarks.harness.report import RESULTS, git_describe, machine_info  # noqa: E402
+from benchmarks.harness.report import git_describe, machine_info  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 Scans = Sequence[NDArray[Any]]
@@ -282,17 +282,24 @@ def _in_child(
     niceness: int = 10,
 ) -> Any:  # fmt: skip
     """Run one measurement in a fresh process (its own DDS environment, no state carried)."""
-    cmd = ['nice', '-n', str(niceness), sys.executable, __file__, '--child', kind, stream, str(n)]
-    out = subprocess.run(
-        [*cmd, json.dumps(kwargs)], capture_output=True, text=True, env=env, timeout=900
-    )
-    for line in out.stdout.splitlines():
-        if line.startswith('RESULT'):
-            return json.loads(line[len('RESULT') :])
-    raise RuntimeError(f'{kind} {stream} {kwargs} failed:\n{out.stderr[-3000:]}')
+    how = json.dumps(kwargs | {'nice': niceness})
+    result = runner.in_subprocess(__file__, ['--child', kind, stream, str(n), how], env=env)
+    if 'error' in result:
+        raise RuntimeError(f'{kind} {stream} {kwargs} failed: {result["error"]}')
+    return result
 
 
-def run(options: argparse.Namespace) -> dict[str, Any]:
+def run_child(args: argparse.Namespace) -> dict[str, Any]:
+    """The measurement of ``--child KIND STREAM N JSON`` (in its own process, at its niceness)."""
+    kind, stream, n, text = args.child
+    kwargs = json.loads(text)
+    os.nice(kwargs.pop('nice'))
+    scans, stamps, rate = load_stream(stream, int(n))
+    measure = measure_live if kind == 'live' else measure_throughput
+    return measure(scans, stamps, **kwargs | ({'rate_hz': rate} if kind == 'live' else {}))
+
+
+def run(options: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     """Every measurement of the options; the result document."""
     tmp = Path(tempfile.mkdtemp(prefix='kentreg_live_'))
     doc: dict[str, Any] = {'benchmark': 'live', 'commit': git_describe(),
@@ -301,27 +308,22 @@ def run(options: argparse.Namespace) -> dict[str, Any]:
     for stream in options.streams:
         entry: dict[str, Any] = {'live': [], 'stages': {}, 'throughput': {}}
         for model in options.models:
-            print(
-                f'live: {stream} {model} stages/throughput (load {os.getloadavg()[0]:.2f})',
-                flush=True,
-            )
+            print(f'live: {stream} {model} throughput (load {os.getloadavg()[0]:.2f})', flush=True)
             th = _in_child('throughput', stream, options.scans, {'model': model}, _node_env('shm'))
             entry['stages'][model], entry['throughput'][model] = th.pop('stages'), th
-            runs = itertools.product(options.dds, options.pipelines, range(options.rounds))
-            for profile, pipeline, r in runs:
+            for dds, pipeline, r in product(options.dds, options.pipelines, range(options.rounds)):
                 load, how = (
                     os.getloadavg()[0],
-                    {'model': model, 'pipeline': pipeline, 'profile': profile},
+                    {'model': model, 'pipeline': pipeline, 'profile': dds},
                 )
-                env = _node_env(profile)
-                res = _in_child('live', stream, options.scans, how, env, options.live_nice)
-                res['round'], res['load_before'] = r, round(load, 2)
-                res['load_after'] = round(os.getloadavg()[0], 2)
+                res = _in_child(
+                    'live', stream, options.scans, how, _node_env(dds), options.live_nice
+                )
+                res |= {'round': r, 'load_before': round(load, 2),
+                        'load_after': round(os.getloadavg()[0], 2)}  # fmt: skip
                 entry['live'].append(res)
-                lat = res['latency_ms']
-                print(f'live: {stream} {model} {pipeline} {profile}: dropped {res["dropped"]}/'
-                      f'{res["published"]}, latency p50 {lat["p50"]} p95 {lat["p95"]} ms, cores '
-                      f'{res["cpu_pct_per_core"]} (load {load:.2f})', flush=True)  # fmt: skip
+                print(f'live: {stream} {model} {pipeline} {dds}: dropped {res["dropped"]}, '
+                      f'latency {res["latency_ms"]} ms', flush=True)  # fmt: skip
         doc['streams'][stream] = entry
     if options.per_scan:
         out = tmp / 'per_scan'
@@ -412,10 +414,7 @@ def render(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-MEASURES: dict[str, Callable[..., dict[str, Any]]] = {
-    'live': measure_live, 'throughput': measure_throughput,
-}  # fmt: skip
-OPTIONS: list[tuple[str, dict[str, Any]]] = [
+OPTIONS: list[report.Option] = [
     ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),
     ('--models', {'nargs': '+', 'default': ['previous_scan', 'local_map']}),
     ('--pipelines', {'nargs': '+', 'default': ['process', 'sequential']}),
@@ -428,29 +427,10 @@ OPTIONS: list[tuple[str, dict[str, Any]]] = [
                      'publisher; default 0, as a user runs them: on a shared machine, work at a '
                      'higher niceness then takes the leftover CPU); the offline measurements run '
                      'at 10'}),
-    ('--out', {'type': Path, 'default': RESULTS}),
     ('--child', {'nargs': 4, 'help': argparse.SUPPRESS}),  # one measurement
 ]  # fmt: skip
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for flag, kwargs in OPTIONS:
-        parser.add_argument(flag, **kwargs)
-    options = parser.parse_args(argv)
-    if options.child:
-        kind, stream, n, kwargs = options.child
-        scans, stamps, rate = load_stream(stream, int(n))
-        kw = json.loads(kwargs) | ({'rate_hz': rate} if kind == 'live' else {})
-        print('RESULT' + json.dumps(MEASURES[kind](scans, stamps, **kw)))
-        return 0
-    doc = run(options)
-    options.out.mkdir(parents=True, exist_ok=True)
-    report.write_json(options.out / 'live.json', doc)
-    (options.out / 'live.md').write_text(report.relative_paths(render(doc)))
-    print(f'live: wrote {options.out / "live.json"} and live.md')
-    return 0
-
-
 if __name__ == '__main__':
-    raise SystemExit(main())
+    main = report.experiment_main
+    raise SystemExit(main(__doc__, 'live', OPTIONS, run, render, worker=run_child))
