@@ -8,6 +8,7 @@ import pytest
 
 from kentreg_ros.core import ConfigError, KentRegConfig
 from kentreg_ros.io.params import (
+    NodeSettings,
     dump_config,
     effective_config,
     load_config,
@@ -122,3 +123,21 @@ def test_the_replay_takes_exponent_numbers_from_set(tmp_path: Path) -> None:
         code = main([*argv, '--out', str(out), '--set', 'em.tolerance=1e-3'])
     assert code == 0, err.getvalue()
     assert load_config(out / 'config.yaml').em.tolerance == 1e-3
+
+
+@pytest.mark.parametrize(('text', 'expected'), [('off', 'off'), ('on', 'on'), ("'off'", 'off')])
+def test_off_and_on_unquoted_in_yaml_are_the_choices_they_spell(
+    text: str, expected: str, tmp_path: Path
+) -> None:
+    """YAML 1.1 (ROS parameter files, ``-p name:=value``) reads an unquoted off/on as a boolean:
+    ``deskew: off`` must still be the choice 'off', not an error about False."""
+    path = tmp_path / 'c.yaml'
+    path.write_text(f'/**:\n  ros__parameters:\n    odometry:\n      deskew: {text}\n')
+    assert load_config(path).odometry.deskew == expected
+    assert KentRegConfig().with_updates({'odometry.deskew': expected == 'on'}).odometry.deskew == (
+        expected
+    )
+    settings = NodeSettings(registered_cloud=False)  # what `-p registered_cloud:=off` gives
+    assert settings.registered_cloud == 'off'
+    with pytest.raises(ConfigError, match='one of'):
+        NodeSettings(pipeline=False)  # no 'off' among its choices: still an error

@@ -162,6 +162,13 @@ def coerce_value(name: str, value: Any, hint: Any) -> Any:
     if isinstance(hint, types.UnionType):
         hint = hint.__args__[0]
     if isinstance(hint, type) and issubclass(hint, StrEnum):
+        if isinstance(value, bool):
+            # YAML 1.1, which ROS parameter files and `-p name:=value` are read with, turns an
+            # unquoted off/on (and no/yes, false/true) into a boolean: `deskew: off` or
+            # `registered_cloud:=off` arrive as False. Read them as the choice they spell.
+            spelled = 'on' if value else 'off'
+            if spelled in [m.value for m in hint]:
+                return hint(spelled)
         try:
             return hint(value)
         except ValueError:
