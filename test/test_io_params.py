@@ -137,6 +137,9 @@ def test_off_and_on_unquoted_in_yaml_are_the_choices_they_spell(
     assert KentRegConfig().with_updates({'odometry.deskew': expected == 'on'}).odometry.deskew == (
         expected
     )
+
+
+def test_node_parameters_take_an_unquoted_off() -> None:
     settings = NodeSettings(registered_cloud=False)  # what `-p registered_cloud:=off` gives
     assert settings.registered_cloud == 'off'
     with pytest.raises(ConfigError, match='one of'):
