@@ -28,11 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT))  # the repository, for benchmarks.*
 
-from benchmarks.harness import report, runner  # noqa: E402
-from benchmarks.harness.datasets import load_balm, load_kitti_hdl64  # noqa: E402
+from benchmarks.harness import datasets, report, runner  # noqa: E402
 from benchmarks.harness.report import git_describe, machine_info  # noqa: E402
 
 FloatArray = NDArray[np.float64]
@@ -47,17 +45,18 @@ UDP_PROFILE = ROOT / 'benchmarks' / 'fastdds_udp.xml'
 SETTLE_S = 4.0
 #: Seconds after the last scan to wait for its odometry.
 DRAIN_S = 3.0
+#: The streams (10 Hz) and the data sets they replay.
+STREAMS = {'kitti_hdl64': 'kitti_raw_hdl64', 'balm_10hz': 'balm'}
+#: The node's diagnostics totals each run records.
+DIAGNOSTIC_TOTALS = ('received', 'published', 'dropped_queue', 'errors', 'fell_back')
 
 
 def load_stream(name: str, n: int) -> tuple[list[NDArray[np.float32]], list[int], float]:
     """The first ``n`` scans of a stream as float32 (N, 3), their stamps (ns) and its rate."""
-    loaders = {'kitti_hdl64': load_kitti_hdl64, 'balm_10hz': load_balm}
-    if name not in loaders:
-        raise ValueError(f'unknown stream {name!r}')
-    scans = [np.asarray(s.points, dtype=np.float32) for s in loaders[name]().scans[:n]]
-    rate = 10.0
-    stamps = [1_700_000_000 * 10**9 + int(i * 1e9 / rate) for i in range(len(scans))]
-    return scans, stamps, rate
+    sequence = datasets.load_dataset(STREAMS[name])
+    scans = [np.asarray(s.points, dtype=np.float32) for s in sequence.scans[:n]]
+    stamps = [1_700_000_000 * 10**9 + int(i * 1e9 / 10.0) for i in range(len(scans))]
+    return scans, stamps, 10.0
 
 
 def _node_env(profile: str) -> dict[str, str]:
@@ -90,12 +89,11 @@ def measure_live(
     from kentreg_ros.io import names
     from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
 
-    ns = f'/live_{uuid.uuid4().hex[:8]}'
+    ns, log = f'/live_{uuid.uuid4().hex[:8]}', tempfile.TemporaryFile()
     cmd = _node_command(ns, names.DIAGNOSTICS, model, pipeline)
-    log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
     rclpy.init()
-    node = rclpy.create_node(f'live_bench_{uuid.uuid4().hex[:8]}')
+    node = rclpy.create_node(f'live_bench_{ns[6:]}')
     received: dict[int, float] = {}
     diagnostics: list[dict[str, str]] = []
 
@@ -104,19 +102,15 @@ def measure_live(
         received.setdefault(stamp.sec * 10**9 + stamp.nanosec, time.monotonic())
 
     def on_diag(msg: Any) -> None:
-        for status in msg.status:
-            diagnostics.append({kv.key: kv.value for kv in status.values})
+        diagnostics.extend({kv.key: kv.value for kv in s.values} for s in msg.status)
 
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    threading.Thread(target=executor.spin, daemon=True).start()
     try:
         factory = rclpy_factory(PointCloud2, PointField, Header, Time)
-        messages = [
-            array_to_pointcloud2(p, frame_id='lidar', stamp_ns=s, factory=factory)
-            for p, s in zip(scans, stamps, strict=True)
-        ]
+        messages = [array_to_pointcloud2(p, frame_id='lidar', stamp_ns=s, factory=factory)
+                    for p, s in zip(scans, stamps, strict=True)]  # fmt: skip
         pub = node.create_publisher(PointCloud2, f'{ns}/{names.POINTS}', qos_profile_sensor_data)
         odom_topic = f'{ns}/{names.ODOMETRY}'
         node.create_subscription(OdometryMsg, odom_topic, on_odom, 50)
@@ -124,15 +118,15 @@ def measure_live(
         deadline = time.monotonic() + 60.0
         while pub.get_subscription_count() == 0 or node.count_publishers(odom_topic) == 0:
             if time.monotonic() > deadline or proc.poll() is not None:
-                raise RuntimeError(f'kentreg_node did not come up:\n{_log_text(log)}')
+                log.seek(0)
+                text = log.read().decode(errors='replace')[-3000:]
+                raise RuntimeError(f'kentreg_node did not come up:\n{text}')
             time.sleep(0.05)
         time.sleep(SETTLE_S)
         cpu0, node0, t0 = runner.cpu_times(), runner.tree_cpu_s(proc.pid), time.monotonic()
         sent: dict[int, float] = {}
-        period = 1.0 / rate_hz
         for i, (msg, stamp) in enumerate(zip(messages, stamps, strict=True)):
-            due = t0 + i * period
-            time.sleep(max(0.0, due - time.monotonic()))
+            time.sleep(max(0.0, t0 + i / rate_hz - time.monotonic()))
             sent[stamp] = time.monotonic()
             pub.publish(msg)
         stream_s = time.monotonic() - t0
@@ -143,14 +137,22 @@ def measure_live(
         node.destroy_node()
         rclpy.try_shutdown()
         _stop_node(proc)
+    by_scan = [round(1e3 * (received[s] - sent[s]), 1) if s in received else None for s in stamps]
     latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
     cores = [round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
              for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)]  # fmt: skip
-    by_scan = [round(1e3 * (received[s] - sent[s]), 1) if s in received else None for s in stamps]
+    last, keys = diagnostics[-1] if diagnostics else {}, DIAGNOSTIC_TOTALS
+    quantiles = [round(float(np.percentile(latency, q)), 1) if len(latency) else float('nan')
+                 for q in (50, 95, 100)]  # fmt: skip
     return {
         'model': model, 'pipeline': pipeline, 'dds': profile, 'rate_hz': rate_hz,
-        **_delivery(len(sent), latency, diagnostics), 'cpu_pct_per_core': cores,
-        'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
+        'published': len(sent), 'processed': len(latency), 'dropped': len(sent) - len(latency),
+        'dropped_pct': round(100.0 * (len(sent) - len(latency)) / max(len(sent), 1), 1),
+        'latency_ms': dict(zip(('p50', 'p95', 'max'), quantiles, strict=True)),
+        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
+        'node_latency_ms_mean_max': [(d.get('latency_ms_mean'), d.get('latency_ms_max'))
+                                     for d in diagnostics],
+        'cpu_pct_per_core': cores, 'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
         'exit_code': proc.returncode,
         'missing': [i for i, s in enumerate(stamps) if s not in received],
         'latency_by_scan_ms': by_scan,
@@ -175,35 +177,6 @@ def _stop_node(proc: subprocess.Popen[bytes]) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
-
-
-def _delivery(
-    n_sent: int, latency: NDArray[Any], diagnostics: list[dict[str, str]]
-) -> dict[str, Any]:
-    """Published, processed and dropped scans, the latency and the node's own diagnostics."""
-    last = diagnostics[-1] if diagnostics else {}
-    keys = ('received', 'published', 'dropped_queue', 'errors', 'fell_back')
-    return {
-        'published': n_sent, 'processed': int(len(latency)),
-        'dropped': n_sent - int(len(latency)),
-        'dropped_pct': round(100.0 * (n_sent - len(latency)) / max(n_sent, 1), 1),
-        'latency_ms': _quantiles(latency),
-        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
-        'node_latency_ms_mean_max': [(d.get('latency_ms_mean'), d.get('latency_ms_max'))
-                                     for d in diagnostics],
-    }  # fmt: skip
-
-
-def _log_text(log: Any) -> str:
-    log.seek(0)
-    return log.read().decode(errors='replace')[-3000:]
-
-
-def _quantiles(values: NDArray[Any]) -> dict[str, float]:
-    if not len(values):
-        return dict.fromkeys(('p50', 'p95', 'max'), float('nan'))
-    p50, p95 = (round(float(np.percentile(values, q)), 1) for q in (50, 95))
-    return {'p50': p50, 'p95': p95, 'max': round(float(np.max(values)), 1)}
 
 
 def _timed_step(odometry: Any, points: Any, stamp: int, rows: dict[str, list[float]]) -> Any:
@@ -415,7 +388,7 @@ def render(doc: dict[str, Any]) -> str:
 
 
 OPTIONS: list[report.Option] = [
-    ('--streams', {'nargs': '+', 'default': ['kitti_hdl64', 'balm_10hz']}),
+    ('--streams', {'nargs': '+', 'default': list(STREAMS), 'choices': list(STREAMS)}),
     ('--models', {'nargs': '+', 'default': ['previous_scan', 'local_map']}),
     ('--pipelines', {'nargs': '+', 'default': ['process', 'sequential']}),
     ('--dds', {'nargs': '+', 'default': ['shm'], 'choices': ['shm', 'udp']}),

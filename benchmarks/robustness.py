@@ -22,9 +22,7 @@ from typing import Any, TypeAlias
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from benchmarks.harness import datasets, methods, perturb, pipelines, report, runner  # noqa: E402
 from benchmarks.harness.report import fmt, table  # noqa: E402

@@ -24,9 +24,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from benchmarks.harness import methods, perturb, pipelines, report, runner, simulator  # noqa: E402
 from kentreg_ros.core import KentRegConfig, prepare_scan  # noqa: E402
