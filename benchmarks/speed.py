@@ -74,8 +74,7 @@ def build_clouds(
     reference motions (``n{N}_reference``) of every size, and how they were made."""
 
     def submap(k: int) -> FloatArray:
-        T = seq.relative(k, k + 1)
-        return np.vstack([seq.raw(k), seq.raw(k + 1) @ T[:3, :3].T + T[:3, 3]])
+        return np.vstack([seq.raw(k), perturb.transform(seq.relative(k, k + 1), seq.raw(k + 1))])
 
     n_scans, rng = len(seq.scans), np.random.default_rng(seed)
     smallest = min(len(seq.scans[k].points) for k in pair_starts(n_scans, n_pairs, 1))

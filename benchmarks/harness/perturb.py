@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core import voxel_downsample
+from kentreg_ros.core import make_transform, voxel_downsample
 from kentreg_ros.io.sources import Scan
 
 FloatArray = NDArray[np.float64]
@@ -159,10 +159,8 @@ def offset_transform(rng: np.random.Generator, degrees: float, metres: float) ->
     """A rotation of ``degrees`` about a random axis and a translation of ``metres``: a start
     ``T_true @ offset_transform(...)`` is off by exactly that (e_R, e_t)."""
     axis, direction = _unit(rng), _unit(rng)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
-    T[:3, 3] = metres * direction
-    return T
+    rotation = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+    return make_transform(rotation, metres * direction)
 
 
 def turn_transform(rng: np.random.Generator, degrees: float) -> FloatArray:

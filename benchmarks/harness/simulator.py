@@ -27,6 +27,8 @@ from kentreg_ros.io import open_recording
 from kentreg_ros.io.poses import Trajectory
 from kentreg_ros.io.sources import Scan
 
+from .perturb import transform
+
 FloatArray = NDArray[np.float64]
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -88,10 +90,7 @@ def build_world(path: Path, voxel: float) -> World:
     scans = list(recording.source)
     if len(scans) != len(T):
         raise SystemExit(f'{path}: {len(scans)} scans but {len(T)} reference poses')
-    parts = [
-        np.asarray(s.points, dtype=np.float64) @ Ti[:3, :3].T + Ti[:3, 3]
-        for s, Ti in zip(scans, T, strict=True)
-    ]
+    parts = [transform(Ti, s.points) for s, Ti in zip(scans, T, strict=True)]
     stamps = recording.reference.stamps_ns
     period = float(np.median(np.diff(stamps))) * 1e-9 if stamps is not None else 0.1
     return World(thin(np.concatenate(parts), voxel), T, period)

@@ -18,6 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from kentreg_ros.core import make_transform
+
 FloatArray = NDArray[np.float64]
 
 #: Settings used by :func:`cicp_register` (recorded in the benchmark results).
@@ -53,10 +55,7 @@ def weighted_rigid_fit(x: FloatArray, y: FloatArray, w: FloatArray) -> FloatArra
     U, _, Vt = np.linalg.svd(C)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = my - R @ mx
-    return T
+    return make_transform(R, my - R @ mx)
 
 
 def cicp_register(

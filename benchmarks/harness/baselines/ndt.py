@@ -24,6 +24,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from kentreg_ros.core import make_transform
+
+from ..perturb import transform
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -157,11 +161,8 @@ def ndt_derivatives(grid: NDTGrid, y: FloatArray) -> tuple[float, FloatArray, Fl
     Y = np.cross(yp[:, None, :], np.eye(3)).transpose(0, 2, 1)  # column j: y x e_j
     AY = A @ Y
     eAY = np.einsum('p,pij->ij', e, AY)
-    JtAJ = np.empty((6, 6))
-    JtAJ[:3, :3] = np.einsum('p,pij->ij', e, A)
-    JtAJ[:3, 3:] = -eAY
-    JtAJ[3:, :3] = -eAY.T
-    JtAJ[3:, 3:] = -np.einsum('p,pij->ij', e, Y @ AY)
+    JtAJ = np.block([[np.einsum('p,pij->ij', e, A), -eAY],
+                     [-eAY.T, -np.einsum('p,pij->ij', e, Y @ AY)]])  # fmt: skip
     # Point-Hessian term q^T Sigma^-1 d2y/dw_i dw_j = (y_i b_j + b_i y_j) / 2 - (b . y) delta_ij.
     ey = yp * e[:, None]
     yb = ey.T @ b
@@ -173,14 +174,7 @@ def ndt_derivatives(grid: NDTGrid, y: FloatArray) -> tuple[float, FloatArray, Fl
 
 
 def _apply(delta: FloatArray, T: FloatArray) -> FloatArray:
-    step = np.eye(4)
-    step[:3, :3] = Rotation.from_rotvec(delta[3:]).as_matrix()
-    step[:3, 3] = delta[:3]
-    return step @ T
-
-
-def _transform(T: FloatArray, x: FloatArray) -> FloatArray:
-    return x @ T[:3, :3].T + T[:3, 3]
+    return make_transform(Rotation.from_rotvec(delta[3:]).as_matrix(), delta[:3]) @ T
 
 
 def _newton_step(gradient: FloatArray, hessian: FloatArray) -> FloatArray:
@@ -198,7 +192,7 @@ def ndt_align_level(
     max_step_rotation: float = NDT_DEFAULTS['max_step_rotation'],
 ) -> tuple[FloatArray, int]:  # fmt: skip
     """Newton iterations on one grid from ``T`` (4, 4); returns ``(T, iterations)``."""
-    score, gradient, hessian = ndt_derivatives(grid, _transform(T, x))
+    score, gradient, hessian = ndt_derivatives(grid, transform(T, x))
     it = 0
     for it in range(1, max_iterations + 1):
         delta = _newton_step(gradient, hessian)
@@ -214,7 +208,7 @@ def ndt_align_level(
         accepted = False
         for _ in range(6):  # backtracking line search on the score
             T_new = _apply(delta, T)
-            new_score = ndt_score(grid, _transform(T_new, x))
+            new_score = ndt_score(grid, transform(T_new, x))
             if new_score < score:
                 accepted = True
                 break
@@ -222,7 +216,7 @@ def ndt_align_level(
         if not accepted:
             break
         T = T_new
-        score, gradient, hessian = ndt_derivatives(grid, _transform(T, x))
+        score, gradient, hessian = ndt_derivatives(grid, transform(T, x))
     return T, it
 
 
