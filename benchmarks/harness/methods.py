@@ -130,9 +130,7 @@ def pin_threads(threads: int, argv: Sequence[str], script: str) -> None:
 
 
 def _open3d_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
-    if threads is not None:
-        os.environ['OMP_NUM_THREADS'] = str(threads)
-    import open3d as o3d
+    import open3d as o3d  # OMP_NUM_THREADS is set by make_methods (limit_threads)
 
     if threads is not None:
         o3d.utility.set_max_threads(threads)
@@ -196,7 +194,7 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
     params = {'max_correspondence_distance': gate, 'max_iterations': MAX_ITERATIONS,
               'covariance_neighbors': NORMAL_NEIGHBORS, 'threads': n_threads,
               'convergence': 'small_gicp defaults (0.1 deg, 1 mm)'}  # fmt: skip
-    return [Method('gicp', 'small_gicp', prepare, run, params)] if 'gicp' in names else []
+    return [Method('gicp', 'small_gicp', prepare, run, params)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -204,8 +202,6 @@ def _small_gicp_methods(names: Sequence[str], voxel: float, threads: int | None)
 
 
 def _kiss_icp_methods(names: Sequence[str], voxel: float, threads: int | None) -> list[Method]:
-    if 'kiss_icp' not in names:
-        return []
     from kiss_icp.mapping import VoxelHashMap
     from kiss_icp.registration import Registration
 

@@ -205,15 +205,12 @@ def ndt_align_level(
         delta *= scale
         if np.linalg.norm(delta[:3]) + np.linalg.norm(delta[3:]) < tolerance:
             break
-        accepted = False
         for _ in range(6):  # backtracking line search on the score
             T_new = _apply(delta, T)
-            new_score = ndt_score(grid, transform(T_new, x))
-            if new_score < score:
-                accepted = True
+            if ndt_score(grid, transform(T_new, x)) < score:
                 break
             delta *= 0.5
-        if not accepted:
+        else:  # no step lowered the score
             break
         T = T_new
         score, gradient, hessian = ndt_derivatives(grid, transform(T, x))
