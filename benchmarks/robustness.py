@@ -266,10 +266,8 @@ def _e_t(entry: dict[str, Any]) -> str:
 
 def _failures(entry: dict[str, Any]) -> str:
     s = entry['summary']
-    share, ms = (
-        fmt(100 * s['outlier_share_after_downsampling'], '.0f'),
-        fmt(s['ms']['median'], '.0f'),
-    )
+    share = fmt(100 * s['outlier_share_after_downsampling'], '.0f')
+    ms = fmt(s['ms']['median'], '.0f')
     return f'{s["failures"]}/{s["n"]}{_raised_note(s)}, {share} %, {ms} ms'
 
 
@@ -287,21 +285,15 @@ def _outliers_md(outliers: dict[str, Any]) -> list[str]:
         'contaminated raw scans; start = reference perturbed by '
         f'{meta["start_offset"]["degrees"]:g}° about a random axis and '
         f'{meta["start_offset"]["metres"]:g} m.',
-        '',
-        "*e_R (°): median (× the method's own outlier-free median) / mean*",
-        '',
-        *table(head, report.method_rows(levels, _e_R)),
-        '',
-        '*e_t (m): median / mean*',
-        '',
-        *table(head, report.method_rows(levels, _e_t)),
-        '',
-        f'*Failures ({FAIL_RULE}; "raised": the method threw an exception, counted as '
-        'failed); outlier share among the points the method downsampled to; median ms per '
-        'pair that ran (source preparation + registration)*',
-        '',
-        *table(head, report.method_rows(levels, _failures)),
     ]
+    for caption, cell in (
+        ("*e_R (°): median (× the method's own outlier-free median) / mean*", _e_R),
+        ('*e_t (m): median / mean*', _e_t),
+        (f'*Failures ({FAIL_RULE}; "raised": the method threw an exception, counted as '
+         'failed); outlier share among the points the method downsampled to; median ms per '
+         'pair that ran (source preparation + registration)*', _failures),
+    ):  # fmt: skip
+        lines += ['', caption, '', *table(head, report.method_rows(levels, cell))]
     kentreg = {k: b['methods']['kentreg']['summary'] for k, b in levels.items()
                if 'kentreg' in b['methods']}  # fmt: skip
     if kentreg:

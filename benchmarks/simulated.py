@@ -114,11 +114,6 @@ def _input_text(step: dict[str, Any]) -> str:
     return f'{100 * share:.0f} % raw outliers' if share else 'clean'
 
 
-def _ratio(s: dict[str, Any]) -> str:
-    r = s['ate_ratio_to_kentreg']
-    return f'{r["median"]:.2f} ({r["min"]:.2f}–{r["max"]:.2f})'
-
-
 #: The columns of the table: a row per step, condition and method.
 COLUMNS: list[report.Column] = [
     ('step [m]', lambda r: r['step']['step_m']),
@@ -128,7 +123,8 @@ COLUMNS: list[report.Column] = [
      lambda r: '{rotation_median_deg:.1f}, {rotation_max_deg:.1f}'.format(**r['step']['motion'])),
     ('method', 'name:s'),
     ('ATE median [mm]', lambda r: f'{1e3 * r["ate_m_median"]:.2f}'),
-    ('ATE / kentreg: median (range)', _ratio),
+    ('ATE / kentreg: median (range)',
+     lambda r: '{median:.2f} ({min:.2f}–{max:.2f})'.format(**r['ate_ratio_to_kentreg'])),
     ('drift [%]', 'drift_pct_median:.2f'),
     ('RPE/frame [mm]', lambda r: f'{1e3 * r["rpe_frame_m_median"]:.2f}'),
     ('failures', lambda r: f'{r["failed_pairs"]} / {r["pairs"]}'),
@@ -209,16 +205,12 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         'machine': report.machine_info(), 'input': str(args.input),
         'world': {'voxel_m': world_voxel, 'points': len(world.points), 'period_s': world.period},
         'sensor': dataclasses.asdict(sensor), 'seeds': args.seeds, 'methods': args.methods,
-        'steps': [],
     }  # fmt: skip
     conditions = [(share, sensor) for share in args.outliers]
     if sweep > 0.0:
         conditions.append((0.0, dataclasses.replace(sensor, sweep_period=sweep)))
-    for step in args.steps:
-        for share, sens in conditions:
-            doc['steps'].append(
-                run_condition(world, step, share, args.methods, args.seeds, sens, cfg)
-            )
+    doc['steps'] = [run_condition(world, step, share, args.methods, args.seeds, sens, cfg)
+                    for step in args.steps for share, sens in conditions]  # fmt: skip
     doc['seconds'] = time.perf_counter() - t_start
     report.finish_machine(doc['machine'])
     return doc
