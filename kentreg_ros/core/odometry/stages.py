@@ -238,7 +238,8 @@ class Verifier:
 
     A registration from the prediction is *doubtful* when it failed, breaks the speed limits
     (``odometry.max_*_speed``) or fits clearly worse than the recent accepted steps
-    (``odometry.doubt_ratio`` of the median of ``fits``). Then the start-free search runs too
+    (``odometry.doubt_ratio`` of the median of ``fits``; of 1, the best fit there is, before
+    the first accepted step). Then the start-free search runs too
     and :func:`~kentreg_ros.core.registration.verify.choose_pose` chooses among the plausible
     poses, preferring the one nearest the prediction among those that fit about equally.
     """
@@ -274,10 +275,17 @@ class Verifier:
             return why_implausible
         if not np.isfinite(result.fit):
             return ''  # paper mode: no fit to judge by
-        if not fits:
-            return 'no accepted step yet to compare its fit with'
-        median = float(np.median(fits))
         ratio = self.config.odometry.doubt_ratio
+        if not fits:
+            # No accepted step yet: the best fit any pose can have (1, every point on a
+            # matching surface) stands in for the recent median. A wrong minimum loses whole
+            # families of surfaces: from the identity, right results fitted 0.70-0.92 and wrong
+            # ones at most 0.50 (test_first_fit_separates_right_from_wrong_minima), so only a
+            # first fit below doubt_ratio pays for the start-free search.
+            if result.fit < ratio:
+                return f'its fit {result.fit:.2f} is below {ratio} with no accepted step yet'
+            return ''
+        median = float(np.median(fits))
         if result.fit < ratio * median:
             return f'its fit {result.fit:.2f} is below {ratio} x the recent median {median:.2f}'
         return ''
