@@ -1,8 +1,8 @@
 """The one renderer: results JSON, markdown tables, line plots and the run's provenance.
 
-An experiment writes ``<stem>.json`` (its numbers, :func:`write_json`), ``<stem>.md`` (its
-tables, built with :func:`table` and :func:`fmt` from that JSON only, so ``--table`` can render
-a committed JSON again) and optionally ``<stem>.png`` (:func:`plot_panels`).
+An experiment writes ``<stem>.json`` (its numbers) and ``<stem>.md`` (its tables, built with
+:func:`table` and :func:`fmt` from that JSON only, so ``--table`` can render a committed JSON
+again) with :func:`write_results`, and optionally ``<stem>.png`` (:func:`plot_panels`).
 ``benchmarks/render_readme.py`` pastes the ``.md`` files into the READMEs.
 """
 
@@ -99,17 +99,11 @@ def relative_paths(text: str) -> str:
     return text.replace(tempfile.gettempdir().rstrip('/') + '/', '$TMPDIR/')
 
 
-def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as indented JSON (numpy values as Python values, NaN written as null),
-    with :func:`relative_paths`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(relative_paths(json.dumps(jsonable(data), indent=1)) + '\n')
-
-
 def write_results(out: Path, stem: str, data: Any, text: str) -> None:
-    """``<stem>.json`` and ``<stem>.md`` in ``out`` (with :func:`relative_paths`); the table
-    is printed too."""
-    write_json(out / f'{stem}.json', data)
+    """``<stem>.json`` (``data`` as indented JSON: numpy values as Python values, NaN written
+    as null) and ``<stem>.md`` (``text``, printed too) in ``out``, with :func:`relative_paths`."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f'{stem}.json').write_text(relative_paths(json.dumps(jsonable(data), indent=1)) + '\n')
     (out / f'{stem}.md').write_text(relative_paths(text))
     print(text)
 
