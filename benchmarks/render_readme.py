@@ -32,10 +32,8 @@ def _stat(summary: dict[str, Any], key: str, stat: str, scale: float = 1.0) -> s
 def _commit(meta: dict[str, Any]) -> str:
     """The commit a results file records (the benchmarks name it in slightly different keys)."""
     machine: dict[str, Any] = meta['machine'] if isinstance(meta.get('machine'), dict) else {}
-    for value in (machine.get('git'), machine.get('git_commit'), meta.get('git')):
-        if value:
-            return str(value)
-    return 'an unrecorded commit'
+    commit = machine.get('git') or machine.get('git_commit') or meta.get('git')
+    return str(commit or 'an unrecorded commit')
 
 
 def _paper_paragraph(paper: dict[str, Any] | None) -> str:

@@ -166,10 +166,6 @@ def _total(c: dict[str, Any]) -> str:
     return f'{c["total_ms"]:.1f} ms ({c["ratio_to_gicp"]:.2f}×{fail})'
 
 
-def _parts(c: dict[str, Any]) -> str:
-    return f'{c["prepare_ms"]:.1f} / {c["register_ms"]:.1f}'
-
-
 def format_table(doc: dict[str, Any]) -> str:
     """Markdown: median ms per pair (prepare + register) and the ratio to GICP, per N."""
     sizes, results = list(doc['clouds']), doc['results']
@@ -185,7 +181,7 @@ def format_table(doc: dict[str, Any]) -> str:
         f'{FAIL_TRANSLATION_M:g} m) out of {doc["pairs"]} pairs.', '',
         *report.table(head, rows(_total)), '',
         'The two parts, median ms: source preparation / registration.', '',
-        *report.table(head, rows(_parts)),
+        *report.table(head, rows(lambda c: f'{c["prepare_ms"]:.1f} / {c["register_ms"]:.1f}')),
     ]  # fmt: skip
     reduced = [f'{name} N≈{int(s) // 1000}k ({c["n_samples"]})'
                for name, cells in results.items() for s, c in cells.items()
