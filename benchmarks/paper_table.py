@@ -20,8 +20,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from benchmarks.harness import datasets, methods, perturb, report, runner  # noqa: E402
 
-logger = logging.getLogger('paper_table')
-
 STARTS = ('identity', 'constant_velocity')
 #: The paper's Table 1 (ETH Hauptgebaeude, from identity): average e_R (deg), e_t (m).
 PAPER_TABLE1: dict[str, tuple[str, float, float]] = {

@@ -13,7 +13,6 @@ are exact: they define the sequence. ``simulated.py --write`` writes one as a sc
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,8 +40,6 @@ ELEVATION_DEG = (-45.0, 45.0)
 #: Time slices of a sweep: the points of a slice share the pose of its middle (at 10 Hz,
 #: 0.5 ms: 0.6 mm at 1.2 m/s, 0.2 mm per 10 m at 30 deg/s).
 SWEEP_SLICES = 200
-
-logger = logging.getLogger('simulate')
 
 
 @dataclass(frozen=True)
