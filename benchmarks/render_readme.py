@@ -130,10 +130,9 @@ def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
     """``text`` with every block pasted between its markers; also the names without markers."""
     missing = []
     for name, body in blocks.items():
-        pattern = re.compile(
-            rf'(<!-- BEGIN {re.escape(name)} -->\n).*?(<!-- END {re.escape(name)} -->)', re.S
+        found = re.search(
+            rf'(<!-- BEGIN {re.escape(name)} -->\n).*?(<!-- END {re.escape(name)} -->)', text, re.S
         )
-        found = pattern.search(text)
         if found is None:
             missing.append(name)
             continue

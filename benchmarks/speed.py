@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
@@ -28,7 +27,6 @@ from benchmarks.harness import datasets, methods, perturb, report, runner  # noq
 from kentreg_ros.core import count_voxels  # noqa: E402
 from kentreg_ros.eval.metrics import FAIL_ROTATION_DEG, FAIL_TRANSLATION_M  # noqa: E402
 
-FloatArray = NDArray[np.float64]
 SIZES = (3000, 10000, 30000, 100000)
 REFERENCE = 'gicp'
 #: Which library each method loads (one process per library).
@@ -55,7 +53,7 @@ def pair_starts(n_scans: int, n_pairs: int, span: int) -> list[int]:
     return [int(k) for k in np.unique(starts)]
 
 
-def voxel_for_count(points: FloatArray, count: int, *, iterations: int = 24) -> float:
+def voxel_for_count(points: runner.FloatArray, count: int, *, iterations: int = 24) -> float:
     """Voxel edge keeping about ``count`` points: bisection in log size (the occupied-voxel
     count falls monotonically, up to grid noise, with the edge)."""
     if count >= len(points):
@@ -73,7 +71,7 @@ def build_clouds(
     """The clouds (``n{N}_source_{i}``, ``n{N}_target_{i}``), starts (``n{N}_init``) and
     reference motions (``n{N}_reference``) of every size, and how they were made."""
 
-    def submap(k: int) -> FloatArray:
+    def submap(k: int) -> runner.FloatArray:
         return np.vstack([seq.raw(k), perturb.transform(seq.relative(k, k + 1), seq.raw(k + 1))])
 
     n_scans, rng = len(seq.scans), np.random.default_rng(seed)
@@ -281,11 +279,9 @@ def summarize_results(doc: dict[str, Any], samples: dict[str, Any], names: list[
             cell['register_ratio_to_gicp'] = (
                 cell['register_ms'] / ref['register_ms'] if ref else None
             )
-    drift = {}
-    for size, cell in samples.get(REFERENCE, {}).items():
-        per_round = [float(np.median(np.add(c['prepare_ms'], c['register_ms']))) for c in cell]
-        if len(per_round) > 1:
-            drift[size] = max(per_round) / min(per_round)
+    per_round = {size: [float(np.median(np.add(c['prepare_ms'], c['register_ms']))) for c in cell]
+                 for size, cell in samples.get(REFERENCE, {}).items()}  # fmt: skip
+    drift = {size: max(t) / min(t) for size, t in per_round.items() if len(t) > 1}
     doc['gicp_drift'] = {'max': max(drift.values()), 'per_size': drift,
                          'measure': 'slowest / fastest round'} if drift else None  # fmt: skip
     doc['results'] = results

@@ -299,15 +299,11 @@ def in_subprocess(
 
 
 def cpu_times() -> list[tuple[int, int]]:
-    """(busy, total) jiffies of every core (/proc/stat)."""
-    out = []
-    with open('/proc/stat') as f:
-        for line in f:
-            if line.startswith('cpu') and line[3].isdigit():
-                v = [int(x) for x in line.split()[1:]]
-                idle = v[3] + v[4]
-                out.append((sum(v) - idle, sum(v)))
-    return out
+    """(busy, total) jiffies of every core (/proc/stat); busy: all but idle and iowait."""
+    lines = Path('/proc/stat').read_text().splitlines()
+    per_core = [line for line in lines if line.startswith('cpu') and line[3].isdigit()]
+    jiffies = [[int(x) for x in line.split()[1:]] for line in per_core]
+    return [(sum(v) - v[3] - v[4], sum(v)) for v in jiffies]
 
 
 def tree_cpu_s(pid: int) -> float:
