@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
@@ -27,7 +26,6 @@ from kentreg_ros.core import prepare_scan  # noqa: E402
 from kentreg_ros.eval import metrics  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
 
-FloatArray = NDArray[np.float64]
 METHODS = pipelines.ODOMETRY
 TIMING = (
     'wall time of everything a pipeline does with one scan (preprocessing included, reading '
@@ -153,7 +151,7 @@ OPTIONS: list[report.Option] = [
 
 
 def _entries(
-    names: Sequence[str], scans: list[Any], T_gt: FloatArray, options: dict[str, Any],
+    names: Sequence[str], scans: list[Any], T_gt: runner.FloatArray, options: dict[str, Any],
     rounds: int, full: bool = True,
 ) -> dict[str, dict[str, Any]]:  # fmt: skip
     """Every pipeline in ``rounds`` rotated rounds after a two-scan warm-up, evaluated (its error

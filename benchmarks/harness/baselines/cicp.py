@@ -24,12 +24,8 @@ FloatArray = NDArray[np.float64]
 
 #: Settings used by :func:`cicp_register` (recorded in the benchmark results).
 CICP_DEFAULTS: dict[str, Any] = {
-    'sigma0': 1.0,
-    'decay': 0.96,
-    'max_iterations': 100,
-    'min_sigma': 0.0,
-    'tolerance': 1e-4,
-}
+    'sigma0': 1.0, 'decay': 0.96, 'max_iterations': 100, 'min_sigma': 0.0, 'tolerance': 1e-4,
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
