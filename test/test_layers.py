@@ -161,10 +161,6 @@ def test_benchmarks_never_import_a_command_line(path: Path) -> None:
 BENCHMARK_LINES = 4500
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason='benchmarks/ is still over the bar (about 4,610 lines); drop this mark when it passes',
-)
 def test_the_benchmarks_stay_under_the_house_issues_line_bar() -> None:
     total = sum(len(p.read_text().splitlines()) for p in BENCHMARKS.rglob('*.py'))
     assert total < BENCHMARK_LINES, (
