@@ -228,13 +228,10 @@ def test_local_map_odometry_recovers_known_trajectory() -> None:
     # The room is 20 x 14 m: the map radius (the reach of the last scan) keeps it whole, and
     # the map is denser than one scan but bounded by the voxel count, not by 8 scans.
     assert len(lmap) < 8 * steps[-1].n_prepared
-    # Its voxel is twice the first scan's (odometry.map_voxel_size = 0), which keeps it near a
-    # scan's size; an explicit size is taken as given.
-    # (This room is sparse enough to be used as given: its spacing is the points' own.)
+    # Its voxel is the first scan's spacing (odometry.map_voxel_size = 0; this room is sparse
+    # enough to be used as given, so its points' own spacing); an explicit size is kept.
     first = prepare_scan(clouds[0], config=LOCAL_MAP)
-    assert lmap.voxel_size == pytest.approx(
-        2.0 * (first.voxel_size or nearest_spacing(first.points))
-    )
+    assert lmap.voxel_size == pytest.approx(first.voxel_size or nearest_spacing(first.points))
     fixed = Odometry(LOCAL_MAP.with_updates({'odometry.map_voxel_size': 0.3}))
     run(fixed, clouds[:2])
     assert fixed.local_map is not None and fixed.local_map.voxel_size == 0.3

@@ -351,7 +351,7 @@ class LocalMap:
 
     Notes
     -----
-    What is maintained incrementally and what is not:
+    What is maintained incrementally and what is not (measured on the sample, ~40k map points):
 
     - points and normals: a point is the running mean of the scan points merged into it, its
       normal the normalised sum of theirs, each estimated in the scan it came from and rotated

@@ -20,17 +20,6 @@ logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-#: The local map's voxel edge in voxels of the first scan (``odometry.map_voxel_size = 0``).
-#: The map spans everything the sensor saw within its reach, 2.5-5 scans' worth of points at a
-#: scan's voxel (measured: 31k on the street frames, 48k on BALM, against 8-9k per scan), and
-#: its upkeep (insertion, clusters, neighbour index) and target grow with it; twice the edge
-#: keeps about a scan's worth (10-14k), each point the mean of more samples. Paired on BALM
-#: and 24 simulated sequences (0.15-0.6 m per scan, clean and 40 % raw outliers), the
-#: accuracy stayed within the run-to-run spread (ATE 1.01x median, RPE 1.05x translation,
-#: 1.08x rotation on the simulated; 0.92x rotation, 0.96x translation on BALM) while a step
-#: cost 13-25 % less (CPU time, one thread).
-MAP_VOXEL_SCANS = 2.0
-
 
 class ModelStrategy(Protocol):
     """What each scan is registered against, and the only thing that moves it.
@@ -165,8 +154,7 @@ class LocalMapModel(PreviousScanModel):
             or self.map.voxels.max_points_per_voxel != odo.map_points_per_voxel
             or (odo.map_voxel_size > 0.0 and self.map.voxel_size != odo.map_voxel_size)
         ):
-            spacing = scan.voxel_size or nearest_spacing(scan.points)
-            voxel = odo.map_voxel_size or MAP_VOXEL_SCANS * spacing
+            voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
             self.map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
         radius = odo.map_radius or float(np.sqrt(np.max(np.sum(scan.points**2, axis=1))))
         self.map.insert_scan(scan, T_world_scan, radius=radius)
