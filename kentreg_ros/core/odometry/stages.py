@@ -275,19 +275,16 @@ class Verifier:
             return why_implausible
         if not np.isfinite(result.fit):
             return ''  # paper mode: no fit to judge by
+        # With no accepted step yet, the best fit any pose can have (1, every point on a
+        # matching surface) stands in for the recent median. A wrong minimum loses whole
+        # families of surfaces: from the identity, right results fitted 0.70-0.92 and wrong ones
+        # at most 0.50 (test_first_fit_separates_right_from_wrong_minima), so only a first fit
+        # below doubt_ratio pays for the start-free search.
+        median = float(np.median(fits)) if fits else 1.0
         ratio = self.config.odometry.doubt_ratio
-        if not fits:
-            # No accepted step yet: the best fit any pose can have (1, every point on a
-            # matching surface) stands in for the recent median. A wrong minimum loses whole
-            # families of surfaces: from the identity, right results fitted 0.70-0.92 and wrong
-            # ones at most 0.50 (test_first_fit_separates_right_from_wrong_minima), so only a
-            # first fit below doubt_ratio pays for the start-free search.
-            if result.fit < ratio:
-                return f'its fit {result.fit:.2f} is below {ratio} with no accepted step yet'
-            return ''
-        median = float(np.median(fits))
         if result.fit < ratio * median:
-            return f'its fit {result.fit:.2f} is below {ratio} x the recent median {median:.2f}'
+            of = f'the recent median {median:.2f}' if fits else 'a perfect fit (no step yet)'
+            return f'its fit {result.fit:.2f} is below {ratio} x {of}'
         return ''
 
     def choose(
