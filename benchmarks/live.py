@@ -141,7 +141,7 @@ def measure_live(
     latency = np.array([1e3 * (received[s] - sent[s]) for s in sent if s in received])
     cores = [round(100.0 * (b1 - b0) / max(t1 - t0_, 1), 1)
              for (b0, t0_), (b1, t1) in zip(cpu0, cpu1, strict=True)]  # fmt: skip
-    last, keys = diagnostics[-1] if diagnostics else {}, DIAGNOSTIC_TOTALS
+    last = diagnostics[-1] if diagnostics else {}
     quantiles = [round(float(np.percentile(latency, q)), 1) if len(latency) else float('nan')
                  for q in (50, 95, 100)]  # fmt: skip
     return {
@@ -149,7 +149,7 @@ def measure_live(
         'published': len(sent), 'processed': len(latency), 'dropped': len(sent) - len(latency),
         'dropped_pct': round(100.0 * (len(sent) - len(latency)) / max(len(sent), 1), 1),
         'latency_ms': dict(zip(('p50', 'p95', 'max'), quantiles, strict=True)),
-        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in keys},
+        'node_diagnostics': {f'total.{k}': last.get(f'total.{k}', '') for k in DIAGNOSTIC_TOTALS},
         'node_latency_ms_mean_max': [(d.get('latency_ms_mean'), d.get('latency_ms_max'))
                                      for d in diagnostics],
         'cpu_pct_per_core': cores, 'node_cpu_pct': round(100.0 * (node1 - node0) / stream_s, 1),
