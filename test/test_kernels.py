@@ -304,3 +304,32 @@ def test_normal_bins_are_the_same_with_and_without_kernels(
     for name in ('directions', 'resultants', 'scatters'):
         got, want = getattr(compiled, name), getattr(reference, name)
         assert np.allclose(got, want, rtol=0.0, atol=1e-12 * max(1.0, float(want.max()))), name
+
+
+@pytest.mark.parametrize('per_voxel', [1, 3])
+def test_local_map_averaging_matches_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch, per_voxel: int
+) -> None:
+    """A voxel map that averages (the local map) after several scans merged into it, with the
+    compiled merge and with numpy's: the same counts, sums and points (+, /, in numpy's
+    order: bit for bit), and normals to rounding (their norm is summed as numpy's x86-64
+    build sums it)."""
+    from kentreg_ros.core.odometry.localmap import VoxelMap
+
+    rng = np.random.default_rng(3)
+    normals = estimate_normals(cloud, 15).normals
+    shifts = [rng.normal(scale=0.02, size=cloud.shape) for _ in range(4)]
+    # Some normals reversed, so the sign test that turns them to agree has work to do.
+    flips = [np.where(rng.random(len(cloud)) < 0.3, -1.0, 1.0)[:, None] for _ in range(4)]
+
+    def build() -> VoxelMap:
+        vmap = VoxelMap(0.3, max_points_per_voxel=per_voxel, with_normals=True, average=True)
+        for shift, flip in zip(shifts, flips, strict=True):
+            vmap.insert(cloud + shift, normals * flip)
+        return vmap
+
+    compiled, reference = both(build, monkeypatch)
+    assert len(reference) > 1000 and reference._merged.max() > 4  # merges happened
+    for name in ('_merged', '_sums', '_points', '_normal_sums', '_keys'):
+        assert np.array_equal(getattr(compiled, name), getattr(reference, name)), name
+    assert close(compiled.normals, reference.normals, 1.0)

@@ -263,6 +263,38 @@ def bin_moments(
     return sums, scatters
 
 
+def map_merge(
+    target: NDArray[np.intp],
+    pts: FloatArray,
+    nrm: FloatArray | None,
+    merged: FloatArray,
+    sums: FloatArray,
+    normal_sums: FloatArray,
+    points: FloatArray,
+    normals: FloatArray,
+) -> None:
+    """Average ``pts`` (N, 3) and ``nrm`` (their normals, or None) into the rows ``target`` of
+    a voxel map, in place (:meth:`~kentreg_ros.core.odometry.localmap.VoxelMap.insert`): the
+    map's arrays are updated where they are, so they must be C-contiguous float64 (a copy
+    would take the update)."""
+    has_normals = nrm is not None
+    given = np.zeros((0, 3)) if nrm is None else nrm
+    if not _use_compiled():
+        _numpy.map_merge(
+            target, pts, given, has_normals, merged, sums, normal_sums, points, normals
+        )
+        return
+    for a in (merged, sums, normal_sums, points, normals):
+        if a.dtype != np.float64 or not a.flags.c_contiguous:
+            raise ValueError('map_merge updates the map in place: C-contiguous float64 only.')
+    _compiled().map_merge(
+        np.ascontiguousarray(target, dtype=np.intp),
+        np.ascontiguousarray(pts, dtype=np.float64),
+        np.ascontiguousarray(given, dtype=np.float64),
+        has_normals, merged, sums, normal_sums, points, normals,
+    )  # fmt: skip
+
+
 def _compile_all() -> None:
     """Run every kernel once on a tiny input (numba compiles at the first call)."""
     rng = np.random.default_rng(0)
@@ -282,3 +314,5 @@ def _compile_all() -> None:
     plane_normal_equations(pts, labels, ok, unit, r, np.ones(len(ok)))
     ok, r = offset_residuals(pts, labels, pts, unit)
     offset_normal_equations(labels, ok, unit, r, np.ones(len(ok)))
+    rows = [np.ones(8), pts.copy(), unit.copy(), pts.copy(), unit.copy()]
+    map_merge(labels, pts, unit, *rows)

@@ -427,3 +427,40 @@ def bin_moments(normals, order, starts):  # type: ignore[no-untyped-def]
                 for c in range(3):
                     scatters[b, 3 * a + c] += normals[p, a] * normals[p, c]
     return sums, scatters
+
+
+@_jit
+def map_merge(target, pts, nrm, has_normals, merged, sums, normal_sums, points, normals):  # type: ignore[no-untyped-def]
+    """In place, as the numpy twin: each map row's additions summed from zero in input order
+    (``bincount``), then added to its sums; a normal's sign test by numpy's three-term
+    ``einsum`` order, its norm by ``linalg.norm``'s, ``(x x + y y) + z z``."""
+    n = points.shape[0]
+    count = np.zeros(n, dtype=np.intp)
+    acc = np.zeros((n, 3))
+    nacc = np.zeros((n, 3))
+    for i in range(target.shape[0]):
+        t = target[i]
+        count[t] += 1
+        for a in range(3):
+            acc[t, a] += pts[i, a]
+        if has_normals:
+            dot = (normals[t, 0] * nrm[i, 0] + normals[t, 2] * nrm[i, 2]) + (
+                normals[t, 1] * nrm[i, 1]
+            )
+            for a in range(3):
+                nacc[t, a] += nrm[i, a] if dot >= 0.0 else -nrm[i, a]
+    for t in range(n):
+        if count[t] == 0:
+            continue
+        merged[t] += count[t]
+        for a in range(3):
+            sums[t, a] += acc[t, a]
+        for a in range(3):
+            points[t, a] = sums[t, a] / merged[t]
+        if has_normals:
+            for a in range(3):
+                normal_sums[t, a] += nacc[t, a]
+            s0, s1, s2 = normal_sums[t, 0], normal_sums[t, 1], normal_sums[t, 2]
+            norm = np.sqrt((s0 * s0 + s1 * s1) + s2 * s2)
+            for a in range(3):
+                normals[t, a] = normal_sums[t, a] / norm

@@ -211,3 +211,33 @@ def bin_moments(
     sums = np.add.reduceat(ordered, starts, axis=0)
     outer = (ordered[:, :, None] * ordered[:, None, :]).reshape(-1, 9)
     return sums, np.add.reduceat(outer, starts, axis=0)
+
+
+def map_merge(
+    target: NDArray[np.intp],
+    pts: FloatArray,
+    nrm: FloatArray,
+    has_normals: bool,
+    merged: FloatArray,
+    sums: FloatArray,
+    normal_sums: FloatArray,
+    points: FloatArray,
+    normals: FloatArray,
+) -> None:
+    """Average ``pts`` (and ``nrm``, turned to agree in sign with the normal they join) into
+    the map rows ``target``, in place: ``merged`` counts, ``sums`` and ``normal_sums`` the
+    running sums, ``points`` and ``normals`` their means."""
+    n = len(points)
+    added = np.bincount(target, minlength=n)
+    touched = np.flatnonzero(added)
+    merged[touched] += added[touched]
+    for axis in range(3):
+        sums[touched, axis] += np.bincount(target, pts[:, axis], n)[touched]
+    points[touched] = sums[touched] / merged[touched, None]
+    if has_normals:
+        agree = np.einsum('ij,ij->i', normals[target], nrm) >= 0.0
+        turned = np.where(agree[:, None], nrm, -nrm)
+        for axis in range(3):
+            normal_sums[touched, axis] += np.bincount(target, turned[:, axis], n)[touched]
+        grown = normal_sums[touched]
+        normals[touched] = grown / np.linalg.norm(grown, axis=1, keepdims=True)

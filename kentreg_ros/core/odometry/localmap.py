@@ -30,6 +30,7 @@ import time
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
 from kentreg_ros.core.geometry import check_transform
@@ -280,22 +281,16 @@ class VoxelMap:
             dist = np.sum((self._points[rows] - pts[:, None, :]) ** 2, axis=2)
             dist[slots >= count[:, None]] = np.inf
             target = rows[np.arange(len(rows)), np.argmin(dist, axis=1)]
-        n = len(self._points)
-        added = np.bincount(target, minlength=n)
-        touched = np.flatnonzero(added)
-        self._merged[touched] += added[touched]
-        for axis in range(3):
-            self._sums[touched, axis] += np.bincount(target, pts[:, axis], n)[touched]
-        self._points[touched] = self._sums[touched] / self._merged[touched, None]
-        if nrm is not None:
-            agree = np.einsum('ij,ij->i', self._normals[target], nrm) >= 0.0
-            turned = np.where(agree[:, None], nrm, -nrm)
-            for axis in range(3):
-                self._normal_sums[touched, axis] += np.bincount(target, turned[:, axis], n)[
-                    touched
-                ]
-            sums = self._normal_sums[touched]
-            self._normals[touched] = sums / np.linalg.norm(sums, axis=1, keepdims=True)
+        kernels.map_merge(
+            target,
+            pts,
+            nrm,
+            self._merged,
+            self._sums,
+            self._normal_sums,
+            self._points,
+            self._normals,
+        )
 
     def crop(self, center: ArrayLike, radius: float) -> int:
         """Drop the points farther than ``radius`` from ``center``; return how many."""
