@@ -3,9 +3,10 @@ the one place that chooses (callers call the functions here, whichever runs).
 
 Preparing a scan runs a few passes over every point and its 15 neighbours (the neighbourhood
 covariances of the normals, the normals' agreement with their neighbourhood) and the spherical
-k-means of the normals; registering it, a few Gauss-Newton passes over the sampled points. In numpy
-each pass is a chain of whole-array operations whose temporaries cost more than the arithmetic; a
-compiled loop does the same operations in one pass. ``benchmarks/per_scan.py`` measures what it
+k-means of the normals; registering it, a few Gauss-Newton passes over the sampled points; the
+local map, the averaging of each scan into it. In numpy each pass is a chain of whole-array
+operations whose temporaries cost more than the arithmetic; a compiled loop does the same
+operations in one pass. ``benchmarks/per_scan.py`` measures what it
 pays. Without numba (or with ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both
 give the same results (the kernels repeat numpy's operations in numpy's order, except the
 Gauss-Newton normal equations, summed in another order than BLAS's, and the moments of the
