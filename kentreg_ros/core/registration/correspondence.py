@@ -89,9 +89,10 @@ class NearestNeighborCache:
         )
         redo = np.flatnonzero(~valid)
         if len(redo):
-            d2, i2 = self._tree.query(np.take(x, redo, axis=0), k=2, distance_upper_bound=gate)
+            moved = np.take(x, redo, axis=0)
+            d2, i2 = self._tree.query(moved, k=2, distance_upper_bound=gate)
             found = np.isfinite(d2[:, 0])
-            self._x0[redo] = x[redo]
+            self._x0[redo] = moved
             self._idx[redo] = np.where(found, i2[:, 0], -1)
             self._radius[redo] = np.where(found, np.minimum(d2[:, 1], gate), gate)
             dist[redo] = d2[:, 0]
