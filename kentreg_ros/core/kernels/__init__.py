@@ -278,22 +278,12 @@ def map_merge(
     a voxel map, in place (:meth:`~kentreg_ros.core.odometry.localmap.VoxelMap.insert`): the
     map's arrays are updated where they are, so they must be C-contiguous float64 (a copy
     would take the update)."""
-    has_normals = nrm is not None
-    given = np.zeros((0, 3)) if nrm is None else nrm
-    if not _use_compiled():
-        _numpy.map_merge(
-            target, pts, given, has_normals, merged, sums, normal_sums, points, normals
-        )
-        return
-    for a in (merged, sums, normal_sums, points, normals):
+    rows = (merged, sums, normal_sums, points, normals)
+    for a in rows:
         if a.dtype != np.float64 or not a.flags.c_contiguous:
             raise ValueError('map_merge updates the map in place: C-contiguous float64 only.')
-    _compiled().map_merge(
-        np.ascontiguousarray(target, dtype=np.intp),
-        np.ascontiguousarray(pts, dtype=np.float64),
-        np.ascontiguousarray(given, dtype=np.float64),
-        has_normals, merged, sums, normal_sums, points, normals,
-    )  # fmt: skip
+    given = np.zeros((0, 3)) if nrm is None else nrm
+    _run('map_merge', target, pts, given, nrm is not None, *rows)
 
 
 def _compile_all() -> None:

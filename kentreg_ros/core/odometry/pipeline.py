@@ -26,7 +26,7 @@ processes. Measured (2026-12-02, 50 KITTI frames, local map, the two builds alte
 the map kept by the worker (its copy updated by the same function, the target sent back
 without its index; poses and map bit-identical, a killed worker's map rebuilt from its last
 copy), the main process spent 18 ms less CPU per scan and the worker 26 ms more (the hand-over
-of scans and targets), fed at once no faster (139-153 against 141-143 ms a scan), and fed live
+of scans and targets), fed at once no faster (139-153 against 129-143 ms a scan), and fed live
 at 10 Hz it dropped 14-16 scans of 50 against 11-12. Building the map's index in a thread
 beside its clustering (small_gicp releases the GIL) changed nothing measurable either: the
 second core is the worker's. What bounds a step is the work itself (see ``benchmarks/live.py``).
