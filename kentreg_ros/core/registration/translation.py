@@ -94,8 +94,10 @@ def plane_offset_translation(
         ms = src_n @ d > min_cosine
         if mt.sum() < min_points or ms.sum() < min_points:
             continue
-        off_t = target[mt] @ d
-        off_s = src[ms] @ d + float(d @ t0)
+        # Offsets of every point, then the masked ones: a boolean gather of 1-D rows instead
+        # of (N, 3) ones, which numpy does several times more slowly (same values).
+        off_t = (target @ d)[mt]
+        off_s = (src @ d)[ms] + float(d @ t0)
         # Only source offsets within max_shift of the target's range can enter a searched lag.
         lo, hi = off_t.min() - max_shift, off_t.max() + max_shift
         off_s = off_s[(off_s >= lo) & (off_s <= hi)]
