@@ -189,7 +189,7 @@ def _timed_step(odometry: Any, points: Any, stamp: int, rows: dict[str, list[flo
     if step.index:
         pre, reg = step.timings.get('preprocess', 0.0), step.timings.get('register', 0.0)
         values = {'prepare': pre, 'register': reg, 'model': wall - pre - reg, 'total': wall,
-                  'cpu': cpu}  # fmt: skip
+                  'cpu': cpu} | {k: v for k, v in step.timings.items() if k in PARTS}  # fmt: skip
         for key, value in values.items():
             rows.setdefault(key, []).append(value)
     return step.T_world_lidar
@@ -331,6 +331,13 @@ OFFLINE: list[report.Column] = [
      lambda r: f'{r["th"]["sequential_ms"]} / {r["th"]["pipelined_ms"]}'),
     ('speed-up', lambda r: f'{r["th"]["speedup"]}x'), ('poses identical', 'th.poses_identical:'),
 ]  # fmt: skip
+#: The parts of those stages (the step's timings), in the table under it.
+PARTS = ['prepare.downsample', 'prepare.neighbours', 'prepare.normals', 'prepare.outliers',
+         'prepare.clustering', 'rotation', 'translation', 'refine', 'model.map_insert',
+         'model.map_clustering', 'model.map_tree']  # fmt: skip
+BREAKDOWN: list[report.Column] = [('stream', 'stream:s'), ('model', 'model:s'), *(
+    (p.split('.')[-1].replace('_', ' '), lambda r, p=p: str(r.get(p, '–'))) for p in PARTS
+)]  # fmt: skip
 
 
 def _notes(stream: str, entry: dict[str, Any]) -> list[str]:
@@ -376,6 +383,11 @@ def render(doc: dict[str, Any]) -> str:
         '## Per scan on this machine (one thread; sequential loop stages, median ms)',
         '',
         *report.column_table(OFFLINE, offline),
+        '',
+        'Their parts (median ms; registration: rotation EM, translation, refinement, without '
+        'the start-free search of doubtful steps; the local map: insertion, clusters, KD-tree):',
+        '',
+        *report.column_table(BREAKDOWN, offline),
         '',
         *(line for stream, entry in streams for line in _notes(stream, entry)),
     ]

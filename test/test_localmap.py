@@ -225,6 +225,9 @@ def test_local_map_odometry_recovers_known_trajectory() -> None:
     assert lmap is not None and len(lmap) > 0
     # Every accepted scan is in the map; the model is the map in the last pose's frame.
     assert [s.model_index for s in steps] == [-1, *range(7)]
+    # Each step ran the map's upkeep and timed its parts.
+    upkeep = {'model.map_insert', 'model.map_clustering', 'model.map_tree'}
+    assert all(upkeep <= set(s.timings) for s in steps)
     # The room is 20 x 14 m: the map radius (the reach of the last scan) keeps it whole, and
     # the map is denser than one scan but bounded by the voxel count, not by 8 scans.
     assert len(lmap) < 8 * steps[-1].n_prepared
@@ -249,6 +252,7 @@ def test_local_map_leaves_fallen_back_and_rejected_scans_out() -> None:
     before = lmap.points.copy()
     steps.append(odom.step(clouds[2], 2 * STEP_NS))
     assert steps[-1].health == 'rejected'
+    assert not any(k.startswith('model.') for k in steps[-1].timings)  # no upkeep ran
     np.testing.assert_array_equal(lmap.points, before)
     # An implausible limit makes the next steps fall back: the map does not change either.
     odom.reconfigure(LOCAL_MAP.with_updates({'odometry.max_angular_speed_deg': 1.0}))

@@ -340,6 +340,7 @@ class Odometry:
             outcome = Outcome(None, np.eye(4), float('nan'), Health.REJECTED, rejected)
             return self._finish(pending, T_world_pred, outcome, None, None, defer)
         self._voxel_size_hint = scan.voxel_size
+        pending.timings |= {f'prepare.{k}': v for k, v in scan.timings.items() if k != 'total'}
         if self._model.scan is None:
             first = Outcome(
                 None, np.eye(4), float('nan'), Health.FIRST, 'First scan: it becomes the model.'
@@ -438,6 +439,7 @@ class Odometry:
             self._deferred = move_model
         else:
             move_model()
+            pending.timings |= {f'model.{k}': v for k, v in model.timings.items()}
         self._poses.append(T_world_curr.copy())
         self._stamps.append(pending.stamp_ns)
         self._counts[health] += 1

@@ -4,6 +4,7 @@ or a local map of the accepted scans), and the only thing that moves it."""
 from __future__ import annotations
 
 import logging
+import time
 from typing import Protocol
 
 import numpy as np
@@ -15,6 +16,7 @@ from kentreg_ros.core.odometry.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.odometry.stages import Sweep, prepare
 from kentreg_ros.core.odometry.step import Health
 from kentreg_ros.core.scan import PreparedScan
+from kentreg_ros.core.scan.prepared import elapsed_ms
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +35,8 @@ class ModelStrategy(Protocol):
     cov: FloatArray
     stamp_ns: int
     index: int
+    #: Milliseconds of the last update's parts (empty where it has none worth timing).
+    timings: dict[str, float]
 
     def update(
         self,
@@ -62,6 +66,7 @@ class PreviousScanModel:
         self.cov = np.zeros((6, 6))
         self.stamp_ns = 0
         self.index = -1
+        self.timings: dict[str, float] = {}
         # Raw points and times of a first scan prepared before any motion was known.
         self._first_sweep: Sweep | None = None
 
@@ -137,6 +142,7 @@ class LocalMapModel(PreviousScanModel):
         index: int,
         sweep: Sweep | None,
     ) -> None:
+        self.timings = {}
         if scan is None:
             return
         if self.scan is not None and self.map is not None and not health.accepted:
@@ -157,9 +163,13 @@ class LocalMapModel(PreviousScanModel):
             voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
             self.map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
         radius = odo.map_radius or float(np.sqrt(np.max(np.sum(scan.points**2, axis=1))))
+        t0 = time.perf_counter()
         self.map.insert_scan(scan, T_world_scan, radius=radius)
+        self.timings = {'map_insert': elapsed_ms(t0)}
         try:
-            return self.map.target(T_world_scan, config=self.config)
+            target = self.map.target(T_world_scan, config=self.config)
+            self.timings |= {f'map_{k}': v for k, v in target.timings.items() if k != 'total'}
+            return target
         except InvalidPointCloudError as exc:
             # Too few map points survive the radius: register against the scan itself.
             logger.warning('The local map cannot be a target (%s); using the scan itself.', exc)

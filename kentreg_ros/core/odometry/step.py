@@ -82,7 +82,12 @@ class OdometryStep:
     timings : dict of str to float
         Milliseconds: ``'preprocess'`` (:func:`prepare_scan` of this scan), ``'register'``
         (total of :func:`register`), the registration stages (``'rotation'``,
-        ``'translation'``, ``'refine'``) when it ran, and ``'total'`` for the whole step.
+        ``'translation'``, ``'refine'``) when it ran, the preparation's stages as
+        ``'prepare.<stage>'`` (``downsample``, ``neighbours``, ``normals``, ``outliers``,
+        ``clustering``: :attr:`PreparedScan.timings`), the model's upkeep when the step ran it
+        (not when a pipeline deferred it) as ``'model.<part>'`` (the local map's
+        ``map_insert``, ``map_clustering`` and ``map_tree``), and ``'total'`` for the whole
+        step.
     n_points : int
         Points given.
     n_prepared : int

@@ -50,6 +50,7 @@ def estimate_normals(
     *,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
     tree: NeighborIndex | None = None,
+    neighbors: NDArray[np.intp] | None = None,
 ) -> NormalEstimate:
     """Estimate unit surface normals by PCA over the k nearest neighbours.
 
@@ -62,6 +63,9 @@ def estimate_normals(
         Normals are flipped so that ``n . (viewpoint - x) > 0``.
     tree : NeighborIndex, optional
         A tree already built on ``points``.
+    neighbors : ndarray of int, shape (N, k), optional
+        The ``k`` nearest neighbours of every point (each row including the point), already
+        queried; then no tree is used.
 
     Raises
     ------
@@ -75,9 +79,12 @@ def estimate_normals(
         raise InvalidPointCloudError(
             f'Expected at least k={k} points to estimate normals, got {n}.'
         )
-    if tree is None:
-        tree = NeighborIndex(points)
-    idx = tree.neighbor_indices(points, k)
+    if neighbors is not None:
+        idx = np.asarray(neighbors, dtype=np.intp)
+        if idx.shape != (n, k):
+            raise ValueError(f'Expected `neighbors` of shape {(n, k)}, got {idx.shape}.')
+    else:
+        idx = (tree if tree is not None else NeighborIndex(points)).neighbor_indices(points, k)
     cov = neighbourhood_covariances(points, idx)
     evals, normals, mid = smallest_eigenpairs_3x3(cov)
     total = cov[:, 0] + cov[:, 3] + cov[:, 5]
