@@ -114,6 +114,12 @@ def test_plane_normals_are_exact_and_face_the_viewpoint() -> None:
     est_up = estimate_normals(pts, 15, viewpoint=(0, 0, 10))
     assert np.all(est_up.normals[:, 2] > 0.999)
     assert np.all(est.curvature < 1e-9)
+    # Neighbours queried beforehand (as prepare_scan does, to time the search) give the same
+    # normals; neighbours of another shape are refused.
+    given = estimate_normals(pts, 15, viewpoint=(0, 0, 0), neighbors=est.neighbors)
+    np.testing.assert_array_equal(given.normals, est.normals)
+    with pytest.raises(ValueError, match='neighbors'):
+        estimate_normals(pts, 15, neighbors=est.neighbors[:, :10])
 
 
 def test_neighbourhood_covariances_match_the_dense_computation() -> None:

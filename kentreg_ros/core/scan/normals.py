@@ -49,7 +49,6 @@ def estimate_normals(
     k: int = 15,
     *,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
-    tree: NeighborIndex | None = None,
     neighbors: NDArray[np.intp] | None = None,
 ) -> NormalEstimate:
     """Estimate unit surface normals by PCA over the k nearest neighbours.
@@ -61,11 +60,9 @@ def estimate_normals(
         Neighbourhood size (the paper uses 15); ``N >= k`` is required.
     viewpoint : array_like, shape (3,)
         Normals are flipped so that ``n . (viewpoint - x) > 0``.
-    tree : NeighborIndex, optional
-        A tree already built on ``points``.
     neighbors : ndarray of int, shape (N, k), optional
         The ``k`` nearest neighbours of every point (each row including the point), already
-        queried; then no tree is used.
+        queried (e.g. on a tree the caller keeps); otherwise queried here.
 
     Raises
     ------
@@ -84,7 +81,7 @@ def estimate_normals(
         if idx.shape != (n, k):
             raise ValueError(f'Expected `neighbors` of shape {(n, k)}, got {idx.shape}.')
     else:
-        idx = (tree if tree is not None else NeighborIndex(points)).neighbor_indices(points, k)
+        idx = NeighborIndex(points).neighbor_indices(points, k)
     cov = neighbourhood_covariances(points, idx)
     evals, normals, mid = smallest_eigenpairs_3x3(cov)
     total = cov[:, 0] + cov[:, 3] + cov[:, 5]
