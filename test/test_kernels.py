@@ -333,3 +333,54 @@ def test_local_map_averaging_matches_numpy(
     for name in ('_merged', '_sums', '_points', '_normal_sums', '_keys'):
         assert np.array_equal(getattr(compiled, name), getattr(reference, name)), name
     assert close(compiled.normals, reference.normals, 1.0)
+
+
+def test_kent_moment_estimates_match_numpy(
+    cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Kent's estimates of real clusters, of a concentrated one (rounding-level spread: beta
+    set to 0), of one along an axis (the frame's special case) and of an empty one (zero
+    moments): the compiled frames and estimates against numpy's, with the tangent rotation
+    numpy's in both."""
+    from kentreg_ros.core.kent import KAPPA_MAX, kent_from_moments
+
+    normals = estimate_normals(cloud, 15).normals
+    labels = np.argmax(np.abs(normals), axis=1) + 3 * (normals[np.arange(len(normals)), 0] > 0)
+    xbar = np.array([normals[labels == j].mean(axis=0) for j in range(6)])
+    scatter = np.array([np.einsum('na,nb->ab', *(normals[labels == j],) * 2) for j in range(6)])
+    scatter /= np.bincount(labels, minlength=6)[:, None, None]
+    axis = np.array([1.0, 0.0, 0.0])
+    xbar = np.vstack([xbar, axis, axis, np.zeros(3)])
+    special = [np.outer(axis, axis), np.diag([0.9, 0.06, 0.04]), np.zeros((3, 3))]
+    scatter = np.concatenate([scatter, np.array(special)])
+    compiled, reference = both(lambda: kent_from_moments(xbar, scatter), monkeypatch)
+    kappa, beta, gamma = compiled
+    assert reference[0][:6].max() > 10.0 and reference[0][6] == KAPPA_MAX
+    assert np.isfinite(reference[0]).all()
+    assert close(gamma, reference[2], 1.0)
+    # kappa ~ 1 / (1 - r1): rounding of r1 is amplified by kappa.
+    assert np.all(np.abs(kappa - reference[0]) <= ULPS * np.finfo(float).eps * reference[0] ** 2)
+    assert np.all(np.abs(beta - reference[1]) <= ULPS * np.finfo(float).eps * reference[0] ** 2)
+    assert np.allclose(np.linalg.det(gamma), 1.0)
+
+
+def test_em_group_moments_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The M-step's per-cluster sums of bins (posterior-weighted scatters, weights, resultants,
+    scatters), summed in row order against numpy's matrix products (BLAS's order): to
+    rounding; a cluster without bins has zero sums."""
+    rng = np.random.default_rng(5)
+    n, k = 700, 7
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    counts = rng.integers(1, 40, size=n).astype(float)
+    resultants = x * counts[:, None]
+    scatters = np.einsum('na,nb->nab', x, x).reshape(n, 9) * counts[:, None]
+    labels = rng.integers(0, k - 1, size=n)  # the last cluster stays empty
+    posterior = rng.random(n)
+    compiled, reference = both(
+        lambda: kernels.bin_group_moments(labels, posterior, counts, resultants, scatters, k),
+        monkeypatch,
+    )
+    for got, want in zip(compiled, reference, strict=True):
+        assert close(got, want, float(counts.sum()))
+    assert not np.any(compiled[0][-1]) and compiled[1][-1] == 0.0

@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import dawsn, erfcx, gammaln, ive, logsumexp, xlogy
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.errors import KentRegError
 
 FloatArray = NDArray[np.float64]
@@ -373,29 +374,6 @@ def _as_weights(weights: ArrayLike, n: int, *, batch: bool) -> FloatArray:
     return w
 
 
-def _frames_from_mean(m: FloatArray) -> FloatArray:
-    """Kent's rotation ``H`` (K, 3, 3) with first column the unit vector ``m`` (K, 3).
-
-    ``H = [[cos t, -sin t, 0], [sin t cos p, cos t cos p, -sin p],
-    [sin t sin p, cos t sin p, cos p]]`` for ``m = (cos t, sin t cos p, sin t sin p)``.
-    """
-    c = m[:, 0]
-    s = np.hypot(m[:, 1], m[:, 2])
-    safe = s > 0.0
-    cp = np.where(safe, m[:, 1] / np.where(safe, s, 1.0), 1.0)
-    sp = np.where(safe, m[:, 2] / np.where(safe, s, 1.0), 0.0)
-    zero = np.zeros_like(c)
-    h = np.stack(
-        [
-            np.stack([c, -s, zero], axis=1),
-            np.stack([s * cp, c * cp, -sp], axis=1),
-            np.stack([s * sp, c * sp, cp], axis=1),
-        ],
-        axis=1,
-    )
-    return h
-
-
 def fit_kent_moments_batch(
     x: ArrayLike, weights: ArrayLike
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -485,28 +463,7 @@ def kent_from_moments(
     gamma : ndarray, shape (K, 3, 3)
         Rotations (det +1) with columns mean, major axis, minor axis.
     """
-    r1 = np.linalg.norm(xbar, axis=1)
-    m = np.where((r1 > 0.0)[:, None], xbar / np.where(r1 > 0.0, r1, 1.0)[:, None], [1.0, 0, 0])
-    h = _frames_from_mean(m)
-    b = np.einsum('kia,kij,kjb->kab', h, scatter, h)
-    diff = b[:, 1, 1] - b[:, 2, 2]
-    off = 2.0 * b[:, 1, 2]
-    psi = 0.5 * np.arctan2(off, diff)
-    r2 = np.hypot(diff, off)
-    cps, sps = np.cos(psi)[:, None], np.sin(psi)[:, None]
-    g1 = cps * h[:, :, 1] + sps * h[:, :, 2]
-    g2 = -sps * h[:, :, 1] + cps * h[:, :, 2]
-    gamma = np.stack([h[:, :, 0], g1, g2], axis=2)
-
-    # 1 - r1 from the spread trace(S) - r1^2 = 1 - r1^2 (trace(S) = 1 up to rounding).
-    one_minus_r1 = np.maximum(np.trace(scatter, axis1=1, axis2=2) - r1 * r1, 0.0) / (1.0 + r1)
-    d_minus = np.maximum(2.0 * one_minus_r1 - r2, 0.5 / KAPPA_MAX)
-    d_plus = np.maximum(2.0 * one_minus_r1 + r2, 0.5 / KAPPA_MAX)
-    kappa = np.minimum(1.0 / d_minus + 1.0 / d_plus, KAPPA_MAX)
-    resolved = one_minus_r1 > 64.0 * np.finfo(np.float64).eps
-    ratio = np.where(resolved, r2 / (4.0 * np.where(resolved, one_minus_r1, 1.0)), 0.0)
-    beta = np.minimum(ratio, MAX_BETA_RATIO) * kappa
-    return kappa, beta, gamma
+    return kernels.kent_from_moments(xbar, scatter, KAPPA_MAX, MAX_BETA_RATIO)
 
 
 def fit_kent_moments(x: ArrayLike, weights: ArrayLike | None = None) -> KentParams:

@@ -3,15 +3,20 @@ the one place that chooses (callers call the functions here, whichever runs).
 
 Preparing a scan runs a few passes over every point and its 15 neighbours (the neighbourhood
 covariances of the normals, the normals' agreement with their neighbourhood) and the spherical
-k-means of the normals; registering it, a few Gauss-Newton passes over the sampled points; the
-local map, the averaging of each scan into it. In numpy each pass is a chain of whole-array
-operations whose temporaries cost more than the arithmetic; a compiled loop does the same
-operations in one pass. ``benchmarks/per_scan.py`` measures what it
-pays. Without numba (or with ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both
-give the same results (the kernels repeat numpy's operations in numpy's order, except the
-Gauss-Newton normal equations, summed in another order than BLAS's, and the moments of the
-normal bins, summed in another order than ``add.reduceat``'s: poses agree to ~1e-14;
-``test/test_kernels.py``).
+k-means of the normals; registering it, a few Gauss-Newton passes over the sampled points and,
+in every EM pass, Kent's moment estimates of a handful of clusters (numpy's ~25 calls on
+(K, 3, 3) arrays cost ten times their arithmetic); the local map, the averaging of each scan
+into it. In numpy each pass is a chain of whole-array operations whose temporaries (or, on a
+handful of clusters, whose calls) cost more than the arithmetic; a compiled loop does the same
+operations in one pass. ``benchmarks/per_scan.py`` measures what it pays. Without numba (or
+with ``KENTREG_NO_JIT=1`` in the environment) the numpy code runs; both give the same results
+(the kernels repeat numpy's operations in numpy's order, except three sums taken in another
+order: the Gauss-Newton normal equations and the EM's per-cluster sums of bins, which numpy
+takes as BLAS matrix products, and the moments of the normal bins, ``add.reduceat``'s). With the
+previous scan the poses agree to ~1e-14; with the local map such differences feed the map and
+its clustering, and over 50 scans the poses drifted apart by up to ~1 mm (BALM and the street
+frames, 2026-12-06; already so before the EM's sums were compiled), far below the odometry's
+error (``test/test_kernels.py``).
 
 numba is imported, and every kernel compiled (cached on disk after the first run: ~3 s the first
 time, ~1 s after), at the first use, not when :mod:`kentreg_ros.core` is imported; :func:`warm_up`
@@ -286,6 +291,44 @@ def map_merge(
     _run('map_merge', target, pts, given, nrm is not None, *rows)
 
 
+def kent_from_moments(
+    xbar: FloatArray, scatter: FloatArray, kappa_max: float, max_beta_ratio: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Kent's moment estimates ``(kappa, beta, gamma)`` of K components from their mean vectors
+    (K, 3) and mean scatters (K, 3, 3) (:func:`~kentreg_ros.core.kent.kent_from_moments` says
+    what they are): the frames and the estimates compiled, the tangent rotation's ``arctan2``,
+    ``hypot``, ``cos`` and ``sin`` between them numpy's, so are the numbers. Called once per EM
+    pass and per clustering on a handful of components, where numpy's ~25 calls cost ten times
+    the arithmetic."""
+    run = _compiled() if _use_compiled() else _numpy
+    if run is not _numpy:
+        xbar = np.ascontiguousarray(xbar, dtype=np.float64)
+        scatter = np.ascontiguousarray(scatter, dtype=np.float64)
+    r1, h, diff, off = run.kent_frames(xbar, scatter)
+    psi = 0.5 * np.arctan2(off, diff)
+    r2 = np.hypot(diff, off)
+    kappa, beta, gamma = run.kent_finish(
+        r1, h, np.cos(psi), np.sin(psi), r2, scatter, float(kappa_max), float(max_beta_ratio)
+    )
+    return kappa, beta, gamma
+
+
+def bin_group_moments(
+    labels: NDArray[np.intp],
+    posterior: FloatArray,
+    weights: FloatArray,
+    resultants: FloatArray,
+    scatters: FloatArray,
+    k: int,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per group ``labels`` (N,) of normal bins: the sum of ``posterior * scatters`` (K, 9),
+    and the sums of ``weights`` (K,), ``resultants`` (K, 3) and ``scatters`` (K, 9) (the EM's
+    M-step: its rotation's ``B_k`` and the moments of each cluster's Kent estimate)."""
+    out = _run('bin_group_moments', labels, posterior, weights, resultants, scatters, int(k))
+    weighted, wsum, xsum, ssum = out
+    return weighted, wsum, xsum, ssum
+
+
 def _compile_all() -> None:
     """Run every kernel once on a tiny input (numba compiles at the first call)."""
     rng = np.random.default_rng(0)
@@ -307,3 +350,6 @@ def _compile_all() -> None:
     offset_normal_equations(labels, ok, unit, r, np.ones(len(ok)))
     rows = [np.ones(8), pts.copy(), unit.copy(), pts.copy(), unit.copy()]
     map_merge(labels, pts, unit, *rows)
+    scatter = np.einsum('na,nb->nab', unit, unit)
+    kent_from_moments(unit[:2], scatter[:2], 1e6, 0.499)
+    bin_group_moments(labels, np.ones(8), np.ones(8), unit, scatter.reshape(8, 9), 2)

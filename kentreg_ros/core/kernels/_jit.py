@@ -2,13 +2,15 @@
 
 Each kernel performs the same floating-point operations in the same order as the numpy expression
 it replaces (no fast-math, so no fused multiply-add; a three-term ``einsum`` is summed as numpy's
-x86-64 build sums it, ``(x + z) + y``). Only IEEE-exact operations (+, -, *, /, sqrt) run here:
-what numpy computes with its own SIMD routines, which round differently by CPU (``**``, ``arccos``,
-``cos``, ``exp``), stays in numpy. Only the Gauss-Newton normal equations sum their rows in another
-order than numpy's matrix product (which is BLAS's). On this project's machines the odometry's
-poses are bit-identical with and without the other kernels, and within 1e-14 with all of them; the
-tests compare them within bounds that hold on any CPU. They are written for one thread (``nogil``:
-the node's worker releases the GIL while one runs).
+x86-64 build sums it, ``(x + z) + y``). Only IEEE-exact operations (+, -, *, /, sqrt) and
+``hypot`` (the C library's, which numpy calls too) run here: what numpy computes with its own SIMD
+routines, which round differently by CPU (``**``, ``arccos``, ``cos``, ``exp``), stays in numpy.
+Only the Gauss-Newton normal equations and the EM's sums of bins per cluster sum their rows in
+another order than numpy's matrix products (which are BLAS's). On this project's machines the poses
+with the previous scan are bit-identical with and without the other kernels, and within 1e-14 with
+all of them (the local map carries the difference on, see the package's docstring); the tests
+compare them within bounds that hold on any CPU. They are written for one thread (``nogil``: the
+node's worker releases the GIL while one runs).
 """
 
 from __future__ import annotations
@@ -464,3 +466,90 @@ def map_merge(target, pts, nrm, has_normals, merged, sums, normal_sums, points, 
             norm = np.sqrt((s0 * s0 + s1 * s1) + s2 * s2)
             for a in range(3):
                 normals[t, a] = normal_sums[t, a] / norm
+
+
+@_jit
+def kent_frames(xbar, scatter):  # type: ignore[no-untyped-def]
+    """Kent's frame ``H`` of each mean direction and the tangent block of ``H^T S H``, as the
+    numpy twin (its norm ``(x x + y y) + z z``; ``hypot`` is the C library's in both; the
+    ``einsum`` summed over ``i`` then ``j``, each term ``(h S) h``)."""
+    k = xbar.shape[0]
+    r1 = np.empty(k)
+    h = np.empty((k, 3, 3))
+    diff = np.empty(k)
+    off = np.empty(k)
+    for c in range(k):
+        x0, x1, x2 = xbar[c, 0], xbar[c, 1], xbar[c, 2]
+        r = np.sqrt((x0 * x0 + x1 * x1) + x2 * x2)
+        r1[c] = r
+        if r > 0.0:
+            m0, m1, m2 = x0 / r, x1 / r, x2 / r
+        else:
+            m0, m1, m2 = 1.0, 0.0, 0.0
+        s = np.hypot(m1, m2)
+        if s > 0.0:
+            cp, sp = m1 / s, m2 / s
+        else:
+            cp, sp = 1.0, 0.0
+        h[c, 0, 0], h[c, 0, 1], h[c, 0, 2] = m0, -s, 0.0
+        h[c, 1, 0], h[c, 1, 1], h[c, 1, 2] = s * cp, m0 * cp, -sp
+        h[c, 2, 0], h[c, 2, 1], h[c, 2, 2] = s * sp, m0 * sp, cp
+        b11 = 0.0
+        b22 = 0.0
+        b12 = 0.0
+        for i in range(3):
+            for j in range(3):
+                sij = scatter[c, i, j]
+                b11 += h[c, i, 1] * sij * h[c, j, 1]
+                b22 += h[c, i, 2] * sij * h[c, j, 2]
+                b12 += h[c, i, 1] * sij * h[c, j, 2]
+        diff[c] = b11 - b22
+        off[c] = 2.0 * b12
+    return r1, h, diff, off
+
+
+@_jit
+def kent_finish(r1, h, cos_psi, sin_psi, r2, scatter, kappa_max, max_beta_ratio):  # type: ignore[no-untyped-def]
+    """Kent's axes and moment estimates from the frames and the tangent rotation, as the numpy
+    twin (the trace ``(S00 + S11) + S22``; ``np.minimum``/``np.maximum`` for its NaN rules)."""
+    k = r1.shape[0]
+    gamma = np.empty((k, 3, 3))
+    kappa = np.empty(k)
+    beta = np.empty(k)
+    tiny = 64.0 * np.finfo(np.float64).eps
+    for c in range(k):
+        cps, sps = cos_psi[c], sin_psi[c]
+        for a in range(3):
+            gamma[c, a, 0] = h[c, a, 0]
+            gamma[c, a, 1] = cps * h[c, a, 1] + sps * h[c, a, 2]
+            gamma[c, a, 2] = -sps * h[c, a, 1] + cps * h[c, a, 2]
+        trace = (scatter[c, 0, 0] + scatter[c, 1, 1]) + scatter[c, 2, 2]
+        omr = np.maximum(trace - r1[c] * r1[c], 0.0) / (1.0 + r1[c])
+        d_minus = np.maximum(2.0 * omr - r2[c], 0.5 / kappa_max)
+        d_plus = np.maximum(2.0 * omr + r2[c], 0.5 / kappa_max)
+        kap = np.minimum(1.0 / d_minus + 1.0 / d_plus, kappa_max)
+        ratio = r2[c] / (4.0 * omr) if omr > tiny else 0.0
+        kappa[c] = kap
+        beta[c] = np.minimum(ratio, max_beta_ratio) * kap
+    return kappa, beta, gamma
+
+
+@_jit
+def bin_group_moments(labels, posterior, weights, resultants, scatters, k):  # type: ignore[no-untyped-def]
+    """Per group of bins: the posterior-weighted scatter sum (K, 9), and the weight, resultant
+    (K, 3) and scatter (K, 9) sums, in row order (the numpy twin's matrix products are BLAS's,
+    summed in its order: the sums agree to rounding)."""
+    weighted = np.zeros((k, 9))
+    wsum = np.zeros(k)
+    xsum = np.zeros((k, 3))
+    ssum = np.zeros((k, 9))
+    for i in range(labels.shape[0]):
+        j = labels[i]
+        t = posterior[i]
+        wsum[j] += weights[i]
+        for a in range(3):
+            xsum[j, a] += resultants[i, a]
+        for a in range(9):
+            weighted[j, a] += t * scatters[i, a]
+            ssum[j, a] += scatters[i, a]
+    return weighted, wsum, xsum, ssum

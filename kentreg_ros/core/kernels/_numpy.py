@@ -241,3 +241,68 @@ def map_merge(
             normal_sums[touched, axis] += np.bincount(target, turned[:, axis], n)[touched]
         grown = normal_sums[touched]
         normals[touched] = grown / np.linalg.norm(grown, axis=1, keepdims=True)
+
+
+def kent_frames(
+    xbar: FloatArray, scatter: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    r1: FloatArray = np.linalg.norm(xbar, axis=1)
+    m = np.where((r1 > 0.0)[:, None], xbar / np.where(r1 > 0.0, r1, 1.0)[:, None], [1.0, 0, 0])
+    # Kent's H with first column m = (cos t, sin t cos p, sin t sin p).
+    c = m[:, 0]
+    s = np.hypot(m[:, 1], m[:, 2])
+    safe = s > 0.0
+    cp = np.where(safe, m[:, 1] / np.where(safe, s, 1.0), 1.0)
+    sp = np.where(safe, m[:, 2] / np.where(safe, s, 1.0), 0.0)
+    zero = np.zeros_like(c)
+    h: FloatArray = np.stack(
+        [
+            np.stack([c, -s, zero], axis=1),
+            np.stack([s * cp, c * cp, -sp], axis=1),
+            np.stack([s * sp, c * sp, cp], axis=1),
+        ],
+        axis=1,
+    )
+    b = np.einsum('kia,kij,kjb->kab', h, scatter, h)
+    diff: FloatArray = b[:, 1, 1] - b[:, 2, 2]
+    off: FloatArray = 2.0 * b[:, 1, 2]
+    return r1, h, diff, off
+
+
+def kent_finish(
+    r1: FloatArray,
+    h: FloatArray,
+    cos_psi: FloatArray,
+    sin_psi: FloatArray,
+    r2: FloatArray,
+    scatter: FloatArray,
+    kappa_max: float,
+    max_beta_ratio: float,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    cps, sps = cos_psi[:, None], sin_psi[:, None]
+    g1 = cps * h[:, :, 1] + sps * h[:, :, 2]
+    g2 = -sps * h[:, :, 1] + cps * h[:, :, 2]
+    gamma: FloatArray = np.stack([h[:, :, 0], g1, g2], axis=2)
+    # 1 - r1 from the spread trace(S) - r1^2 = 1 - r1^2 (trace(S) = 1 up to rounding).
+    one_minus_r1 = np.maximum(np.trace(scatter, axis1=1, axis2=2) - r1 * r1, 0.0) / (1.0 + r1)
+    d_minus = np.maximum(2.0 * one_minus_r1 - r2, 0.5 / kappa_max)
+    d_plus = np.maximum(2.0 * one_minus_r1 + r2, 0.5 / kappa_max)
+    kappa: FloatArray = np.minimum(1.0 / d_minus + 1.0 / d_plus, kappa_max)
+    resolved = one_minus_r1 > 64.0 * np.finfo(np.float64).eps
+    ratio = np.where(resolved, r2 / (4.0 * np.where(resolved, one_minus_r1, 1.0)), 0.0)
+    beta: FloatArray = np.minimum(ratio, max_beta_ratio) * kappa
+    return kappa, beta, gamma
+
+
+def bin_group_moments(
+    labels: NDArray[np.intp],
+    posterior: FloatArray,
+    weights: FloatArray,
+    resultants: FloatArray,
+    scatters: FloatArray,
+    k: int,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    member = np.zeros((k, len(labels)))
+    member[labels, np.arange(len(labels))] = 1.0
+    weighted: FloatArray = (member * posterior) @ scatters
+    return weighted, member @ weights, member @ resultants, member @ scatters

@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import logsumexp
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.geometry import rotation_angle
 from kentreg_ros.core.kent import MAX_BETA_RATIO, fit_kent_moments, kent_log_normalizer
 from kentreg_ros.core.registration.rotations import (
@@ -41,7 +42,7 @@ from kentreg_ros.core.registration.rotations import (
     procrustes,
     solve_kent_rotation,
 )
-from kentreg_ros.core.scan.clusters import ModelClusters, NormalBins, kent_moments_of_bins
+from kentreg_ros.core.scan.clusters import ModelClusters, NormalBins, kent_moments_of_sums
 
 FloatArray = NDArray[np.float64]
 
@@ -233,11 +234,11 @@ def _m_step(
     cover.
     """
     k = len(Cs)
-    n = len(tn)
     C = Cs.sum(axis=0)
-    member = np.zeros((k, n))
-    member[assign, np.arange(n)] = 1.0
-    Bm = ((member * t_unit) @ observed.scatters.reshape(-1, 9)).reshape(k, 3, 3)
+    weighted, wsum, xsum, ssum = kernels.bin_group_moments(
+        assign, t_unit, observed.weights, observed.resultants, observed.scatters.reshape(-1, 9), k
+    )
+    Bm = weighted.reshape(k, 3, 3)
     g1s, g2s = gamma[:, :, 1], gamma[:, :, 2]
     A = beta[:, None, None] * (
         g2s[:, :, None] * g2s[:, None, :] - g1s[:, :, None] * g1s[:, None, :]
@@ -255,7 +256,7 @@ def _m_step(
     # Kent parameters from the moments of the rotated normals assigned to each cluster.
     has = mass > 1e-9 * max(float(observed.weights.sum()), 1.0)
     if has.any():
-        kh, bh, gh = kent_moments_of_bins(observed, member[has], rotation=R_new)
+        kh, bh, gh = kent_moments_of_sums(wsum[has], xsum[has], ssum[has], rotation=R_new)
         kappa_m[has], beta_m[has], gamma[has] = kh, bh, gh
     return R_new, problem, mass
 

@@ -285,10 +285,26 @@ def kent_moments_of_bins(
     the rotated normals ``R x`` (the K group moments are rotated, not the B bins). A group with
     no weight gets ``kappa = beta = 0`` and ``gamma = I``.
     """
-    mass = weights @ bins.weights
+    return kent_moments_of_sums(
+        weights @ bins.weights,
+        weights @ bins.resultants,
+        weights @ bins.scatters.reshape(-1, 9),
+        rotation=rotation,
+    )
+
+
+def kent_moments_of_sums(
+    mass: FloatArray,
+    resultant: FloatArray,
+    scatter_sum: FloatArray,
+    *,
+    rotation: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`kent_moments_of_bins` from the groups' sums: weight (K,), resultant (K, 3) and
+    scatter (K, 9, row-major)."""
     safe = np.where(mass > 0.0, mass, 1.0)
-    xbar = (weights @ bins.resultants) / safe[:, None]
-    scatter = (weights @ bins.scatters.reshape(-1, 9)).reshape(-1, 3, 3) / safe[:, None, None]
+    xbar = resultant / safe[:, None]
+    scatter = scatter_sum.reshape(-1, 3, 3) / safe[:, None, None]
     if rotation is not None:
         xbar = xbar @ rotation.T
         scatter = rotation @ scatter @ rotation.T
