@@ -384,3 +384,37 @@ def test_em_group_moments_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
     for got, want in zip(compiled, reference, strict=True):
         assert close(got, want, float(counts.sum()))
     assert not np.any(compiled[0][-1]) and compiled[1][-1] == 0.0
+
+
+def test_em_e_step_matches_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The E-step (compiled log-posteriors and sums, numpy's exp and log between them) against
+    the numpy code: clusters with and without the ovalness term, one with no model bins (its
+    observed bins get no posterior mass), an observed bin far from every kernel (all its mass
+    on the outlier term)."""
+    rng = np.random.default_rng(11)
+
+    def unit(n: int) -> np.ndarray:
+        v = rng.normal(size=(n, 3))
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    n, k = 300, 4
+    z = unit(n)
+    assign = rng.integers(0, k, size=n)
+    counts = rng.integers(1, 30, size=n).astype(float)
+    resultants = z * counts[:, None]
+    y = unit(200)
+    off = np.array([0, 80, 150, 200, 200])  # the last cluster has no model bins
+    log_pi = np.log(rng.uniform(0.001, 0.01, size=200))
+    kappa = np.array([20.0, 50.0, 400.0, 10.0])
+    beta = np.array([0.0, 5.0, 0.0, 2.0])
+    gamma = np.array([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(k)])
+    log_c = np.log(kappa / (2.0 * np.pi))
+    log_out = float(np.log(0.1) - np.log(4.0 * np.pi))
+    args = (z, assign, counts, resultants, y, y, off, log_pi, log_c, kappa, beta, gamma, log_out)
+    compiled, reference = both(lambda: kernels.e_step(*args), monkeypatch)
+    Cs, loglik, tn, t_unit = compiled
+    assert np.all(reference[3][assign == 3] == 0.0) and np.all(t_unit[assign == 3] == 0.0)
+    assert reference[3].min() < 1e-6 < reference[3].max()  # some bins are all outlier
+    assert close(t_unit, reference[3], 1.0) and close(tn, reference[2], float(counts.max()))
+    assert close(Cs, reference[0], float(kappa.max() * counts.sum()))
+    assert loglik == pytest.approx(reference[1], rel=ULPS * np.finfo(float).eps * n)

@@ -553,3 +553,111 @@ def bin_group_moments(labels, posterior, weights, resultants, scatters, k):  # t
             weighted[j, a] += t * scatters[i, a]
             ssum[j, a] += scatters[i, a]
     return weighted, wsum, xsum, ssum
+
+
+@_jit
+def e_logits(z, assign, yt, off, offset, kappa, beta, g1, g2, log_out):  # type: ignore[no-untyped-def]
+    """The E-step's log-posteriors of every observed bin over the model bins of its cluster,
+    less their maximum (at least ``log_out``), in one flat array: bin ``n``'s run is
+    ``seg[n]:seg[n + 1]`` (empty when its cluster has no model bins). ``yt`` (3, M) are the
+    model directions by coordinate and ``offset`` (M,) each model bin's ``log pi_m - log c_k``.
+    The products are summed as ``(y0 z0 + y1 z1) + y2 z2`` (BLAS may fuse them: rounding), then
+    the numpy twin's in-place steps in its order."""
+    n = z.shape[0]
+    seg = np.zeros(n + 1, dtype=np.intp)
+    for i in range(n):
+        j = assign[i]
+        seg[i + 1] = seg[i] + (off[j + 1] - off[j])
+    buf = np.empty(seg[n])
+    top = np.full(n, log_out)
+    y0, y1, y2 = yt[0], yt[1], yt[2]
+    for i in range(n):
+        j = assign[i]
+        m0, m1 = off[j], off[j + 1]
+        if m1 == m0:
+            continue
+        z0, z1, z2 = z[i, 0], z[i, 1], z[i, 2]
+        kj = kappa[j]
+        bj = beta[j]
+        row = buf[seg[i] : seg[i + 1]]
+        best = -np.inf
+        if bj > 0.0:
+            a = (z0 * g1[j, 0] + z1 * g1[j, 1]) + z2 * g1[j, 2]
+            b = (z0 * g2[j, 0] + z1 * g2[j, 1]) + z2 * g2[j, 2]
+            extra = bj * (a * a - b * b)
+            for m in range(m0, m1):
+                v = ((y0[m] * z0 + y1[m] * z1) + y2[m] * z2) * kj + offset[m]
+                v += extra
+                row[m - m0] = v
+                if v > best:
+                    best = v
+        else:
+            for m in range(m0, m1):
+                v = ((y0[m] * z0 + y1[m] * z1) + y2[m] * z2) * kj + offset[m]
+                row[m - m0] = v
+                if v > best:
+                    best = v
+        t = np.maximum(best, log_out)
+        top[i] = t
+        for q in range(m1 - m0):
+            row[q] -= t
+    return seg, buf, top
+
+
+@_jit
+def e_totals(seg, share, e_out):  # type: ignore[no-untyped-def]
+    """Per observed bin, the sum of its run of ``share`` (in run order, as numpy sums an
+    array's first axis) plus its outlier term."""
+    n = seg.shape[0] - 1
+    total = np.empty(n)
+    for i in range(n):
+        s = 0.0
+        for q in range(seg[i], seg[i + 1]):
+            s += share[q]
+        total[i] = s + e_out[i]
+    return total
+
+
+@_jit
+def e_moments(seg, share, total, log_total, top, assign, wx, resultants, ym, off, kappa, k):  # type: ignore[no-untyped-def]
+    """The E-step's sums from the posteriors: ``C_k`` (K, 3, 3), the log-likelihood and the
+    posterior mass of every observed bin, weighted and per normal (bins of a cluster without
+    model bins get none); summed bin by bin (numpy's matrix products sum in BLAS's order)."""
+    n = seg.shape[0] - 1
+    Cs = np.zeros((k, 3, 3))
+    per_cluster = np.zeros(k)
+    tn = np.zeros(n)
+    t_unit = np.zeros(n)
+    for i in range(n):
+        if seg[i + 1] == seg[i]:
+            continue
+        j = assign[i]
+        w = wx[i]
+        per_cluster[j] += w * (top[i] + log_total[i])
+        t = 0.0
+        v0 = 0.0
+        v1 = 0.0
+        v2 = 0.0
+        m = off[j]
+        tot = total[i]
+        for q in range(seg[i], seg[i + 1]):
+            s = share[q] / tot
+            t += s
+            v0 += s * ym[m, 0]
+            v1 += s * ym[m, 1]
+            v2 += s * ym[m, 2]
+            m += 1
+        tn[i] = t * w
+        t_unit[i] = t
+        for a in range(3):
+            r = resultants[i, a]
+            Cs[j, a, 0] += r * v0
+            Cs[j, a, 1] += r * v1
+            Cs[j, a, 2] += r * v2
+    loglik = 0.0
+    for j in range(k):
+        loglik += per_cluster[j]
+        for a in range(3):
+            for b in range(3):
+                Cs[j, a, b] *= kappa[j]
+    return Cs, loglik, tn, t_unit

@@ -306,3 +306,56 @@ def bin_group_moments(
     member[labels, np.arange(len(labels))] = 1.0
     weighted: FloatArray = (member * posterior) @ scatters
     return weighted, member @ weights, member @ resultants, member @ scatters
+
+
+def e_step(
+    z: FloatArray,
+    assign: NDArray[np.intp],
+    wx: FloatArray,
+    resultants: FloatArray,
+    y: FloatArray,
+    ym: FloatArray,
+    off: NDArray[np.intp],
+    log_pi: FloatArray,
+    log_c: FloatArray,
+    kappa: FloatArray,
+    beta: FloatArray,
+    gamma: FloatArray,
+    log_out: float,
+) -> tuple[FloatArray, float, FloatArray, FloatArray]:
+    k = len(kappa)
+    order = np.argsort(assign, kind='stable')
+    bounds = np.searchsorted(assign[order], np.arange(k + 1))
+    Cs = np.zeros((k, 3, 3))
+    loglik = 0.0
+    tn = np.zeros(len(z))
+    t_unit = np.zeros(len(z))  # posterior mass per normal of each bin
+    for j in range(k):
+        idx = order[bounds[j] : bounds[j + 1]]
+        ys = slice(off[j], off[j + 1])
+        if len(idx) == 0 or off[j + 1] == off[j]:
+            continue
+        zj, wj = z[idx], wx[idx]
+        # One (model bins x observed bins) array, updated in place: the same values as the
+        # expressions written out (IEEE addition commutes), without a temporary per operation.
+        logits = y[ys] @ zj.T
+        logits *= kappa[j]
+        logits += (log_pi[ys] - log_c[j])[:, None]
+        if beta[j] > 0.0:
+            g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
+            logits += beta[j] * ((zj @ g1) ** 2 - (zj @ g2) ** 2)[None, :]
+        top = logits.max(axis=0)
+        np.maximum(top, log_out, out=top)
+        logits -= top
+        share = np.exp(logits, out=logits)
+        total = share.sum(axis=0)
+        total += np.exp(log_out - top)
+        loglik += float(np.dot(wj, top + np.log(total)))
+        # Posteriors per normal (constant across a bin), summed over the bin's normals
+        # through its exact moments: sum_i tau x_i = (tau / w) * resultant.
+        share /= total
+        t_n = share.sum(axis=0)  # posterior mass per normal of bin n
+        tn[idx] = t_n * wj
+        t_unit[idx] = t_n
+        Cs[j] = kappa[j] * (resultants[idx].T @ (share.T @ ym[ys]))
+    return Cs, loglik, tn, t_unit

@@ -154,53 +154,30 @@ def _shared_e_step(
     over the model bins ``m`` of cluster ``k`` (weights ``v_m``), and
     ``C_k = kappa_k sum_mn tau_mn x_n y_m^T``.
 
-    Cost: the exponentials are two thirds of it (2.4 of 3.6 ms on a 250 x 900 block, measured
-    2026-12-02; libm's ``exp``, numpy has its own only on AVX-512). Fusing the other passes
-    into one compiled loop gained 2 % (19 % with the exponentials compiled too, which the
-    kernels leave to numpy: see :mod:`kentreg_ros.core.kernels._jit`); no term can be
-    skipped, as only 1-2 % of them lie below ``exp(-40)`` on real scans (KITTI with the local
-    map, BALM with the previous scan).
+    Cost: a real scan's E-step has some 60k terms (~6 clusters of a few hundred bins on either
+    side). Where numpy's ``exp`` is libm's (x86-64 without AVX-512), the exponentials were two
+    thirds of it (2.4 of 3.6 ms on a 250 x 900 block, measured 2026-12-02); where it is numpy's
+    own (AVX-512), they take ~0.05 ms of a ~0.6 ms pass and the rest is numpy's dozen calls per
+    cluster, so :func:`~kentreg_ros.core.kernels.e_step` writes and sums the terms in compiled
+    passes and leaves only ``exp`` and ``log`` to numpy. No term can be skipped, as only 1-2 %
+    of them lie below ``exp(-40)`` on real scans (KITTI with the local map, BALM with the
+    previous scan).
     """
-    k = len(kappa)
-    wx, resultants = observed.weights, observed.resultants
-    y, ym, off, log_pi = fixed.y, fixed.ym, fixed.off, fixed.log_pi
-    order = np.argsort(assign, kind='stable')
-    bounds = np.searchsorted(assign[order], np.arange(k + 1))
-    Cs = np.zeros((k, 3, 3))
-    loglik = 0.0
-    tn = np.zeros(len(z))
-    t_unit = np.zeros(len(z))  # posterior mass per normal of each bin
-    for j in range(k):
-        idx = order[bounds[j] : bounds[j + 1]]
-        ys = slice(off[j], off[j + 1])
-        if len(idx) == 0 or off[j + 1] == off[j]:
-            continue
-        zj, wj = z[idx], wx[idx]
-        # One (model bins x observed bins) array, updated in place: the same values as the
-        # expressions written out (IEEE addition commutes), without a temporary per operation
-        # (16 % of the E-step on street scans, which run it about 8 times a step and 40 times
-        # in a start-free search).
-        logits = y[ys] @ zj.T
-        logits *= kappa[j]
-        logits += (log_pi[ys] - log_c[j])[:, None]
-        if beta[j] > 0.0:
-            g1, g2 = gamma[j][:, 1], gamma[j][:, 2]
-            logits += beta[j] * ((zj @ g1) ** 2 - (zj @ g2) ** 2)[None, :]
-        top = logits.max(axis=0)
-        np.maximum(top, log_out, out=top)
-        logits -= top
-        share = np.exp(logits, out=logits)
-        total = share.sum(axis=0)
-        total += np.exp(log_out - top)
-        loglik += float(np.dot(wj, top + np.log(total)))
-        # Posteriors per normal (constant across a bin), summed over the bin's normals
-        # through its exact moments: sum_i tau x_i = (tau / w) * resultant.
-        share /= total
-        t_n = share.sum(axis=0)  # posterior mass per normal of bin n
-        tn[idx] = t_n * wj
-        t_unit[idx] = t_n
-        Cs[j] = kappa[j] * (resultants[idx].T @ (share.T @ ym[ys]))
-    return Cs, loglik, tn, t_unit
+    return kernels.e_step(
+        z,
+        assign,
+        observed.weights,
+        observed.resultants,
+        fixed.y,
+        fixed.ym,
+        fixed.off,
+        fixed.log_pi,
+        log_c,
+        kappa,
+        beta,
+        gamma,
+        log_out,
+    )
 
 
 def _m_step(
