@@ -116,6 +116,15 @@ def invert_transform(T: FloatArray) -> FloatArray:
     return make_transform(R.T, -R.T @ T[:3, 3])
 
 
+def row_norms(a: FloatArray) -> FloatArray:
+    """Euclidean norm of each row of an (N, 3) array: ``np.linalg.norm(a, axis=1)``, bit for
+    bit (the same squares summed in the same order, ``(x x + y y) + z z``), ~4x faster (numpy
+    reduces a length-3 row slowly)."""
+    x, y, z = a[:, 0], a[:, 1], a[:, 2]
+    out: FloatArray = np.sqrt((x * x + y * y) + z * z)
+    return out
+
+
 def cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
     """Row-wise cross product of (N, 3) arrays; a few times faster than ``np.cross``."""
     out = np.empty_like(a)

@@ -57,6 +57,7 @@ from scipy.special import dawsn, erfcx, gammaln, ive, logsumexp, xlogy
 
 from kentreg_ros.core import kernels
 from kentreg_ros.core.errors import KentRegError
+from kentreg_ros.core.geometry import row_norms
 
 FloatArray = NDArray[np.float64]
 
@@ -349,7 +350,7 @@ def kent_log_pdf(x: ArrayLike, params: KentParams) -> FloatArray:
 def _as_unit_vectors(x: ArrayLike) -> FloatArray:
     """Validate ``x`` (N, 3) and normalise its rows; zero rows raise :class:`KentError`."""
     arr = _as_vectors(x, 'x')
-    norms = np.linalg.norm(arr, axis=1)
+    norms = row_norms(arr)
     if np.any(norms <= 0.0):
         raise KentError(
             f'Expected `x` rows to be non-zero vectors, got {int(np.sum(norms <= 0.0))} zero rows.'

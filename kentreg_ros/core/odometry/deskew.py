@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import TimeReference, TimeUnit
-from kentreg_ros.core.geometry import log_so3
+from kentreg_ros.core.geometry import log_so3, row_norms
 
 FloatArray = NDArray[np.float64]
 
@@ -265,7 +265,7 @@ def deskew(points: FloatArray, times_s: FloatArray, twist: FloatArray) -> FloatA
     if not (np.any(omega) or np.any(v)):
         return np.array(points, dtype=np.float64)
     w = times_s[:, None] * omega[None, :]  # rotation vector of each point
-    a, b, c = _arc_coefficients(np.linalg.norm(w, axis=1))
+    a, b, c = _arc_coefficients(row_norms(w))
     cross = np.cross(w, points)
     rotated = points + a[:, None] * cross + b[:, None] * np.cross(w, cross)  # Rodrigues
     u = times_s[:, None] * v[None, :]

@@ -26,7 +26,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import Deskew, KentRegConfig, Mode, SearchMode
 from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
-from kentreg_ros.core.geometry import exp_so3, log_so3, make_transform, rotation_angle
+from kentreg_ros.core.geometry import (
+    exp_so3,
+    log_so3,
+    make_transform,
+    rotation_angle,
+    row_norms,
+)
 from kentreg_ros.core.odometry.deskew import (
     ImplausibleTimesError,
     PointTimes,
@@ -437,7 +443,7 @@ class Deskewer:
         ``scan`` was deskewed with)."""
         assert sweep.times is not None and model.scan is not None
         span = float(np.ptp(sweep.times))
-        reach = float(np.max(np.linalg.norm(scan.points, axis=1))) if len(scan) else 0.0
+        reach = float(np.max(row_norms(scan.points))) if len(scan) else 0.0
         spacing = max(scan.voxel_size, 1e-9)
         for _ in range(MAX_DESKEW_ITERATIONS):
             twist = twist_of(outcome.T, gap_ns * 1e-9)

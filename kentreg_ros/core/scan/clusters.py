@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.geometry import row_norms
 from kentreg_ros.core.kent import kent_from_moments
 from kentreg_ros.core.scan.voxels import argsort_keys
 
@@ -18,7 +19,7 @@ FloatArray = NDArray[np.float64]
 
 
 def _normalize_rows(x: FloatArray) -> FloatArray:
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+    return x / np.maximum(row_norms(x), 1e-12)[:, None]
 
 
 def _rng(rng: np.random.Generator | int | None) -> np.random.Generator:
@@ -172,14 +173,14 @@ def _lloyd(
     weighted = np.array([xs[:, axis] * w for axis in range(3)])  # (3, N), fixed
     for _ in range(max_iterations):
         new_labels, sums = kernels.assign_and_sum(xs, weighted, centers)
-        norms = np.linalg.norm(sums, axis=1)
+        norms = row_norms(sums)
         empty = norms < 1e-12
         if empty.any():
             fit = (xs @ centers.T)[np.arange(n), new_labels]
             worst = np.argsort(fit)[: int(empty.sum())]
             sums[empty] = xs[worst]
             new_labels[worst] = np.flatnonzero(empty)
-            norms = np.linalg.norm(sums, axis=1)
+            norms = row_norms(sums)
         centers = sums / norms[:, None]
         if np.array_equal(new_labels, labels):
             break
@@ -251,7 +252,7 @@ class NormalBins:
         counts = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
         sums, outer = kernels.bin_moments(normals, order, starts)
         scatters = outer.reshape(-1, 3, 3)
-        norms = np.linalg.norm(sums, axis=1)
+        norms = row_norms(sums)
         keep = norms > 1e-12 * counts  # opposite normals in one cell cancel: drop them
         return cls(
             directions=np.ascontiguousarray(sums[keep] / norms[keep, None]),

@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError, InvalidPointCloudError
+from kentreg_ros.core.geometry import row_norms
 from kentreg_ros.core.scan.clusters import (
     ModelClusters,
     cluster_normals,
@@ -230,7 +231,7 @@ def _given_normals(
         raise InvalidPointCloudError(
             f'Expected `normals` to have the shape of `points` {pts.shape}, got {nrm.shape}.'
         )
-    lengths = np.linalg.norm(nrm, axis=1)
+    lengths = row_norms(nrm)
     if np.any(lengths < 1e-9):
         raise InvalidPointCloudError('`normals` contains zero-length vectors.')
     nrm = nrm / lengths[:, None]
