@@ -257,20 +257,25 @@ class VoxelMap:
             indices = len(self._points) + np.arange(len(chosen), dtype=np.intp)
             self._order = np.insert(self._order, at, indices)
             self._sorted_keys = np.insert(self._sorted_keys, at, fresh_keys)
-            self._points = np.concatenate([self._points, pts[chosen]])
+            # take(): the rows of fancy indexing, several times faster on (N, 3).
+            new_points = pts.take(chosen, axis=0)
+            self._points = np.concatenate([self._points, new_points])
             self._keys = np.concatenate([self._keys, fresh_keys])
             if self.with_normals:
-                self._normals = np.concatenate([self._normals, nrm[chosen]])
+                new_normals = nrm.take(chosen, axis=0)
+                self._normals = np.concatenate([self._normals, new_normals])
             if self.average:
-                self._sums = np.concatenate([self._sums, pts[chosen]])
+                self._sums = np.concatenate([self._sums, new_points])
                 self._merged = np.concatenate([self._merged, np.ones(len(chosen))])
                 if self.with_normals:
-                    self._normal_sums = np.concatenate([self._normal_sums, nrm[chosen]])
+                    self._normal_sums = np.concatenate([self._normal_sums, new_normals])
         if len(overflow):
             # After the new points are in: a voxel first filled by this insertion takes the
             # rest of its points into the ones it kept.
             self._merge(
-                pts[overflow], nrm[overflow] if self.with_normals else None, keys[overflow]
+                pts.take(overflow, axis=0),
+                nrm.take(overflow, axis=0) if self.with_normals else None,
+                keys[overflow],
             )
         return len(chosen)
 
@@ -286,7 +291,9 @@ class VoxelMap:
             count = self._voxel_counts[np.searchsorted(self._voxel_keys, keys)]
             slots = np.arange(self.max_points_per_voxel)
             rows = order[np.minimum(first[:, None] + slots, len(order) - 1)]
-            dist = np.sum((self._points[rows] - pts[:, None, :]) ** 2, axis=2)
+            d = self._points.take(rows, axis=0) - pts[:, None, :]
+            dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+            dist = (dx * dx + dy * dy) + dz * dz  # np.sum(d ** 2, axis=2), in its order
             dist[slots >= count[:, None]] = np.inf
             target = rows[np.arange(len(rows)), np.argmin(dist, axis=1)]
         kernels.map_merge(
@@ -309,7 +316,10 @@ class VoxelMap:
             raise InvalidInputError(f'Expected `radius` > 0, got {radius!r}.')
         if not len(self._points) or not np.isfinite(radius):
             return 0
-        inside = np.sum((self._points - c) ** 2, axis=1) <= radius * radius
+        d = self._points - c
+        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+        # np.sum(d ** 2, axis=1)'s sums in its order, (x x + y y) + z z, ~4x faster.
+        inside = (dx * dx + dy * dy) + dz * dz <= radius * radius
         n_out = int(len(inside) - np.count_nonzero(inside))
         if n_out:
             # Count the dropped points out of their voxels (a sort of the dropped keys only,
