@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError
+from kentreg_ros.core.geometry import row_norms
 from kentreg_ros.core.odometry.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.odometry.stages import Sweep, prepare
 from kentreg_ros.core.odometry.step import Health
@@ -162,7 +163,7 @@ class LocalMapModel(PreviousScanModel):
         ):
             voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
             self.map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
-        radius = odo.map_radius or float(np.sqrt(np.max(np.sum(scan.points**2, axis=1))))
+        radius = odo.map_radius or float(np.max(row_norms(scan.points)))
         t0 = time.perf_counter()
         self.map.insert_scan(scan, T_world_scan, radius=radius)
         self.timings = {'map_insert': elapsed_ms(t0)}

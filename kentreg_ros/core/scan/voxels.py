@@ -69,11 +69,14 @@ def crop_range(
     """
     if min_range <= 0.0 and max_range <= 0.0:
         return points
-    d2 = np.sum((points - np.asarray(origin, dtype=np.float64)) ** 2, axis=1)
+    d = points - np.asarray(origin, dtype=np.float64)
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    d2 = (dx * dx + dy * dy) + dz * dz  # np.sum(d ** 2, axis=1) in its order, ~4x faster
     keep = d2 >= min_range**2
     if max_range > 0.0:
         keep &= d2 <= max_range**2
-    return np.ascontiguousarray(points[keep])
+    # take(): boolean indexing's rows, several times faster on (N, 3).
+    return points.take(np.flatnonzero(keep), axis=0)
 
 
 def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
