@@ -20,6 +20,7 @@ from kentreg_ros.core.scan.voxels import (
     as_points,
     choose_voxel_size,
     count_voxels,
+    crop_range,
     downsample,
     drop_nonfinite,
     voxel_downsample,
@@ -221,3 +222,15 @@ def test_a_cloud_already_downsampled_at_the_voxel_keeps_its_samples() -> None:
     again, grid = downsample(once, voxel_size=0.25)
     # Dropping single-return voxels would leave nothing: they are the cloud's samples here.
     assert grid.min_points == 1 and len(again) == len(once)
+
+
+def test_crop_range_keeps_the_points_within_the_ring_in_order() -> None:
+    rng = np.random.default_rng(12)
+    points = rng.normal(scale=20.0, size=(5000, 3))
+    origin = np.array([1.0, -2.0, 0.5])
+    dist = np.linalg.norm(points - origin, axis=1)
+    for lo, hi in ((0.0, 0.0), (5.0, 0.0), (0.0, 30.0), (5.0, 30.0)):
+        want = points[(dist >= lo) & ((dist <= hi) if hi > 0.0 else True)]
+        got = crop_range(points, lo, hi, origin)
+        np.testing.assert_array_equal(got, want)
+        assert got.flags.c_contiguous
