@@ -97,22 +97,9 @@ class PreviousScanModel:
         index: int,
         sweep: Sweep | None,
     ) -> None:
-        self.timings = {}
         if scan is None:
+            self.timings = {}
             return
-        self._advance(scan, health, T_world_scan, cov, stamp_ns, index, sweep)
-
-    def _advance(
-        self,
-        scan: PreparedScan,
-        health: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        """Make ``scan`` (the model to register the next scan against) the model."""
         self._move(scan, T_world_scan, cov, stamp_ns, index)
         self._first_sweep = sweep if health == Health.FIRST and sweep is not None else None
         self._index_target()
@@ -124,7 +111,7 @@ class PreviousScanModel:
         assert self.scan is not None
         t0 = time.perf_counter()
         self.scan.tree.build()
-        self.timings['target_tree'] = elapsed_ms(t0)
+        self.timings = {'target_tree': elapsed_ms(t0)}
 
     def _move(
         self, scan: PreparedScan, T_world: FloatArray, cov: FloatArray, stamp_ns: int, index: int
@@ -172,13 +159,14 @@ class LocalMapModel(PreviousScanModel):
             return
         if self.scan is not None and self.map is not None and not health.accepted:
             return  # a fall-back stays out of the map
-        self._advance(
+        super().update(
             self._insert(scan, T_world_scan), health, T_world_scan, cov, stamp_ns, index, sweep
         )
 
     def _index_target(self) -> None:
         """Nothing: :meth:`LocalMap.target` builds the map's index with the rest of the upkeep
-        (a scan that stands in for a map too small to be a target is indexed when queried)."""
+        (a scan that stands in for a map too small to be a target is indexed when queried);
+        the map's own timings stay as :meth:`update` set them."""
 
     def _insert(self, scan: PreparedScan, T_world_scan: FloatArray) -> PreparedScan:
         """Insert ``scan`` (posed at ``T_world_scan``) into the map, drop what lies beyond the
