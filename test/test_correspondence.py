@@ -47,6 +47,22 @@ def test_cache_skips_the_query_for_points_that_barely_moved() -> None:
     assert cache.n_queried < 1.05 * len(source)
 
 
+def test_cache_certifies_a_swap_between_two_close_target_points_without_a_query() -> None:
+    # A query point between two target points (1 m apart; the third is 9.5 m away) crosses the
+    # midpoint: its nearest neighbour changes, and the two cached candidates prove which.
+    target = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    cache = NearestNeighborCache(cKDTree(target), target, 1)
+    for x, expected in ((0.49, 0), (0.51, 1), (0.45, 0), (0.9, 1)):
+        d, i = cache.query(np.array([[x, 0.0, 0.0]]), 5.0)
+        assert i[0] == expected
+        assert d[0] == pytest.approx(min(x, 1.0 - x))
+    assert cache.n_queried == 1
+    # Beyond what the third neighbour's distance certifies, it queries again.
+    d, i = cache.query(np.array([[6.0, 0.0, 0.0]]), 5.0)
+    assert (i[0], d[0]) == (2, pytest.approx(4.0))
+    assert cache.n_queried == 2
+
+
 def test_cache_rejects_a_target_that_is_not_the_trees() -> None:
     target = np.random.default_rng(2).random((50, 3))
     with pytest.raises(ValueError, match='`target` to hold the 50 points'):

@@ -145,13 +145,15 @@ def certified_distances(
     x: FloatArray,
     x0: FloatArray,
     radius: FloatArray,
-    idx: NDArray[np.intp],
+    cand: NDArray[np.intp],
     target: FloatArray,
     gate: float,
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Distance to the cached neighbour and whether the cache certifies it (N,), (N,)."""
-    dist, valid = _run('certified_distances', x, x0, radius, idx, target, float(gate))
-    return dist, valid
+) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_]]:
+    """Nearest cached candidate of each query point (``cand`` (N, C), -1 for none): its distance
+    (N,) (inf without one), its index (N,) (-1 without one) and whether the cache certifies it
+    (N,)."""
+    dist, nearest, valid = _run('certified_distances', x, x0, radius, cand, target, float(gate))
+    return dist, nearest, valid
 
 
 def cluster_moments(
@@ -398,7 +400,7 @@ def _compile_all() -> None:
     unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     normal_consistency(unit, nbrs)
     labels, _ = assign_and_sum(unit, np.ascontiguousarray(unit.T), unit[:2])
-    certified_distances(pts, pts, np.ones(8), labels, pts, 1.0)
+    certified_distances(pts, pts, np.ones(8), np.column_stack([labels, labels - 1]), pts, 1.0)
     cluster_moments(unit, labels, 2)
     bin_moments(unit, np.arange(8, dtype=np.intp), np.array([0, 3], dtype=np.intp))
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))

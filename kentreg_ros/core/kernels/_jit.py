@@ -109,31 +109,37 @@ def assign_and_sum(xs, weighted, centers):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def certified_distances(x, x0, radius, idx, target, gate):  # type: ignore[no-untyped-def]
+def certified_distances(x, x0, radius, cand, target, gate):  # type: ignore[no-untyped-def]
     """For :class:`~kentreg_ros.core.registration.correspondence.NearestNeighborCache`: the
-    distance from each query point to its cached neighbour (inf without one) and whether the cache
-    certifies it (see the module's Notes): ``|x - q| <= radius - |x - x0|`` with a neighbour,
-    ``gate < radius - |x - x0|`` without."""
+    nearest of each query point's cached candidates (index -1 and distance inf without one) and
+    whether the cache certifies it (see that module): ``d <= radius - |x - x0|``, or
+    ``gate < radius - |x - x0|`` (then no other target point is within the gate)."""
     n = x.shape[0]
+    c = cand.shape[1]
     dist = np.empty(n)
+    nearest = np.empty(n, dtype=np.intp)
     valid = np.empty(n, dtype=np.bool_)
     for i in range(n):
         dx = x[i, 0] - x0[i, 0]
         dy = x[i, 1] - x0[i, 1]
         dz = x[i, 2] - x0[i, 2]
         lower = radius[i] - np.sqrt((dx * dx + dz * dz) + dy * dy)  # einsum's order
-        q = idx[i]
-        if q >= 0:
-            ex = x[i, 0] - target[q, 0]
-            ey = x[i, 1] - target[q, 1]
-            ez = x[i, 2] - target[q, 2]
-            d = np.sqrt((ex * ex + ez * ez) + ey * ey)
-            dist[i] = d
-            valid[i] = d <= lower
-        else:
-            dist[i] = np.inf
-            valid[i] = gate < lower
-    return dist, valid
+        best = np.inf
+        best_q = -1
+        for j in range(c):
+            q = cand[i, j]
+            if q >= 0:
+                ex = x[i, 0] - target[q, 0]
+                ey = x[i, 1] - target[q, 1]
+                ez = x[i, 2] - target[q, 2]
+                d = np.sqrt((ex * ex + ez * ez) + ey * ey)
+                if d < best:
+                    best = d
+                    best_q = q
+        dist[i] = best
+        nearest[i] = best_q
+        valid[i] = best <= lower or gate < lower
+    return dist, nearest, valid
 
 
 @_jit

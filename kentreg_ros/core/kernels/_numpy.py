@@ -91,17 +91,24 @@ def certified_distances(
     x: FloatArray,
     x0: FloatArray,
     radius: FloatArray,
-    idx: NDArray[np.intp],
+    cand: NDArray[np.intp],
     target: FloatArray,
     gate: float,
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    lower = radius - _row_norms(x - x0)  # every other target point is at least this far
-    has = idx >= 0
-    # Distance to the current neighbour (index 0 as a placeholder where there is none).
-    dist = _row_norms(x - np.take(target, np.where(has, idx, 0), axis=0))
-    dist[~has] = np.inf
-    valid = np.where(has, dist <= lower, gate < lower)
-    return dist, valid
+) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_]]:
+    lower = radius - _row_norms(x - x0)  # every non-candidate target point is at least this far
+    has = cand >= 0
+    # Distance to each candidate (index 0 as a placeholder where there is none).
+    d = np.column_stack(
+        [_row_norms(x - np.take(target, np.where(has[:, j], cand[:, j], 0), axis=0))
+         for j in range(cand.shape[1])]
+    )  # fmt: skip
+    d[~has] = np.inf
+    col = np.argmin(d, axis=1)
+    rows = np.arange(len(x))
+    dist = d[rows, col]
+    nearest = np.where(np.isfinite(dist), cand[rows, col], -1)
+    valid = (dist <= lower) | (gate < lower)
+    return dist, nearest, valid
 
 
 def cluster_moments(

@@ -3,14 +3,22 @@
 ICP-style loops (the translation stage and the joint refinement) query the target's KD-tree for
 every source point on every iteration, although after the first few iterations the points move
 by millimetres while neighbouring target points are centimetres apart. A query at position
-``x0`` with ``k = 2`` gives the nearest target point ``q1`` and a radius ``r`` (the second
-neighbour's distance, or the query bound) such that every other target point is at least ``r``
-from ``x0``. After the point has moved to ``x``, with ``m = |x - x0|``, every other target
-point is at least ``r - m`` from ``x`` (triangle inequality); so if ``|x - q1| <= r - m``,
-``q1`` is still the nearest neighbour, and a point that had no neighbour within ``r`` still has
-none within any gate ``< r - m``. Only points failing this certificate are queried again. The
-correspondences are therefore exactly those of a fresh query (up to ties between equidistant
-target points), at a fraction of the cost once the iteration settles.
+``x0`` with ``k = C + 1`` gives ``C`` candidates (the nearest target points) and a radius ``r``
+(the next neighbour's distance, or the query bound) such that every other target point is at
+least ``r`` from ``x0``. After the point has moved to ``x``, with ``m = |x - x0|``, every
+non-candidate is at least ``r - m`` from ``x`` (triangle inequality); so if the nearest
+candidate is within ``r - m`` of ``x``, it is the nearest neighbour, and if the gate is below
+``r - m``, no non-candidate is within the gate. Only points failing this certificate are queried
+again. The correspondences are therefore exactly those of a fresh query (up to ties between
+equidistant target points), at a fraction of the cost once the iteration settles.
+
+Two candidates rather than one: a point that sits between two target points (the common case
+on a surface sampled at the voxel size) swaps between them as it moves, which one candidate
+cannot certify, and the radius from the third neighbour is larger. Measured on the BALM scans
+and the street frames (50 scans each, both models), this re-queries 29-37 % fewer points than
+one candidate, for the same poses bit for bit; three candidates saved 41 % against one
+candidate's 31 % on the street frames with the local map, for a third distance per point per
+iteration.
 """
 
 from __future__ import annotations
@@ -22,11 +30,8 @@ from kentreg_ros.core import kernels
 from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
-
-
-def _row_norms(v: FloatArray) -> FloatArray:
-    out: FloatArray = np.sqrt(np.einsum('ij,ij->i', v, v))
-    return out
+#: Target points cached per query point (see the module's notes).
+CANDIDATES = 2
 
 
 class NearestNeighborCache:
@@ -56,9 +61,9 @@ class NearestNeighborCache:
         self._tree = tree
         self._target = target
         self._x0 = np.zeros((n_queries, 3))
-        self._idx = np.full(n_queries, -1, dtype=np.intp)
-        # Every target point other than _idx is at least _radius from _x0 (all points when
-        # _idx < 0); -inf before the first query.
+        # The CANDIDATES nearest target points at _x0 (-1 for none); every other target point
+        # is at least _radius from _x0; -inf before the first query.
+        self._cand = np.full((n_queries, CANDIDATES), -1, dtype=np.intp)
         self._radius = np.full(n_queries, -np.inf)
         self.n_queried = 0
         self.n_calls = 0
@@ -84,20 +89,21 @@ class NearestNeighborCache:
         """
         gate = float(distance_upper_bound)
         self.n_calls += 1
-        dist, valid = kernels.certified_distances(
-            x, self._x0, self._radius, self._idx, self._target, gate
+        dist, nearest, valid = kernels.certified_distances(
+            x, self._x0, self._radius, self._cand, self._target, gate
         )
         redo = np.flatnonzero(~valid)
         if len(redo):
             moved = np.take(x, redo, axis=0)
-            d2, i2 = self._tree.query(moved, k=2, distance_upper_bound=gate)
-            found = np.isfinite(d2[:, 0])
+            d, i = self._tree.query(moved, k=CANDIDATES + 1, distance_upper_bound=gate)
+            found = np.isfinite(d)
             self._x0[redo] = moved
-            self._idx[redo] = np.where(found, i2[:, 0], -1)
-            self._radius[redo] = np.where(found, np.minimum(d2[:, 1], gate), gate)
-            dist[redo] = d2[:, 0]
+            self._cand[redo] = np.where(found[:, :CANDIDATES], i[:, :CANDIDATES], -1)
+            self._radius[redo] = np.where(found[:, CANDIDATES], d[:, CANDIDATES], gate)
+            dist[redo] = d[:, 0]
+            nearest[redo] = np.where(found[:, 0], i[:, 0], -1)
             self.n_queried += len(redo)
-        idx = np.where(self._idx >= 0, self._idx, self._tree.n)
+        idx = np.where(nearest >= 0, nearest, self._tree.n)
         outside = ~(dist < gate)
         dist[outside] = np.inf
         idx[outside] = self._tree.n
