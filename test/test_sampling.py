@@ -34,9 +34,17 @@ def test_stratified_sample_keeps_small_clusters_whole_and_thins_large_ones() -> 
     np.testing.assert_array_equal(stratified_sample(labels, 5000), np.arange(len(labels)))
 
 
+@pytest.mark.parametrize('jit', ['', '1'])
 @pytest.mark.parametrize('high', [1, 7, 2**16, 2**20, 2**40, 2**62])
-def test_argsort_keys_is_the_stable_argsort(high: int) -> None:
+def test_argsort_keys_is_the_stable_argsort(
+    high: int, jit: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv('KENTREG_NO_JIT', jit)  # compiled (where numba is installed), numpy
     rng = np.random.default_rng(high % 97)
     for n in (0, 1, 13, 5000):
         keys = rng.integers(0, high, size=n, dtype=np.int64)
+        # Duplicates: stability decides the order among equal keys.
+        keys = np.concatenate([keys, keys[: n // 3]])
         np.testing.assert_array_equal(argsort_keys(keys), np.argsort(keys, kind='stable'))
+    negative = np.array([3, -1, 3, -7, 0], dtype=np.int64)
+    np.testing.assert_array_equal(argsort_keys(negative), np.argsort(negative, kind='stable'))

@@ -164,6 +164,13 @@ def cluster_moments(
     return mass, xsum, scatter
 
 
+def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
+    """``np.argsort(keys, kind='stable')`` of non-negative integer keys (N,), as a radix sort
+    over 16-bit digits."""
+    out: NDArray[np.intp] = _run('argsort_keys', keys)
+    return out
+
+
 def voxel_keys(
     points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
 ) -> NDArray[np.int64]:
@@ -404,7 +411,7 @@ def _compile_all() -> None:
     cluster_moments(unit, labels, 2)
     bin_moments(unit, np.arange(8, dtype=np.intp), np.array([0, 3], dtype=np.intp))
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
-    order = np.argsort(keys, kind='stable')
+    order = argsort_keys(keys)
     voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)
     ok, r, _ = plane_residuals(pts, labels, pts, unit, unit, np.eye(3))
     plane_normal_equations(pts, labels, ok, unit, r, np.ones(len(ok)))

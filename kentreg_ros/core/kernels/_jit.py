@@ -178,6 +178,38 @@ def voxel_keys(points, voxel_size, corner, span):  # type: ignore[no-untyped-def
 
 
 @_jit
+def argsort_keys(keys):  # type: ignore[no-untyped-def]
+    """Stable argsort of non-negative int64 keys: an LSD radix sort over 16-bit digits, the
+    same passes as the numpy twin's, each a counting sort (count, prefix sum, scatter)."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    spare = np.empty(n, dtype=np.intp)
+    counts = np.empty(65536, dtype=np.intp)
+    top = 0
+    for i in range(n):
+        top = max(top, keys[i])
+    shift = 0
+    while True:
+        counts[:] = 0
+        for i in range(n):
+            counts[(keys[i] >> shift) & 0xFFFF] += 1
+        total = 0
+        for d in range(65536):
+            c = counts[d]
+            counts[d] = total
+            total += c
+        for i in range(n):
+            o = order[i]
+            d = (keys[o] >> shift) & 0xFFFF
+            spare[counts[d]] = o
+            counts[d] += 1
+        order, spare = spare, order
+        shift += 16
+        if shift >= 64 or (top >> shift) == 0:  # a shift by 64 is undefined in LLVM
+            return order
+
+
+@_jit
 def voxel_centroids(points, order, starts, counts, min_points):  # type: ignore[no-untyped-def]
     """Centroids of the voxels (runs ``starts``/``counts`` of ``order``) holding at least
     ``min_points`` points, each summed in run order, as ``add.reduceat`` sums it."""

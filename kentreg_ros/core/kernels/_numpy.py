@@ -126,6 +126,17 @@ def cluster_moments(
     return mass, xsum, scatter
 
 
+def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
+    # numpy sorts 16-bit integers stably by radix sort; one such pass per digit.
+    order = np.argsort((keys & 0xFFFF).astype(np.uint16), kind='stable')
+    rest = keys >> 16
+    while rest.any():
+        order = order[np.argsort((rest[order] & 0xFFFF).astype(np.uint16), kind='stable')]
+        rest = rest >> 16
+    out: NDArray[np.intp] = order.astype(np.intp, copy=False)
+    return out
+
+
 def voxel_keys(
     points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
 ) -> NDArray[np.int64]:
