@@ -164,6 +164,28 @@ def test_an_empty_cluster_is_reseeded_the_same_way_with_the_kernels(
     assert close(cen_c, cen_r, 1.0)
 
 
+@pytest.mark.parametrize('iterations', [2, 50])
+def test_lloyd_goes_on_after_a_reseed_the_same_way_with_the_kernels(
+    iterations: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The compiled steps stop at the empty cluster, Python re-seeds it, the steps resume: with
+    # room for it the result is a fixed point of Lloyd's step.
+    rng = np.random.default_rng(5)
+    x = np.repeat(np.eye(3)[:2], 60, axis=0) + rng.normal(scale=0.3, size=(120, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    start = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-0.6, -0.6, -0.5]])
+    (lab_c, cen_c), (lab_r, cen_r) = both(
+        lambda: refine_spherical_kmeans(x, start, max_iterations=iterations), monkeypatch
+    )
+    assert np.array_equal(lab_c, lab_r)
+    assert close(cen_c, cen_r, 1.0)
+    assert set(lab_c.tolist()) == {0, 1, 2}
+    if iterations == 50:
+        assert np.array_equal(np.argmax(x @ cen_c.T, axis=1), lab_c)
+        sums = np.array([x[lab_c == j].sum(axis=0) for j in range(3)])
+        np.testing.assert_allclose(cen_c, sums / np.linalg.norm(sums, axis=1)[:, None])
+
+
 def test_cluster_moments_match_numpy(cloud: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> None:
     normals = estimate_normals(cloud, 15).normals
     labels = np.argmax(np.abs(normals), axis=1) * 2 + (normals.max(axis=1) > 0.5)

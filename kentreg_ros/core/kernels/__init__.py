@@ -141,6 +141,24 @@ def assign_and_sum(
     return labels, sums
 
 
+def lloyd_steps(
+    xs: FloatArray,
+    weighted: FloatArray,
+    centers: FloatArray,
+    labels: NDArray[np.intp],
+    iterations: int,
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray, NDArray[np.intp], int, int]:
+    """Up to ``iterations`` Lloyd steps of spherical k-means of the unit rows of ``xs`` (N, 3)
+    (``weighted``: their weighted copies, (3, N)) from ``centers`` (K, 3) and the previous
+    ``labels`` (N,): ``(labels, centers, sums, new_labels, state, steps)``. ``state`` 0: the
+    labels repeated (converged); 1: the iterations ran out; 2: a cluster came out empty at the
+    last step, ``labels`` and ``centers`` as before it, ``sums`` and ``new_labels`` that step's
+    for the caller to re-seed. ``steps``: the steps taken."""
+    out = _run('lloyd_steps', xs, weighted, centers, labels, int(iterations))
+    labels_, centers_, sums, new_labels, state, steps = out
+    return labels_, centers_, sums, new_labels, int(state), int(steps)
+
+
 def certified_distances(
     x: FloatArray,
     x0: FloatArray,
@@ -407,6 +425,7 @@ def _compile_all() -> None:
     unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     normal_consistency(unit, nbrs)
     labels, _ = assign_and_sum(unit, np.ascontiguousarray(unit.T), unit[:2])
+    lloyd_steps(unit, np.ascontiguousarray(unit.T), unit[:2], np.full(8, -1, dtype=np.intp), 3)
     certified_distances(pts, pts, np.ones(8), np.column_stack([labels, labels - 1]), pts, 1.0)
     cluster_moments(unit, labels, 2)
     bin_moments(unit, np.arange(8, dtype=np.intp), np.array([0, 3], dtype=np.intp))

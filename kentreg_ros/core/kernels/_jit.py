@@ -109,6 +109,40 @@ def assign_and_sum(xs, weighted, centers):  # type: ignore[no-untyped-def]
 
 
 @_jit
+def lloyd_steps(xs, weighted, centers, labels, iterations):  # type: ignore[no-untyped-def]
+    """Up to ``iterations`` Lloyd steps of spherical k-means from ``centers`` (see the numpy
+    twin for the contract), each an :func:`assign_and_sum` and the normalised sums as the new
+    centres (norms as ``geometry.row_norms``), until the labels repeat."""
+    k = centers.shape[0]
+    n = xs.shape[0]
+    norms = np.empty(k)
+    for it in range(iterations):
+        new_labels, sums = assign_and_sum(xs, weighted, centers)
+        empty = False
+        for j in range(k):
+            norms[j] = np.sqrt(
+                (sums[j, 0] * sums[j, 0] + sums[j, 1] * sums[j, 1]) + sums[j, 2] * sums[j, 2]
+            )
+            empty = empty or norms[j] < 1e-12
+        if empty:
+            return labels, centers, sums, new_labels, 2, it + 1
+        updated = np.empty((k, 3))
+        for j in range(k):
+            for a in range(3):
+                updated[j, a] = sums[j, a] / norms[j]
+        centers = updated
+        same = True
+        for i in range(n):
+            if new_labels[i] != labels[i]:
+                same = False
+                break
+        if same:
+            return labels, centers, sums, new_labels, 0, it + 1
+        labels = new_labels
+    return labels, centers, np.zeros((k, 3)), labels, 1, iterations
+
+
+@_jit
 def certified_distances(x, x0, radius, cand, target, gate):  # type: ignore[no-untyped-def]
     """For :class:`~kentreg_ros.core.registration.correspondence.NearestNeighborCache`: the
     nearest of each query point's cached candidates (index -1 and distance inf without one) and

@@ -87,6 +87,29 @@ def assign_and_sum(
     return labels, sums
 
 
+def lloyd_steps(
+    xs: FloatArray,
+    weighted: FloatArray,
+    centers: FloatArray,
+    labels: NDArray[np.intp],
+    iterations: int,
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray, NDArray[np.intp], int, int]:
+    # (labels, centers, sums, new_labels, state, steps): state 0 the labels repeated, 1 the
+    # iterations ran out, 2 a cluster came out empty at the last step (labels and centers as
+    # before it; its sums and new labels for the caller to re-seed).
+    for it in range(iterations):
+        new_labels, sums = assign_and_sum(xs, weighted, centers)
+        x, y, z = sums[:, 0], sums[:, 1], sums[:, 2]
+        norms = np.sqrt((x * x + y * y) + z * z)  # geometry.row_norms
+        if (norms < 1e-12).any():
+            return labels, centers, sums, new_labels, 2, it + 1
+        centers = sums / norms[:, None]
+        if np.array_equal(new_labels, labels):
+            return labels, centers, sums, new_labels, 0, it + 1
+        labels = new_labels
+    return labels, centers, np.zeros_like(centers), labels, 1, iterations
+
+
 def certified_distances(
     x: FloatArray,
     x0: FloatArray,

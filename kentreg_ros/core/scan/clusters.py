@@ -171,17 +171,22 @@ def _lloyd(
     n = len(xs)
     labels = np.full(n, -1, dtype=np.intp)
     weighted = np.array([xs[:, axis] * w for axis in range(3)])  # (3, N), fixed
-    for _ in range(max_iterations):
-        new_labels, sums = kernels.assign_and_sum(xs, weighted, centers)
-        norms = row_norms(sums)
-        empty = norms < 1e-12
-        if empty.any():
-            fit = (xs @ centers.T)[np.arange(n), new_labels]
-            worst = np.argsort(fit)[: int(empty.sum())]
-            sums[empty] = xs[worst]
-            new_labels[worst] = np.flatnonzero(empty)
-            norms = row_norms(sums)
-        centers = sums / norms[:, None]
+    left = max_iterations
+    while left > 0:
+        # The steps run compiled (one call, not a dozen numpy calls a step) until they
+        # converge, run out, or a cluster empties, which is re-seeded here.
+        labels, centers, sums, new_labels, state, steps = kernels.lloyd_steps(
+            xs, weighted, centers, labels, left
+        )
+        left -= steps
+        if state != 2:
+            break
+        empty = row_norms(sums) < 1e-12
+        fit = (xs @ centers.T)[np.arange(n), new_labels]
+        worst = np.argsort(fit)[: int(empty.sum())]
+        sums[empty] = xs[worst]
+        new_labels[worst] = np.flatnonzero(empty)
+        centers = sums / row_norms(sums)[:, None]
         if np.array_equal(new_labels, labels):
             break
         labels = new_labels
