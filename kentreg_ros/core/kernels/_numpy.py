@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 
-from kentreg_ros.core.geometry import cross_rows
+from kentreg_ros.core.geometry import cross_rows, row_norms
 
 FloatArray = NDArray[np.float64]
 
@@ -99,8 +99,7 @@ def lloyd_steps(
     # before it; its sums and new labels for the caller to re-seed).
     for it in range(iterations):
         new_labels, sums = assign_and_sum(xs, weighted, centers)
-        x, y, z = sums[:, 0], sums[:, 1], sums[:, 2]
-        norms = np.sqrt((x * x + y * y) + z * z)  # geometry.row_norms
+        norms = row_norms(sums)
         if (norms < 1e-12).any():
             return labels, centers, sums, new_labels, 2, it + 1
         centers = sums / norms[:, None]
@@ -156,8 +155,7 @@ def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
     while rest.any():
         order = order[np.argsort((rest[order] & 0xFFFF).astype(np.uint16), kind='stable')]
         rest = rest >> 16
-    out: NDArray[np.intp] = order.astype(np.intp, copy=False)
-    return out
+    return order
 
 
 def voxel_keys(
