@@ -352,7 +352,8 @@ def test_local_map_averaging_matches_numpy(
 
     compiled, reference = both(build, monkeypatch)
     assert len(reference) > 1000 and reference._merged.max() > 4  # merges happened
-    for name in ('_merged', '_sums', '_points', '_normal_sums', '_keys'):
+    names = ('_merged', '_sums', '_points', '_normal_sums', '_keys', '_order', '_sorted_keys')
+    for name in names + ('_voxel_keys', '_voxel_counts'):
         assert np.array_equal(getattr(compiled, name), getattr(reference, name)), name
     assert close(compiled.normals, reference.normals, 1.0)
 
@@ -440,3 +441,28 @@ def test_em_e_step_matches_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
     assert close(t_unit, reference[3], 1.0) and close(tn, reference[2], float(counts.max()))
     assert close(Cs, reference[0], float(kappa.max() * counts.sum()))
     assert loglik == pytest.approx(reference[1], rel=ULPS * np.finfo(float).eps * n)
+
+
+@pytest.mark.parametrize('max_points', [1, 3])
+def test_voxel_admission_and_sorted_positions_match_numpy(
+    monkeypatch: pytest.MonkeyPatch, max_points: int
+) -> None:
+    """The merge walks of the map's insertion against numpy's searchsorted and run arithmetic:
+    new keys before, between, equal to and after the map's, voxels full or not, no map yet."""
+    rng = np.random.default_rng(5)
+    voxel_keys = np.unique(rng.integers(10, 1000, 300))
+    counts = rng.integers(1, max_points + 1, len(voxel_keys))
+    new = np.sort(np.concatenate([rng.integers(0, 1100, 500), voxel_keys[:20], [0, 0, 2000]]))
+    for haystack, held in ((voxel_keys, counts), (voxel_keys[:0], counts[:0])):
+        compiled, reference = both(
+            lambda h=haystack, c=held: kernels.voxel_admission(new, h, c, max_points),
+            monkeypatch,
+        )
+        for got, want in zip(compiled, reference, strict=True):
+            np.testing.assert_array_equal(got, want)
+        for right in (False, True):
+            got, want = both(
+                lambda h=haystack, r=right: kernels.sorted_positions(h, new, right=r),
+                monkeypatch,
+            )
+            np.testing.assert_array_equal(got, want)

@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from kentreg_ros.core import kernels
 from kentreg_ros.core.scan.neighbors import HAVE_SMALL_GICP, NeighborIndex
 
 NO_SMALL_GICP = 'small_gicp is not installed (pip install -e .[fast])'
+NO_NUMBA = 'the kernels are not compiled (pip install -e .[fast])'
 BACKENDS = [
     'scipy',
+    pytest.param('compiled', marks=pytest.mark.skipif(not kernels.enabled(), reason=NO_NUMBA)),
     pytest.param(
         'small_gicp', marks=pytest.mark.skipif(not HAVE_SMALL_GICP, reason=NO_SMALL_GICP)
     ),
@@ -72,3 +75,69 @@ def test_a_tree_built_in_another_order_answers_with_the_given_indices(
         )
     with pytest.raises(ValueError, match='order'):
         NeighborIndex(points, order=order[:-1])
+
+
+COMPILED = pytest.mark.skipif(not kernels.enabled(), reason=NO_NUMBA)
+
+
+@COMPILED
+@pytest.mark.parametrize(
+    'cloud',
+    ['identical', 'line', 'plane', 'orders_of_magnitude', 'duplicated'],
+)
+def test_the_compiled_tree_is_exact_on_degenerate_clouds(cloud: str) -> None:
+    """Zero extents, one-dimensional clouds and coordinates over 30 orders of magnitude (where
+    a midpoint split leaves one side nearly empty, so the tree falls back to the median):
+    the distances are cKDTree's and the depth stays logarithmic."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    if cloud == 'identical':
+        points = np.tile([1.0, 2.0, 3.0], (n, 1))
+    elif cloud == 'line':
+        points = np.outer(rng.random(n), [1.0, 2.0, -0.5])
+    elif cloud == 'plane':
+        points = np.column_stack([rng.random(n), rng.random(n), np.zeros(n)])
+    elif cloud == 'orders_of_magnitude':
+        points = np.outer(10.0 ** rng.uniform(-15, 15, n), [1.0, 1.0, 1.0])
+    else:
+        points = np.repeat(rng.random((n // 4, 3)), 4, axis=0)
+    queries = np.concatenate([points[:200], rng.random((200, 3))])
+    index = NeighborIndex(points, backend='compiled')
+    dist, idx = index.query(queries, 5)
+    ref_d, _ = cKDTree(points).query(queries, k=5)
+    np.testing.assert_allclose(dist, ref_d, rtol=1e-12, atol=0.0)
+    # The indices hold points at those distances (ties may be broken either way).
+    found = np.sqrt(((points[idx] - queries[:, None, :]) ** 2).sum(axis=2))
+    np.testing.assert_allclose(found, dist, rtol=1e-12, atol=0.0)
+    depth = kernels.kdtree_build(points)[-1]
+    assert depth <= np.log(n) / np.log(16 / 15) + 1
+
+
+@COMPILED
+@pytest.mark.skipif(not HAVE_SMALL_GICP, reason=NO_SMALL_GICP)
+def test_the_compiled_tree_gives_small_gicps_distances_bit_for_bit() -> None:
+    """The squared distances are summed in small_gicp's order, so a registration gets the same
+    numbers whichever tree answers."""
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(5000, 3)) * [20.0, 20.0, 2.0]
+    queries = points[:1000] + rng.normal(size=(1000, 3)) * 0.1
+    got = NeighborIndex(points, backend='compiled').query(queries, 3)
+    want = NeighborIndex(points, backend='small_gicp').query(queries, 3)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+@COMPILED
+def test_the_compiled_tree_of_no_points_finds_nothing() -> None:
+    dist, idx = NeighborIndex(np.zeros((0, 3)), backend='compiled').query(np.ones((2, 3)), 2)
+    assert np.isinf(dist).all()
+    np.testing.assert_array_equal(idx, [[0, 0], [0, 0]])
+
+
+def test_the_compiled_backend_is_refused_without_the_kernels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv(kernels.DISABLE_ENV, '1')
+    with pytest.raises(ValueError, match='compiled'):
+        NeighborIndex(np.zeros((3, 3)), backend='compiled')
+    assert NeighborIndex(np.zeros((3, 3))).backend in ('small_gicp', 'scipy')

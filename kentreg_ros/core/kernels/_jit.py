@@ -503,44 +503,8 @@ def bin_moments(normals, order, starts):  # type: ignore[no-untyped-def]
     return sums, scatters
 
 
-@_jit
-def map_merge(target, pts, nrm, has_normals, merged, sums, normal_sums, points, normals):  # type: ignore[no-untyped-def]
-    """In place, as the numpy twin: each map row's additions summed from zero in input order
-    (``bincount``), then added to its sums; a normal's sign test by numpy's three-term
-    ``einsum`` order, its norm by ``linalg.norm``'s, ``(x x + y y) + z z``."""
-    n = points.shape[0]
-    count = np.zeros(n, dtype=np.intp)
-    acc = np.zeros((n, 3))
-    nacc = np.zeros((n, 3))
-    for i in range(target.shape[0]):
-        t = target[i]
-        count[t] += 1
-        for a in range(3):
-            acc[t, a] += pts[i, a]
-        if has_normals:
-            dot = (normals[t, 0] * nrm[i, 0] + normals[t, 2] * nrm[i, 2]) + (
-                normals[t, 1] * nrm[i, 1]
-            )
-            for a in range(3):
-                nacc[t, a] += nrm[i, a] if dot >= 0.0 else -nrm[i, a]
-    for t in range(n):
-        if count[t] == 0:
-            continue
-        merged[t] += count[t]
-        for a in range(3):
-            sums[t, a] += acc[t, a]
-        for a in range(3):
-            points[t, a] = sums[t, a] / merged[t]
-        if has_normals:
-            for a in range(3):
-                normal_sums[t, a] += nacc[t, a]
-            s0, s1, s2 = normal_sums[t, 0], normal_sums[t, 1], normal_sums[t, 2]
-            norm = np.sqrt((s0 * s0 + s1 * s1) + s2 * s2)
-            for a in range(3):
-                normals[t, a] = normal_sums[t, a] / norm
-
-
-# The EM's kernels live in their own module; the package reaches every kernel through this one.
+# The EM's, the local map's and the k-d tree's kernels live in their own modules; the package
+# reaches every kernel through this one.
 from kentreg_ros.core.kernels._jit_em import (  # noqa: E402, F401
     bin_group_moments,
     e_logits,
@@ -549,3 +513,9 @@ from kentreg_ros.core.kernels._jit_em import (  # noqa: E402, F401
     kent_finish,
     kent_frames,
 )
+from kentreg_ros.core.kernels._jit_map import (  # noqa: E402, F401
+    map_merge,
+    sorted_positions,
+    voxel_admission,
+)
+from kentreg_ros.core.kernels._jit_tree import kdtree_build, kdtree_knn  # noqa: E402, F401

@@ -158,6 +158,43 @@ def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
     return order
 
 
+#: What :func:`voxel_admission` returns: keep (N,), new keys, positions, present, added (G,).
+Admission = tuple[
+    NDArray[np.bool_], NDArray[np.int64], NDArray[np.intp], NDArray[np.bool_], NDArray[np.intp]
+]
+
+
+def sorted_positions(
+    haystack: NDArray[np.int64], needles: NDArray[np.int64], right: bool
+) -> NDArray[np.intp]:
+    out: NDArray[np.intp] = np.searchsorted(haystack, needles, side='right' if right else 'left')
+    return out
+
+
+def voxel_admission(
+    sorted_keys: NDArray[np.int64],
+    voxel_keys: NDArray[np.int64],
+    voxel_counts: NDArray[np.int64],
+    max_points: int,
+) -> Admission:
+    starts_mask = np.empty(len(sorted_keys), dtype=bool)
+    starts_mask[0] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=starts_mask[1:])
+    starts = np.flatnonzero(starts_mask)
+    group = np.cumsum(starts_mask) - 1
+    rank = np.arange(len(sorted_keys)) - starts[group]
+    new_voxels = sorted_keys[starts]
+    pos = np.searchsorted(voxel_keys, new_voxels)
+    present = np.zeros(len(new_voxels), dtype=bool)
+    if len(voxel_keys):
+        present = voxel_keys[np.minimum(pos, len(voxel_keys) - 1)] == new_voxels
+    existing = np.zeros(len(new_voxels), dtype=np.int64)
+    existing[present] = voxel_counts[pos[present]]
+    keep = rank + existing[group] < max_points
+    added = np.bincount(group[keep], minlength=len(new_voxels))
+    return keep, new_voxels, pos, present, added
+
+
 def voxel_keys(
     points: FloatArray, voxel_size: float, corner: FloatArray, span: FloatArray
 ) -> NDArray[np.int64]:
