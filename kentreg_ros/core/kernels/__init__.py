@@ -326,6 +326,8 @@ def kdtree_build(points: FloatArray) -> tuple[Any, ...]:
     """The compiled k-d tree of ``points`` (N, 3) (see :mod:`._jit_tree`); only when
     :func:`enabled`: it has no numpy twin (without numba, a scan's neighbours come from
     small_gicp's or scipy's tree, exact as well)."""
+    if not _use_compiled():
+        raise RuntimeError('The compiled k-d tree needs the compiled kernels (numba).')
     pts = np.ascontiguousarray(points, dtype=np.float64)
     tree: tuple[Any, ...] = _compiled().kdtree_build(pts, KDTREE_LEAF)
     return tree
