@@ -162,3 +162,31 @@ def test_project_to_so3_returns_a_rotation() -> None:
     R = project_to_so3(M)
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_check_transform_accepts_exactly_what_allclose_accepts() -> None:
+    """The transform check's tolerances are np.allclose's (atol, and its default rtol), in
+    one comparison each: perturbations around both bounds are judged the same way."""
+    from kentreg_ros.core.errors import InvalidInputError
+    from kentreg_ros.core.geometry import ORTHONORMAL_TOLERANCE, check_transform
+
+    rng = np.random.default_rng(8)
+    seen = set()
+    for scale in np.geomspace(1e-9, 1e-4, 60):
+        T = np.eye(4)
+        T[:3, :3] += rng.normal(size=(3, 3)) * scale
+        T[3, :3] += rng.normal(size=3) * scale * 1e-3
+        R = T[:3, :3]
+        want = (
+            np.allclose(R.T @ R, np.eye(3), atol=ORTHONORMAL_TOLERANCE)
+            and np.linalg.det(R) >= 0.0
+            and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])
+        )
+        try:
+            check_transform(T, 'T')
+            got = True
+        except InvalidInputError:
+            got = False
+        assert got == want, scale
+        seen.add(got)
+    assert seen == {True, False}  # both sides of the bounds were tried

@@ -192,6 +192,24 @@ def argsort_keys(keys: NDArray[np.int64]) -> NDArray[np.intp]:
     return out
 
 
+def normal_bin_keys(
+    normals: FloatArray, cells: FloatArray, groups: NDArray[np.intp] | None, span: int
+) -> NDArray[np.int64]:
+    """The flat key of every unit normal's cell of edge ``cells`` (N,) on a cubic grid of
+    ``2 span + 1`` cells a side around the unit sphere, offset by ``groups`` (N,) (normals of
+    different groups never share a key) when given."""
+    g = np.zeros(0, dtype=np.intp) if groups is None else np.asarray(groups)
+    out: NDArray[np.int64] = _run('normal_bin_keys', normals, cells, g, int(span))
+    return out
+
+
+def run_starts(ordered: NDArray[np.int64]) -> tuple[NDArray[np.intp], FloatArray]:
+    """Where each run of equal values of ``ordered`` (N >= 1, sorted) starts, and its length
+    as float64."""
+    starts, counts = _run('run_starts', ordered)
+    return starts, counts
+
+
 #: What :func:`voxel_admission` returns: keep (N,), new keys, positions, present, added (G,).
 Admission = tuple[
     NDArray[np.bool_], NDArray[np.int64], NDArray[np.intp], NDArray[np.bool_], NDArray[np.intp]
@@ -499,6 +517,9 @@ def _compile_all() -> None:
     bin_moments(unit, np.arange(8, dtype=np.intp), np.array([0, 3], dtype=np.intp))
     keys = voxel_keys(pts, 0.5, np.floor(pts.min(axis=0) / 0.5), np.full(3, 8.0))
     order = argsort_keys(keys)
+    run_starts(keys[order])
+    normal_bin_keys(unit, np.full(8, 0.1), labels, 12)
+    normal_bin_keys(unit, np.full(8, 0.1), np.zeros(0, dtype=np.intp), 12)
     sorted_positions(keys[order], keys[order][::2].copy(), right=True)
     voxel_admission(keys[order], keys[order][::3].copy(), np.ones(3, dtype=np.intp), 2)
     voxel_centroids(pts, order, np.arange(8, dtype=np.intp), np.ones(8, dtype=np.intp), 1)

@@ -164,6 +164,25 @@ Admission = tuple[
 ]
 
 
+def normal_bin_keys(
+    normals: FloatArray, cells: FloatArray, groups: NDArray[np.intp], span: int
+) -> NDArray[np.int64]:
+    keys = np.floor(normals / cells[:, None]).astype(np.int64)
+    width = 2 * span + 1
+    flat: NDArray[np.int64] = ((keys[:, 0] + span) * width + keys[:, 1] + span) * width + (
+        keys[:, 2] + span
+    )
+    if len(groups):
+        flat = flat + groups.astype(np.int64) * width**3
+    return flat
+
+
+def run_starts(ordered: NDArray[np.int64]) -> tuple[NDArray[np.intp], FloatArray]:
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    counts: FloatArray = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
+    return starts, counts
+
+
 def sorted_positions(
     haystack: NDArray[np.int64], needles: NDArray[np.int64], right: bool
 ) -> NDArray[np.intp]:

@@ -119,14 +119,16 @@ def spherical_kmeans(
         pick = np.sort(gen.choice(len(xs), size=sample_size, replace=False))
         xr, wr = xs[pick], w[pick]
     best: tuple[float, NDArray[np.intp], FloatArray] | None = None
+    unweighted = weights is None
     for _ in range(max(1, restarts)):
-        labels, centers = _lloyd(xr, wr, kmeanspp_sphere(xr, k, gen, wr), max_iterations)
+        seeds = kmeanspp_sphere(xr, k, gen, wr)
+        labels, centers = _lloyd(xr, None if unweighted else wr, seeds, max_iterations)
         score = float(np.sum(wr * np.einsum('ij,ij->i', xr, centers[labels])))
         if best is None or score > best[0]:
             best = (score, labels, centers)
     assert best is not None
     if subset:
-        return _lloyd(xs, w, best[2], max_iterations)
+        return _lloyd(xs, None if unweighted else w, best[2], max_iterations)
     return best[1], best[2]
 
 
@@ -161,16 +163,20 @@ def refine_spherical_kmeans(
         raise ValueError(
             f'Expected `centers` to have shape (K, 3) with 1 <= K <= {len(xs)}, got {cs.shape}.'
         )
-    w = np.ones(len(xs)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)
     return _lloyd(_normalize_rows(xs), w, _normalize_rows(cs), max_iterations)
 
 
 def _lloyd(
-    xs: FloatArray, w: FloatArray, centers: FloatArray, max_iterations: int
+    xs: FloatArray, w: FloatArray | None, centers: FloatArray, max_iterations: int
 ) -> tuple[NDArray[np.intp], FloatArray]:
+    """Lloyd's steps from ``centers``; ``w`` None: unit weights (the rows as they are)."""
     n = len(xs)
     labels = np.full(n, -1, dtype=np.intp)
-    weighted = np.array([xs[:, axis] * w for axis in range(3)])  # (3, N), fixed
+    # (3, N), fixed; x * 1.0 is x, so unit weights are the transposed rows.
+    weighted = (
+        np.ascontiguousarray(xs.T) if w is None else np.array([xs[:, a] * w for a in range(3)])
+    )
     left = max_iterations
     while left > 0:
         # The steps run compiled (one call, not a dozen numpy calls a step) until they
@@ -245,16 +251,13 @@ class NormalBins:
         than the Kent kernels.
         """
         cells = np.broadcast_to(np.asarray(cell, dtype=np.float64), (len(normals),))
-        keys = np.floor(normals / cells[:, None]).astype(np.int64)
         span = int(np.floor(1.0 / float(cells.min()))) + 2 if len(cells) else 2
-        width = 2 * span + 1
-        flat = ((keys[:, 0] + span) * width + keys[:, 1] + span) * width + (keys[:, 2] + span)
-        if groups is not None:
-            flat = flat + np.asarray(groups, dtype=np.int64) * width**3
+        flat = kernels.normal_bin_keys(normals, cells, groups, span)
         order = argsort_keys(flat)
-        ordered = flat[order]
-        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-        counts = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
+        if len(order):
+            starts, counts = kernels.run_starts(flat[order])
+        else:
+            starts, counts = np.zeros(0, dtype=np.intp), np.zeros(0)
         sums, outer = kernels.bin_moments(normals, order, starts)
         scatters = outer.reshape(-1, 3, 3)
         norms = row_norms(sums)
