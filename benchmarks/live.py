@@ -16,7 +16,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import uuid
 from collections.abc import Sequence
@@ -106,17 +105,6 @@ def measure_live(
 
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    # Spun until told to stop and joined before the executor is shut down: shutting it down
-    # under a thread still in spin() once left that thread looping with the GIL, and the
-    # benchmark waiting on the node's exit for good (2026-12-06, one run in 25).
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
     try:
         factory = rclpy_factory(PointCloud2, PointField, Header, Time)
         messages = [array_to_pointcloud2(p, frame_id='lidar', stamp_ns=s, factory=factory)
@@ -136,15 +124,13 @@ def measure_live(
         cpu0, node0, t0 = runner.cpu_times(), runner.tree_cpu_s(proc.pid), time.monotonic()
         sent: dict[int, float] = {}
         for i, (msg, stamp) in enumerate(zip(messages, stamps, strict=True)):
-            time.sleep(max(0.0, t0 + i / rate_hz - time.monotonic()))
+            _spin_until(executor, t0 + i / rate_hz)
             sent[stamp] = time.monotonic()
             pub.publish(msg)
         stream_s = time.monotonic() - t0
         cpu1, node1 = runner.cpu_times(), runner.tree_cpu_s(proc.pid)
-        time.sleep(DRAIN_S)
+        _spin_until(executor, time.monotonic() + DRAIN_S)
     finally:
-        stop.set()
-        spinner.join(timeout=5.0)
         _stop_node(proc)
         executor.shutdown()
         node.destroy_node()
@@ -179,6 +165,13 @@ def _node_command(ns: str, diagnostics: str, model: str, pipeline: str) -> list[
               *os.environ.get('KENTREG_LIVE_PARAMS', '').split()]  # fmt: skip
     node = [sys.executable, '-m', 'kentreg_ros.ros.node', '--ros-args', *remap]
     return node + [arg for p in params for arg in ('-p', p)]
+
+
+def _spin_until(executor: Any, deadline: float) -> None:
+    """Take the odometry in this thread until ``deadline`` (an executor shut down under a thread
+    still spinning it once kept the GIL in that thread and hung the run, one in 25)."""
+    while (left := deadline - time.monotonic()) > 0.0:
+        executor.spin_once(timeout_sec=left)
 
 
 def _stop_node(proc: subprocess.Popen[bytes]) -> None:
@@ -297,10 +290,8 @@ def run(options: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
             th = _in_child('throughput', stream, options.scans, {'model': model}, _node_env('shm'))
             entry['stages'][model], entry['throughput'][model] = th.pop('stages'), th
             for dds, pipeline, r in product(options.dds, options.pipelines, range(options.rounds)):
-                load, how = (
-                    os.getloadavg()[0],
-                    {'model': model, 'pipeline': pipeline, 'profile': dds},
-                )
+                how = {'model': model, 'pipeline': pipeline, 'profile': dds}
+                load = os.getloadavg()[0]
                 res = _in_child(
                     'live', stream, options.scans, how, _node_env(dds), options.live_nice
                 )
