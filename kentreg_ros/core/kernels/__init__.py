@@ -334,9 +334,10 @@ def offset_normal_equations(
 
 
 #: Points per leaf of the compiled k-d tree (:func:`kdtree_build`). Measured on a 22k-point street
-#: map and a 13k-point indoor map with the registration's 3-neighbour queries, and on 12k scan
-#: points with the normals' 15: 16 builds 15-20 % faster than 8 and answers 3-NN within 3 % and
-#: 15-NN 8 % faster; 32 builds faster still but answers the indoor map's queries 7 % slower.
+#: map and a 13k-point indoor map with the registration's 3-neighbour queries, and on 12k street
+#: points with the normals' 15: 16 builds 16 % faster than 8, answers 3-NN within 6 % of it
+#: (faster on the street map, slower indoors) and 15-NN 8 % faster; 32 builds faster still but
+#: answers the indoor map's queries 7-10 % slower.
 KDTREE_LEAF = 16
 
 
