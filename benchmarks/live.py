@@ -285,16 +285,16 @@ def run(options: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
                            'live_niceness': options.live_nice, 'streams': {}}  # fmt: skip
     for stream in options.streams:
         entry: dict[str, Any] = {'live': [], 'stages': {}, 'throughput': {}}
-        for model in options.models:
+        for model in options.models:  # back to back: their ratio is read from one phase
             print(f'live: {stream} {model} throughput (load {os.getloadavg()[0]:.2f})', flush=True)
             th = _in_child('throughput', stream, options.scans, {'model': model}, _node_env('shm'))
             entry['stages'][model], entry['throughput'][model] = th.pop('stages'), th
+        for model in options.models:
             for dds, pipeline, r in product(options.dds, options.pipelines, range(options.rounds)):
                 how = {'model': model, 'pipeline': pipeline, 'profile': dds}
                 load = os.getloadavg()[0]
-                res = _in_child(
-                    'live', stream, options.scans, how, _node_env(dds), options.live_nice
-                )
+                res = _in_child('live', stream, options.scans, how, _node_env(dds),
+                                options.live_nice)  # fmt: skip
                 res |= {'round': r, 'load_before': round(load, 2),
                         'load_after': round(os.getloadavg()[0], 2)}  # fmt: skip
                 entry['live'].append(res)
