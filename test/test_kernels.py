@@ -466,3 +466,11 @@ def test_voxel_admission_and_sorted_positions_match_numpy(
                 monkeypatch,
             )
             np.testing.assert_array_equal(got, want)
+
+
+def test_run_starts_match_numpy_also_on_no_keys(monkeypatch: pytest.MonkeyPatch) -> None:
+    for ordered in (np.zeros(0, dtype=np.int64), np.array([2, 2, 5, 7, 7, 7], dtype=np.int64)):
+        (sc, cc), (sr, cr) = both(lambda o=ordered: kernels.run_starts(o), monkeypatch)
+        np.testing.assert_array_equal(sc, sr)
+        np.testing.assert_array_equal(cc, cr)
+        assert cc.sum() == len(ordered)

@@ -205,16 +205,10 @@ def normal_bin_keys(
 
 
 def run_starts(ordered: NDArray[np.int64]) -> tuple[NDArray[np.intp], FloatArray]:
-    """Where each run of equal values of ``ordered`` (N >= 1, sorted) starts, and its length
-    as float64."""
+    """Where each run of equal values of ``ordered`` (N,) starts, and its length as float64
+    (none for N = 0)."""
     starts, counts = _run('run_starts', ordered)
     return starts, counts
-
-
-#: What :func:`voxel_admission` returns: keep (N,), new keys, positions, present, added (G,).
-Admission = tuple[
-    NDArray[np.bool_], NDArray[np.int64], NDArray[np.intp], NDArray[np.bool_], NDArray[np.intp]
-]
 
 
 def sorted_positions(
@@ -232,7 +226,7 @@ def voxel_admission(
     voxel_keys: NDArray[np.int64],
     voxel_counts: NDArray[np.int64],
     max_points: int,
-) -> Admission:
+) -> _numpy.Admission:
     """New points into a voxel map: for their keys sorted ascending (N >= 1), whether each finds
     room (N,) (the first ``max_points`` of a voxel, less the points it holds), and per distinct
     key (G,): the key, its position in the map's sorted ``voxel_keys``, whether the map holds

@@ -178,6 +178,8 @@ def normal_bin_keys(
 
 
 def run_starts(ordered: NDArray[np.int64]) -> tuple[NDArray[np.intp], FloatArray]:
+    if not len(ordered):
+        return np.zeros(0, dtype=np.intp), np.zeros(0)
     starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
     counts: FloatArray = np.diff(np.r_[starts, len(ordered)]).astype(np.float64)
     return starts, counts

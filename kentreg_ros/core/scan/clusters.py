@@ -254,10 +254,7 @@ class NormalBins:
         span = int(np.floor(1.0 / float(cells.min()))) + 2 if len(cells) else 2
         flat = kernels.normal_bin_keys(normals, cells, groups, span)
         order = argsort_keys(flat)
-        if len(order):
-            starts, counts = kernels.run_starts(flat[order])
-        else:
-            starts, counts = np.zeros(0, dtype=np.intp), np.zeros(0)
+        starts, counts = kernels.run_starts(flat[order])
         sums, outer = kernels.bin_moments(normals, order, starts)
         scatters = outer.reshape(-1, 3, 3)
         norms = row_norms(sums)
