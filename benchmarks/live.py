@@ -337,7 +337,7 @@ OFFLINE: list[report.Column] = [
 #: The parts of those stages (the step's timings), in the table under it.
 PARTS = ['prepare.downsample', 'prepare.neighbours', 'prepare.normals', 'prepare.outliers',
          'prepare.clustering', 'rotation', 'translation', 'refine', 'model.map_insert',
-         'model.map_clustering', 'model.map_tree']  # fmt: skip
+         'model.map_frame', 'model.map_tree']  # fmt: skip
 BREAKDOWN: list[report.Column] = [('stream', 'stream:s'), ('model', 'model:s'), *(
     (p.split('.')[-1].replace('_', ' '), lambda r, p=p: str(r.get(p, '–'))) for p in PARTS
 )]  # fmt: skip
@@ -388,7 +388,7 @@ def render(doc: dict[str, Any]) -> str:
         *report.column_table(OFFLINE, offline),
         '',
         'Their parts (median ms; registration: rotation EM, translation, refinement, without '
-        'the start-free search of doubtful steps; the local map: insertion, clusters, KD-tree):',
+        'the start-free search of doubtful steps; the local map: insertion, frame, KD-tree):',
         '',
         *report.column_table(BREAKDOWN, offline),
         '',

@@ -182,7 +182,7 @@ def test_local_map_target_is_the_map_in_the_given_frame() -> None:
     scan = prepare_scan(observe(rng, T_true[0]), config=cfg)
     lmap = LocalMap(scan.voxel_size or nearest_spacing(scan.points), max_points_per_voxel=1)
     lmap.insert_scan(scan, T_true[0], radius=100.0)
-    target = lmap.target(T_true[1], config=cfg)
+    target = lmap.target(T_true[1], rotation_model=scan, config=cfg)
     # The map holds one point per voxel, the mean of the scan's points posed in the world in
     # that voxel ...
     in_world = scan.points @ T_true[0][:3, :3].T + T_true[0][:3, 3]
@@ -200,14 +200,18 @@ def test_local_map_target_is_the_map_in_the_given_frame() -> None:
     np.testing.assert_allclose(target.points, lmap.points @ T_1w[:3, :3].T + T_1w[:3, 3])
     np.testing.assert_allclose(np.linalg.norm(target.normals, axis=1), 1.0)
     assert target.voxel_size == lmap.voxel_size
-    assert len(target.labels) == len(target.points)
+    # Its normals' mixture is the given scan's (already in frame 1 in the odometry), each map
+    # point labelled with the nearest of its centres.
+    assert target.clusters is scan.clusters
+    np.testing.assert_array_equal(target.centers, scan.centers)
+    assert np.array_equal(target.labels, np.argmax(target.normals @ scan.centers.T, axis=1))
     # A scan taken at pose 1 registers against it from identity to the true motion (identity).
     source = prepare_scan(observe(rng, T_true[1]), config=cfg)
     result = register(source, target, init=np.eye(4), config=cfg, global_search=False)
     assert np.degrees(rotation_angle(result.T_target_source[:3, :3])) < 0.1
     assert np.linalg.norm(result.T_target_source[:3, 3]) < 0.01
     with pytest.raises(InvalidPointCloudError, match='map points'):
-        LocalMap(0.1, max_points_per_voxel=1).target(np.eye(4), config=cfg)
+        LocalMap(0.1, max_points_per_voxel=1).target(np.eye(4), rotation_model=scan, config=cfg)
 
 
 def test_local_map_odometry_recovers_known_trajectory() -> None:
@@ -226,7 +230,7 @@ def test_local_map_odometry_recovers_known_trajectory() -> None:
     # Every accepted scan is in the map; the model is the map in the last pose's frame.
     assert [s.model_index for s in steps] == [-1, *range(7)]
     # Each step ran the map's upkeep and timed its parts.
-    upkeep = {'model.map_insert', 'model.map_clustering', 'model.map_tree'}
+    upkeep = {'model.map_insert', 'model.map_frame', 'model.map_tree'}
     assert all(upkeep <= set(s.timings) for s in steps)
     # The room is 20 x 14 m: the map radius (the reach of the last scan) keeps it whole, and
     # the map is denser than one scan but bounded by the voxel count, not by 8 scans.
@@ -376,8 +380,9 @@ def test_local_map_target_neighbours_are_exact_against_brute_force(repo_root: Pa
     T = np.eye(4)
     for i, points in enumerate(sample_scans):
         T[:3, 3] = [0.05 * i, 0.0, 0.0]
-        lmap.insert_scan(prepare_scan(points, config=LOCAL_MAP), T, radius=15.0)
-    target = lmap.target(T, config=LOCAL_MAP)
+        scan = prepare_scan(points, config=LOCAL_MAP)
+        lmap.insert_scan(scan, T, radius=15.0)
+    target = lmap.target(T, rotation_model=scan, config=LOCAL_MAP)
     rng = np.random.default_rng(1)
     queries = target.points[rng.choice(len(target), 300)] + rng.normal(0.0, 0.1, (300, 3))
     gate = 0.3

@@ -392,8 +392,8 @@ class OdometryConfig(Section, prefix='odometry.'):
         'point is averaged into the nearest of them, so a surface seen again and again is '
         "held by the mean of its samples rather than by one scan's. With voxels of the scan "
         "size, one keeps the map at a scan's sampling density; as it covers all the sensor saw "
-        "within its reach, it holds 2.5-5 scans' worth of points, and the neighbour index and "
-        'cluster moments it needs each step grow with it. More keep both surfaces where a voxel '
+        "within its reach, it holds 2.5-5 scans' worth of points, and the neighbour index it "
+        'needs each step grows with it. More keep both surfaces where a voxel '
         'straddles an edge, at a proportional cost.',
         range=(1, 20),
     )

@@ -184,7 +184,7 @@ class LocalMapModel(PreviousScanModel):
         self.map.insert_scan(scan, T_world_scan, radius=radius)
         self.timings = {'map_insert': elapsed_ms(t0)}
         try:
-            target = self.map.target(T_world_scan, config=self.config)
+            target = self.map.target(T_world_scan, rotation_model=scan, config=self.config)
             self.timings |= {f'map_{k}': v for k, v in target.timings.items() if k != 'total'}
             return target
         except InvalidPointCloudError as exc:

@@ -86,7 +86,7 @@ class OdometryStep:
         ``'prepare.<stage>'`` (``downsample``, ``neighbours``, ``normals``, ``outliers``,
         ``clustering``: :attr:`PreparedScan.timings`), the model's upkeep when the step ran it
         (not when a pipeline deferred it) as ``'model.<part>'`` (the local map's
-        ``map_insert``, ``map_clustering`` and ``map_tree``), and ``'total'`` for the whole
+        ``map_insert``, ``map_frame`` and ``map_tree``), and ``'total'`` for the whole
         step.
     n_points : int
         Points given.

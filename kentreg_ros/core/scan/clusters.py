@@ -398,12 +398,6 @@ class ModelClusters:
         return len(self.centers)
 
 
-#: Lloyd iterations of a warm-started clustering (:func:`cluster_normals` with ``centers``): the
-#: normals changed little since the centres were found (one scan added to a local map), so a few
-#: iterations move them to the new optimum, and what is left is carried on at the next call.
-WARM_START_ITERATIONS = 5
-
-
 def _cluster_kappa(normals: FloatArray, labels: NDArray[np.intp], k: int) -> FloatArray:
     """Kent's moment estimate of each cluster's concentration (0 for an empty cluster), from
     per-cluster sums (bincounts: no (K, N) weight matrix)."""
@@ -415,7 +409,7 @@ def _cluster_kappa(normals: FloatArray, labels: NDArray[np.intp], k: int) -> Flo
 
 
 def cluster_normals(
-    normals: FloatArray, config: KentRegConfig, *, centers: FloatArray | None = None
+    normals: FloatArray, config: KentRegConfig
 ) -> tuple[NDArray[np.intp], FloatArray, ModelClusters]:
     """Spherical k-means of unit normals and the Kent frames of the clusters.
 
@@ -425,9 +419,6 @@ def cluster_normals(
         Unit normals.
     config : KentRegConfig
         ``clustering`` settings.
-    centers : ndarray, shape (K, 3), optional
-        Start Lloyd's iterations from these centres instead of seeded k-means++ restarts (a
-        warm start, e.g. from the clustering of a map before a few points were added).
 
     Returns
     -------
@@ -436,19 +427,14 @@ def cluster_normals(
     clusters : ModelClusters
     """
     c = config.clustering
-    if centers is None:
-        labels, centers = spherical_kmeans(
-            normals,
-            c.n_clusters,
-            max_iterations=c.max_iterations,
-            rng=c.seed,
-            restarts=c.restarts,
-            sample_size=c.restart_sample,
-        )
-    else:
-        labels, centers = refine_spherical_kmeans(
-            normals, centers, max_iterations=min(c.max_iterations, WARM_START_ITERATIONS)
-        )
+    labels, centers = spherical_kmeans(
+        normals,
+        c.n_clusters,
+        max_iterations=c.max_iterations,
+        rng=c.seed,
+        restarts=c.restarts,
+        sample_size=c.restart_sample,
+    )
     kappa_clusters = _cluster_kappa(normals, labels, len(centers))
     bins = NormalBins.from_normals(normals, bin_cell_for(kappa_clusters)[labels], labels)
     return labels, centers, ModelClusters.from_bins(bins, centers)
