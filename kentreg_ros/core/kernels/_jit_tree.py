@@ -57,19 +57,32 @@ def _split(tp, perm, s, e):  # type: ignore[no-untyped-def]
     if hi2 - lo2 > span:
         d = 2
         mid = 0.5 * (lo2 + hi2)
-    # Partition [s, e) into coordinates below the middle, then the others.
+    # Partition [s, e) into coordinates below the middle, then the others; the largest left
+    # and smallest right coordinate are taken as the elements settle.
+    left_max = -np.inf
+    right_min = np.inf
     i = s
     j = e - 1
     while True:
-        while i <= j and tp[i, d] < mid:
+        while i <= j:
+            v = tp[i, d]
+            if v >= mid:
+                break
+            left_max = max(left_max, v)
             i += 1
-        while i <= j and tp[j, d] >= mid:
+        while i <= j:
+            v = tp[j, d]
+            if v < mid:
+                break
+            right_min = min(right_min, v)
             j -= 1
         if i >= j:
             break
         perm[i], perm[j] = perm[j], perm[i]
         for a in range(3):
             tp[i, a], tp[j, a] = tp[j, a], tp[i, a]
+        left_max = max(left_max, tp[i, d])
+        right_min = min(right_min, tp[j, d])
         i += 1
         j -= 1
     m = i
@@ -82,12 +95,12 @@ def _split(tp, perm, s, e):  # type: ignore[no-untyped-def]
             for a in range(3):
                 tp[s + r, a] = block[o[r], a]
         m = (s + e) // 2
-    left_max = -np.inf
-    for r in range(s, m):
-        left_max = max(left_max, tp[r, d])
-    right_min = np.inf
-    for r in range(m, e):
-        right_min = min(right_min, tp[r, d])
+        left_max = -np.inf
+        for r in range(s, m):
+            left_max = max(left_max, tp[r, d])
+        right_min = np.inf
+        for r in range(m, e):
+            right_min = min(right_min, tp[r, d])
     return m, d, left_max, right_min
 
 
