@@ -375,9 +375,9 @@ class LocalMap:
       previous step, then the moments and normal bins of all map normals: ~1.7x the scan's
       model bins, so a dearer EM) cost ~2 ms of upkeep and ~1.2 ms of EM a street step
       (20k map points), and moved the poses by at most 0.6 mm over 50 street frames and
-      0.2 mm over the 49 BALM steps; the odometry's accuracy was the same (BALM: median e_R,
-      e_t, ATE and RPE equal to the printed digits, strides 2-4 too; the re-simulated
-      sequences: see benchmarks/README.md).
+      0.2 mm over the 49 BALM steps; the odometry's accuracy was the same (BALM's e_R, e_t,
+      ATE and RPE within one unit of their last printed digit, strides 2-4 too; the
+      re-simulated sequences' median ATE within 0.01 mm: benchmarks/README.md, 3 and 3b).
     - the neighbour index of the map points is rebuilt every step (every step moves the
       averaged points and adds and drops some), by the compiled k-d tree where the kernels are
       compiled: 1.3-1.5 ms for 13-22k map points against small_gicp's 1.9-3.4 ms. A tree kept
