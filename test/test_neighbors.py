@@ -141,3 +141,28 @@ def test_the_compiled_backend_is_refused_without_the_kernels(
     with pytest.raises(ValueError, match='compiled'):
         NeighborIndex(np.zeros((3, 3)), backend='compiled')
     assert NeighborIndex(np.zeros((3, 3))).backend in ('small_gicp', 'scipy')
+
+
+@COMPILED
+def test_the_trees_median_selection_puts_each_row_where_a_sort_would() -> None:
+    """A lopsided node is split at its median by selection, not by a sort: the row at the
+    split holds the coordinate a sort would put there, none before it is larger, none after it
+    smaller, the rows travel whole with their indices and nothing outside the node moves."""
+    from kentreg_ros.core.kernels import _jit_tree
+
+    rng = np.random.default_rng(6)
+    for trial in range(200):
+        n = int(rng.integers(1, 60))
+        # Few distinct values: ties everywhere, as on a plane or a wall.
+        rows = rng.integers(0, 4 if trial % 2 else 50, size=(n, 3)).astype(np.float64)
+        s = int(rng.integers(0, n))
+        e = int(rng.integers(s + 1, n + 1))
+        k = int(rng.integers(s, e))
+        d = int(rng.integers(0, 3))
+        tp, perm = rows.copy(), np.arange(n)
+        _jit_tree._select(tp, perm, s, e, k, d)
+        assert tp[k, d] == np.sort(rows[s:e, d])[k - s]
+        assert (tp[s:k, d] <= tp[k, d]).all() and (tp[k + 1 : e, d] >= tp[k, d]).all()
+        np.testing.assert_array_equal(tp, rows[perm])
+        np.testing.assert_array_equal(perm[:s], np.arange(s))
+        np.testing.assert_array_equal(perm[e:], np.arange(e, n))

@@ -380,11 +380,13 @@ class LocalMap:
       re-simulated sequences' median ATE within 0.01 mm: benchmarks/README.md, 3 and 3b).
     - the neighbour index of the map points is rebuilt every step (every step moves the
       averaged points and adds and drops some), by the compiled k-d tree where the kernels are
-      compiled: 1.3-1.5 ms for 13-22k map points against small_gicp's 1.9-3.4 ms. A tree kept
-      across steps (refitted to the moved points, a second tree for the added ones) was
-      measured: ~0.9 ms less upkeep, ~0.5 ms more per step's queries, the same step time, so it
-      is rebuilt; the points' key order is kept up to date by every insertion
-      and crop (a merge into the map needs it), not sorted again.
+      compiled: 1.1 ms for 26k street-map points and 1.9 ms for 36k BALM ones, against
+      small_gicp's 3.2 and 4.7 ms (a map's tree splits many nodes at their median, found by
+      selection). A tree kept across steps (refitted to the moved points, a second tree for the
+      added ones) was measured when the rebuild cost ~1.5 ms a street step: ~0.9 ms less
+      upkeep, ~0.5 ms more per step's queries, the same step time; against today's rebuild it
+      would save less, so it is rebuilt; the points' key order is kept up to date by every
+      insertion and crop (a merge into the map needs it), not sorted again.
     """
 
     def __init__(self, voxel_size: float, *, max_points_per_voxel: int) -> None:
@@ -460,8 +462,8 @@ class LocalMap:
         # Built now, with the rest of the map's upkeep (which a pipeline runs while the next
         # scan is prepared), not at the first query of the next registration.
         # Built on the points in voxel-key order (its answers mapped back): faster than in the
-        # map's insertion order (22k street-map points: 1.4 against 1.9 ms compiled; small_gicp
-        # 36k: 4.7 against 5.8 ms).
+        # map's insertion order (26k street-map points: 1.1 against 1.6 ms compiled, 36k BALM
+        # 2.0 against 2.3 ms, the queries as fast; small_gicp 36k: 4.7 against 5.8 ms).
         tree = NeighborIndex(points, order=self.voxels.key_order).build()
         timings['tree'] = elapsed_ms(t1)
         timings['total'] = elapsed_ms(t0)

@@ -8,8 +8,8 @@ small_gicp is installed, else scipy's cKDTree: all three are exact, so results a
 order of equidistant neighbours, and the first two give the same distances bit for bit.
 small_gicp answers the queries this package makes about twice as fast as cKDTree on one thread
 (measured: 15 neighbours of 10k points 13.5 against 26 ms, 2 neighbours 3.5 against 6.7 ms);
-the compiled tree answers them as fast as small_gicp's and is built in 40-45 % of its time
-(22k street-map points: 1.3 against 3.4 ms; 12k scan points: 0.8 against 1.85 ms), which
+the compiled tree answers them as fast as small_gicp's and is built in a third of its time or
+less (map points: 26k street 1.1 against 3.2 ms, 36k BALM 1.9 against 4.7 ms), which
 counts because the local map is indexed anew every step. Neighbour queries are the largest
 cost of preparing and registering a scan (``benchmarks/per_scan.py``).
 """
