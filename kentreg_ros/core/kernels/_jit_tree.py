@@ -119,9 +119,7 @@ def _split(tp, perm, s, e):  # type: ignore[no-untyped-def]
             j -= 1
         if i >= j:
             break
-        perm[i], perm[j] = perm[j], perm[i]
-        for a in range(3):
-            tp[i, a], tp[j, a] = tp[j, a], tp[i, a]
+        _swap(tp, perm, i, j)
         left_max = max(left_max, tp[i, d])
         right_min = min(right_min, tp[j, d])
         i += 1

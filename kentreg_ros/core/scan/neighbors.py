@@ -55,8 +55,9 @@ class NeighborIndex:
     -----
     ``order`` (a permutation of the points, e.g. spatially sorted) is the order the tree is built
     from: a tree is built faster from points whose neighbours lie near them in memory (the
-    local map's 13-22k points in voxel-key order: the compiled tree in 1.4-1.5 ms against
-    1.8-1.9 ms in insertion order). The answers index ``points`` as given.
+    local map's points in voxel-key order: the compiled tree of 26k street-map points in 1.1 ms
+    against 1.6 ms in insertion order, 36k BALM ones in 2.0 against 2.3 ms). The answers index
+    ``points`` as given.
     """
 
     def __init__(
