@@ -11,7 +11,8 @@ process itself (``conftest.py`` applies them in ``pytest_configure``, before any
   this machine, and MB-sized clouds go through shared memory.
 - ``ROS_DOMAIN_ID``: one value per test session in ``[DOMAIN_ID_MIN, DOMAIN_ID_MAX]``, derived
   from the process id, so test runs of several people or CI jobs on one machine rarely share
-  a domain (tests also use unique topic names, so a shared domain does not break them). Fast
+  a domain (tests also use unique topic names, and unique node names where they ask the
+  graph about a node, so a shared domain does not break them). Fast
   DDS maps domain ``d`` to UDP ports from ``7400 + 250 d``; ids up to 101 keep those ports
   below the Linux ephemeral range (32768+). ``KENTREG_TEST_ROS_DOMAIN_ID`` fixes the value.
 """

@@ -1,13 +1,16 @@
 """kentreg_node as a ROS user drops it in: no parameters, the sample bag, RViz.
 
-The node is real rclpy, constructed in this process (as in ``test_ros_node.py``) and fed the
-scans of ``bags/balm_50`` (frame ``lidar``, no ``/tf``) the way its subscription callback is;
-its topics are read back from the ROS graph, its messages from its publishers.
+The node is real rclpy, constructed in this process (as in ``test_ros_node.py``: nothing spins
+it, its timers are cancelled) and fed the scans of ``bags/balm_50`` (frame ``lidar``, no
+``/tf``) the way its subscription callback is; its topics are read back from the ROS graph, its
+messages from its publishers. The graph is the domain's, which other test runs on this machine
+may share: every node here has a name of its own, and the graph is asked about that node.
 """
 
 from __future__ import annotations
 
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -54,11 +57,16 @@ def scans() -> list[Any]:
 
 @pytest.fixture
 def make_node(rclpy_context: Any) -> Iterator[Callable[..., Any]]:
+    """KentRegNode in a private context under a name of its own, its timers cancelled (the
+    tests send the path and the map themselves); destroyed afterwards."""
     nodes: list[Any] = []
 
     def make(**kwargs: Any) -> Any:
+        kwargs.setdefault('node_name', unique_name())
         node = node_module.KentRegNode(context=rclpy_context, **kwargs)
         nodes.append(node)
+        for timer in node.timers:
+            timer.cancel()
         return node
 
     yield make
@@ -67,20 +75,26 @@ def make_node(rclpy_context: Any) -> Iterator[Callable[..., Any]]:
             node.destroy_node()
 
 
-def processed(node: Any) -> int:
+def unique_name() -> str:
+    """A node name no other node in the domain has (another test run may run a kentreg_node)."""
+    return f'kentreg_test_{uuid.uuid4().hex[:8]}'
+
+
+def published(node: Any) -> int:
+    """Scans whose outputs went out (the worker counts ``processed`` before them)."""
     return int(node._counters.total['published'])
 
 
 def feed(node: Any, scan: Any) -> None:
-    """Hand one bag scan to the node as its subscription does; wait until it was processed."""
-    before = processed(node)
+    """Hand one bag scan to the node as its subscription does; wait until its outputs are out."""
+    before = published(node)
     node._on_points(
         array_to_pointcloud2(
             scan.points, stamp_ns=scan.stamp_ns, frame_id=scan.frame_id, factory=FACTORY
         )
     )
     deadline = time.monotonic() + TIMEOUT_S
-    while processed(node) == before:
+    while published(node) == before:
         assert time.monotonic() < deadline, 'the scan was not processed'
         time.sleep(0.01)
 
@@ -241,16 +255,20 @@ def test_qos_overrides_apply_to_the_input_and_the_outputs(make_node: Any) -> Non
             Parameter('qos_overrides./kentreg/odometry.publisher.depth', value=3),
         ]
     )
-    (info,) = node.get_subscriptions_info_by_topic('/points')
+    (info,) = [
+        i
+        for i in node.get_subscriptions_info_by_topic('/points')
+        if (i.node_name, i.node_namespace) == (node.get_name(), node.get_namespace())
+    ]
     assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
     assert node._sub.qos_profile.depth == 7
     assert node._outputs.odom.qos_profile.depth == 3
-    default = make_node(node_name='kentreg_default_qos')
+    default = make_node()
     assert default._sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
     assert default._sub.qos_profile.depth == NodeSettings().qos_depth
     bad = [Parameter('qos_overrides./points.subscription.reliability', value='fifo')]
     with pytest.raises(node_module.StartupError, match='qos_overrides.*fifo'):
-        make_node(node_name='kentreg_bad_qos', parameter_overrides=bad)
+        make_node(parameter_overrides=bad)
 
 
 def _rviz_topics(config: Any) -> dict[str, str]:

@@ -141,8 +141,10 @@ def test_a_record_of_a_thread_a_handler_owns_goes_to_that_handler_only() -> None
             CORE.warning('from the worker')
             done.set()
 
-        threading.Thread(target=work).start()
-        assert done.wait(10.0)
+        worker = threading.Thread(target=work)
+        worker.start()
+        worker.join(10.0)  # ended: no thread of this test outlives it
+        assert done.is_set()
         CORE.warning('from the main thread')
     finally:
         a.detach()

@@ -5,6 +5,15 @@
 way the subscription callback does, and look at what the worker thread did. That makes
 ownership between the executor thread and the worker, and shutdown with a busy worker,
 testable without depending on how fast this machine registers scans.
+
+Two rules keep these tests independent of timing. No executor spins the node, and its timers
+are cancelled (:func:`make_node`): the map's timer never sends the path or the map behind a
+test's back, so the tests call ``publish_path``, ``publish_map`` and ``_publish_diagnostics``
+themselves. And a test waits for the state its assertions read: the worker counts a scan
+``processed`` when the odometry has stepped, before its outputs (odometry, pose, the path's
+pose) go out, and ``published`` after them, so a test that looks at outputs waits on
+:func:`handled` (``published``, or ``errors`` for a scan skipped by an error), never on
+``processed``.
 """
 
 from __future__ import annotations
@@ -14,6 +23,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -56,6 +66,15 @@ def feed(node: Any, k: int) -> None:
 def total(node: Any, name: str) -> int:
     """A cumulative counter of the node (what diagnostics report as ``total.<name>``)."""
     return int(node._counters.total[name])
+
+
+def handled(node: Any) -> int:
+    """Scans the worker is done with: ``published`` (counted after the scan's outputs went out,
+    where ``processed`` is counted before them) plus ``errors`` (a scan skipped by an error;
+    counted first, before its log and any restart, so a test that reads those waits for a
+    later scan). The worker takes one scan at a time, in order: once ``handled`` reaches ``n``,
+    everything the first ``n - 1`` scans did is done too."""
+    return total(node, 'published') + total(node, 'errors')
 
 
 def wait_until(done: Callable[[], bool], timeout: float = TIMEOUT_S) -> bool:
@@ -112,12 +131,19 @@ def test_pose_covariance_in_base_is_the_first_order_propagation(anchored: bool) 
 
 @pytest.fixture
 def make_node(rclpy_context: Any) -> Iterator[Callable[..., Any]]:
-    """Construct KentRegNode in a private context; destroyed afterwards unless a test did."""
+    """Construct KentRegNode in a private context; destroyed afterwards unless a test did.
+
+    Each node gets a name of its own (other test runs on this machine may share the ROS
+    domain and run a ``kentreg_node``), and its timers are cancelled: nothing spins it, and
+    what the timers would send the tests send themselves, when their assertions need it."""
     nodes: list[Any] = []
 
     def make(**kwargs: Any) -> Any:
+        kwargs.setdefault('node_name', f'kentreg_test_{uuid.uuid4().hex[:8]}')
         node = node_module.KentRegNode(context=rclpy_context, **kwargs)
         nodes.append(node)
+        for timer in node.timers:
+            timer.cancel()
         return node
 
     yield make
@@ -194,13 +220,16 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     make_node: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The worker appends to the path (the map's timer publishes it): a path_length change is
-    handed over and applied by the worker, not by the thread that set the parameter."""
+    handed over and applied by the worker, not by the thread that set the parameter.
+
+    Each forced publication follows the worker's ``published`` count: the scan's pose is in
+    the path then (at ``processed`` it may not be yet, and the path had nothing new to send)."""
     node = make_node(parameter_overrides=[Parameter('path_length', value=5)])
     paths: list[Any] = []
     monkeypatch.setattr(node._outputs.path, 'publish', paths.append)
     for k in range(3):
         feed(node, k)
-        assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+        assert wait_until(lambda k=k: handled(node) == k + 1)
         assert node._outputs.publish_path(node._settings, force=True)
     path = node._outputs._poses
     # From this thread, as the executor thread runs `ros2 param set`.
@@ -208,7 +237,7 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     assert result.successful
     assert node._outputs._poses is path and path.maxlen == 5, 'the parameter thread touched it'
     feed(node, 3)
-    assert wait_until(lambda: total(node, 'processed') == 4)
+    assert wait_until(lambda: handled(node) == 4)
     assert node._outputs.publish_path(node._settings, force=True)
     assert not node._outputs.publish_path(node._settings, force=True), 'nothing new to send'
     assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
@@ -220,21 +249,27 @@ def test_the_path_goes_out_on_the_timer_not_with_every_scan(
     make_node: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A Path carries every pose, so its cost grows with the run: the worker only appends, and
-    the map's timer sends it at most every PATH_PERIOD_S, when it grew."""
+    the map's timer sends it at most every PATH_PERIOD_S, when it grew. The period is read on
+    a clock of the test's (the outputs' ``time``), so how long this machine takes for a scan
+    does not decide whether it has passed."""
+    clock = SimpleNamespace(now=1000.0)
+    monkeypatch.setattr(outputs_module, 'time', SimpleNamespace(monotonic=lambda: clock.now))
     node = make_node()
     paths: list[Any] = []
     monkeypatch.setattr(node._outputs.path, 'publish', paths.append)
     for k in range(2):
         feed(node, k)
-        assert wait_until(lambda k=k: total(node, 'processed') == k + 1)
+        assert wait_until(lambda k=k: handled(node) == k + 1)
     assert paths == [], 'the worker published the path'
     assert node._outputs.publish_path(node._settings)  # the first is due at once
     assert [len(p.poses) for p in paths] == [2]
     feed(node, 2)
-    assert wait_until(lambda: total(node, 'processed') == 3)
+    assert wait_until(lambda: handled(node) == 3)
+    clock.now += 0.999 * outputs_module.PATH_PERIOD_S
     assert not node._outputs.publish_path(node._settings), 'sent before PATH_PERIOD_S passed'
-    monkeypatch.setattr(outputs_module, 'PATH_PERIOD_S', 0.0)
+    clock.now += 0.001 * outputs_module.PATH_PERIOD_S
     assert node._outputs.publish_path(node._settings)
+    clock.now += 10 * outputs_module.PATH_PERIOD_S
     assert not node._outputs.publish_path(node._settings), 'sent again without a new pose'
     assert [len(p.poses) for p in paths] == [2, 3]
     assert stamp_ns(paths[-1].header.stamp) == 3 * 10**9
@@ -259,7 +294,7 @@ def test_diagnostics_report_the_model_in_use_and_the_pending_one(
     assert result.successful
     assert modes() == ('previous_scan', 'local_map')
     feed(node, 0)
-    assert wait_until(lambda: total(node, 'processed') == 1)
+    assert wait_until(lambda: handled(node) == 1)
     assert modes() == ('local_map', '')
 
 
@@ -362,11 +397,12 @@ def test_a_scan_the_core_rejects_leaves_a_warn_on_rosout(
         name = f'kentreg_test_{uuid.uuid4().hex[:8]}'  # other processes may run a kentreg_node
         node = make_node(node_name=name, parameter_overrides=[Parameter('deskew', value='on')])
         feed(node, 0)
-        assert wait_until(lambda: total(node, 'processed') == 1)  # a queue of 1: one at a time
+        assert wait_until(lambda: handled(node) == 1)  # a queue of 1: one at a time
         node._on_points(
             array_to_pointcloud2(ROOM[:3], stamp_ns=2 * 10**9, frame_id='lidar', factory=FACTORY)
         )
-        assert wait_until(lambda: total(node, 'processed') == 2)
+        # The health is counted after `processed`: wait for the end of the scan.
+        assert wait_until(lambda: handled(node) == 2)
         assert total(node, 'rejected') == 1
 
         def warned(text: str) -> list[Any]:
@@ -417,6 +453,11 @@ def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
     back or were rejected")."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
+    from kentreg_ros.ros import diagnostics
+
+    # Input older than STALE_INPUT_S turns the message into "no scans on ..."; how long this
+    # machine takes for the five scans must not decide which message is checked.
+    monkeypatch.setattr(diagnostics, 'STALE_INPUT_S', float('inf'))
     node = make_node()
     odoms: list[Any] = []
     diags: list[Any] = []
@@ -425,7 +466,7 @@ def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
     monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2}))
     for k in range(5):
         feed(node, k)
-        assert wait_until(lambda k=k: total(node, 'processed') + total(node, 'errors') == k + 1)
+        assert wait_until(lambda k=k: handled(node) == k + 1)
     assert (total(node, 'errors'), total(node, 'resets'), total(node, 'processed')) == (1, 0, 4)
     # The sensor moves 5 cm along x per scan: scan 3 is registered against scan 1.
     assert [stamp_ns(m.header.stamp) for m in odoms] == [10**9, 2 * 10**9, 4 * 10**9, 5 * 10**9]
@@ -455,7 +496,8 @@ def test_errors_in_a_row_restart_the_trajectory_after_three_and_say_why(
     monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2, 3, 5, 6, 7}))
     for k in range(9):
         feed(node, k)
-        assert wait_until(lambda k=k: total(node, 'processed') + total(node, 'errors') == k + 1)
+        assert wait_until(lambda k=k: handled(node) == k + 1)
+    # The last scan was published: the errors' logs and the restart before it are done.
     assert (total(node, 'errors'), total(node, 'resets')) == (5, 1)
     assert [stamp_ns(m.header.stamp) // 10**9 for m in odoms] == [1, 2, 5, 9]
     np.testing.assert_allclose([_x(m) for m in odoms[:3]], [0.0, 0.05, 0.20], atol=0.01)
