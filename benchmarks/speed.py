@@ -256,9 +256,9 @@ def run_libraries(
             t0 = time.perf_counter()
             result = runner.in_subprocess(__file__, options, env=env)
             result['wall_s'] = time.perf_counter() - t0
-            worker = {k: v for k, v in result.items() if k != 'sizes'}
-            doc['workers'][f'{library}-round{r}'] = worker
-            print(f'[{library}] round {r}: {result.get("error", "done")}', file=sys.stderr)
+            doc['workers'][f'{library}-round{r}'] = {k: result[k] for k in result if k != 'sizes'}
+            said = result.get('error') or ' | '.join(result.get('stderr', [])) or 'done'
+            print(f'[{library}] round {r}: {said}', file=sys.stderr)  # why a method is left out
             for size, cells in result.get('sizes', {}).items():
                 for name, sample in cells.items():
                     samples.setdefault(name, {}).setdefault(size, []).append(sample)

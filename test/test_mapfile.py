@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from optional import import_open3d
 from scenes import read_ply_xyz
 
 from kentreg_ros.core import InvalidPointCloudError
@@ -30,7 +31,7 @@ def test_write_map_ply_is_read_back_by_an_independent_reader(
 
 
 def test_write_map_ply_opens_in_open3d(points: np.ndarray, tmp_path: Path) -> None:
-    o3d = pytest.importorskip('open3d')
+    o3d = import_open3d()  # skips when Open3D is missing or cannot load
     path = tmp_path / 'map.ply'
     write_map(path, points)
     cloud = o3d.io.read_point_cloud(str(path))

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from optional import import_open3d
 from recordings import bag_with_malformed_clouds
 from scipy.spatial.transform import Rotation
 
@@ -526,9 +527,7 @@ def test_replay_writes_the_map_as_ply_and_into_the_mcap(sample_bag: Path, tmp_pa
     assert cloud.header.frame_id == 'odom'  # type: ignore[attr-defined]
     assert stamp_ns(cloud) == stamp_ns(messages['/kentreg/pose'][-1])
     np.testing.assert_array_equal(pointcloud2_to_array(cloud).points, ply)  # type: ignore[arg-type]
-    pytest.importorskip('open3d')
-    import open3d as o3d
-
+    o3d = import_open3d()  # skips when Open3D is missing or cannot load
     assert len(o3d.io.read_point_cloud(str(map_path)).points) == len(ply)
 
 

@@ -323,7 +323,7 @@ def make_methods(
         try:
             methods = factory(mine, voxel, threads)
         except ImportError as exc:
-            logger.warning('Skipping %s: %s cannot be imported (%s); `pip install -e .[bench]`.',
+            logger.warning('Left out %s: %s cannot be imported (%s); see benchmarks/README.md',
                            ', '.join(mine), library, exc)  # fmt: skip
             continue
         built.update({m.name: m for m in methods})
