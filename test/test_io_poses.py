@@ -116,3 +116,21 @@ def test_bad_pose_files_raise(tmp_path: Path) -> None:
         read_poses(path)
     with pytest.raises(PoseFileError, match='cannot read'):
         read_poses(tmp_path / 'missing.txt', format='tum')
+
+
+@pytest.mark.parametrize('name', ['poses_tum.txt', 'poses_kitti.txt'])
+def test_a_kitti_layout_velodyne_folder_finds_the_pose_file_beside_it(
+    tmp_path: Path, name: str
+) -> None:
+    """``<sequence>/velodyne/*.bin`` with the poses in ``<sequence>/`` (KITTI's layout, and the
+    shared Livox sequences'): the replay given the ``velodyne`` folder evaluates without --gt."""
+    from kentreg_ros.io.poses import pose_file_beside
+
+    scans = tmp_path / 'seq' / 'velodyne'
+    scans.mkdir(parents=True)
+    assert pose_file_beside(scans) is None
+    (tmp_path / 'seq' / name).write_text('')
+    assert pose_file_beside(scans) == tmp_path / 'seq' / name
+    other = tmp_path / 'seq' / 'lidar'  # only a folder named velodyne looks up a level
+    other.mkdir()
+    assert pose_file_beside(other) is None

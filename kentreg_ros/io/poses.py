@@ -39,6 +39,10 @@ logger = logging.getLogger(__name__)
 POSE_FORMATS = ('kitti', 'tum', 'eth', 'balm')
 #: Names of the pose files :func:`pose_file_beside` looks for in a scan folder (BALM, ETH, other).
 POSE_FILES_BESIDE_SCANS = ('alidarPose.csv', 'pose_scanner_leica.csv', 'poses.csv')
+#: Names of the pose files :func:`pose_file_beside` looks for beside a KITTI-layout scan folder
+#: (``<sequence>/velodyne/*.bin``, poses in ``<sequence>/``): timed TUM first, as its stamps
+#: also time the scans.
+POSE_FILES_BESIDE_VELODYNE = ('poses_tum.txt', 'poses.txt', 'poses_kitti.txt')
 _ROTATION_TOLERANCE = 1e-3
 
 
@@ -256,15 +260,21 @@ def read_poses(
 
 
 def pose_file_beside(folder: str | Path) -> Path | None:
-    """The pose file of a scan folder: the first of :data:`POSE_FILES_BESIDE_SCANS` in it.
+    """The pose file of a scan folder: the first of :data:`POSE_FILES_BESIDE_SCANS` in it, or,
+    for a KITTI-layout folder named ``velodyne``, the first of
+    :data:`POSE_FILES_BESIDE_VELODYNE` in the folder that holds it.
 
-    Each name is tried as written, then in lower case; None when the folder holds none.
+    Each name is tried as written, then in lower case; None when there is none.
     """
     folder = Path(folder)
-    for name in POSE_FILES_BESIDE_SCANS:
-        for candidate in (folder / name, folder / name.lower()):
-            if candidate.is_file():
-                return candidate
+    places = [(folder, POSE_FILES_BESIDE_SCANS)]
+    if folder.name == 'velodyne':
+        places.append((folder.parent, POSE_FILES_BESIDE_VELODYNE))
+    for where, names in places:
+        for name in names:
+            for candidate in (where / name, where / name.lower()):
+                if candidate.is_file():
+                    return candidate
     return None
 
 
