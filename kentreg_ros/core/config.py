@@ -271,8 +271,13 @@ class TranslationConfig(Section, prefix='translation.'):
     )
     degeneracy_ratio: float = setting(
         0.02,
-        'Flag degeneracy when the smallest/largest eigenvalue of the translation normal '
-        'matrix is below this.',
+        'Flag degeneracy along a direction whose eigenvalue of the normal matrix (of the '
+        'translation, or of the rotation EM) is below this share of the largest. In robust '
+        'mode a translation direction found so is flagged only when the pose moved along it '
+        'by the distinct-pose gate (4 sampling spacings) still fits at least '
+        'search.ambiguity_ratio as well: sparse, narrow views hold a direction with a few '
+        'dozen points and a small eigenvalue, which the fit tells apart from a corridor, '
+        'where the points slide along the walls.',
         range=(0.0, 1.0),
     )
 

@@ -84,6 +84,8 @@ class _Local:
     inlier: float
     covariance: FloatArray
     H_trans: FloatArray
+    source: PreparedScan
+    neighbors: NearestNeighborCache
     refined: bool = False
 
 
@@ -95,6 +97,12 @@ class _Gates:
     min_gate: float
     noise_floor: float
     fit: FitGates
+
+    @property
+    def distinct(self) -> float:
+        """Displacement beyond which two poses are distinct: twice the fit's distance gate, so
+        that the two cannot match the same target points."""
+        return 2.0 * self.fit.distance
 
 
 def _gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig) -> _Gates:
@@ -151,40 +159,62 @@ class _Translation:
     iterations: int
 
 
-def _translation_stage(
-    full: PreparedScan,
+def _translation_starts(
     src: PreparedScan,
     tgt: PreparedScan,
     R: FloatArray,
     T0: FloatArray,
     cfg: KentRegConfig,
     gates: _Gates,
-    neighbors: NearestNeighborCache,
     stages: dict[str, FloatArray],
-) -> _Translation:
-    """Translation with ``R`` fixed: the paper's centroids (every point of ``full``), or the
-    plane-offset cross-correlation (recorded in ``stages``) and robust point-to-plane."""
-    tr_cfg = cfg.translation
-    if tr_cfg.method == 'centroid':
-        t = centroid_translation(R, full.points, tgt.points)
-        return _Translation(t, None, 0.0, gates.max_gate, None, 0)
+) -> list[FloatArray]:
+    """Where the point-to-plane translation starts: the plane-offset cross-correlation's
+    translation (recorded in ``stages``), and the prior's own when the two are distinct.
+
+    The cross-correlation searches each cluster direction on its own, so a direction held by a
+    few dozen scattered points (a sparse, narrow view: bushes, a far facade's edge) can put
+    its peak metres off, and the least squares over the directions hands that error on to
+    the weakly held axis, where the refinement's basin is narrow. A start farther from the
+    prior's than the correspondence floor (two sampling spacings, the fit's distance gate:
+    beyond it the points leave the surfaces they matched at the prior) is therefore a claim
+    against the prior, which the fit of the two placed poses settles (:func:`_local`). Within
+    that gate the correlation's start is used alone, as before: a step whose prediction is
+    that good registers exactly as it did.
+    """
     t = T0[:3, 3].copy()
-    if tr_cfg.cross_correlation:
-        t, _ = plane_offset_translation(
-            R,
-            t,
-            src.points,
-            src.normals,
-            tgt.points,
-            tgt.normals,
-            tgt.centers,
-            bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
-            max_shift=tr_cfg.max_shift,
-        )
-        stages['cross_correlation'] = make_transform(R, t)
-    tres = point_to_plane_translation(
+    if not cfg.translation.cross_correlation:
+        return [t]
+    t_xc, _ = plane_offset_translation(
         R,
         t,
+        src.points,
+        src.normals,
+        tgt.points,
+        tgt.normals,
+        tgt.centers,
+        bin_size=0.5 * gates.min_gate / GATE_FLOOR_SPACINGS,  # half a spacing
+        max_shift=cfg.translation.max_shift,
+    )
+    stages['cross_correlation'] = make_transform(R, t_xc)
+    if float(np.linalg.norm(t_xc - t)) <= gates.min_gate:
+        return [t_xc]
+    return [t_xc, t]
+
+
+def _translation_stage(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    R: FloatArray,
+    t_start: FloatArray,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    neighbors: NearestNeighborCache,
+) -> _Translation:
+    """Robust point-to-plane translation with ``R`` fixed, from ``t_start``."""
+    tr_cfg = cfg.translation
+    tres = point_to_plane_translation(
+        R,
+        t_start,
         src.points,
         tgt.points,
         tgt.normals,
@@ -244,7 +274,10 @@ def _local(
 
     The rotation stage uses every normal of ``src``; the position stages use its
     :func:`position_sample` (the centroid translation, the paper's, uses every point), given as
-    ``sample`` when the caller registers the same source several times."""
+    ``sample`` when the caller registers the same source several times. When the
+    cross-correlation's start and the prior's are distinct (:func:`_translation_starts`), both
+    are placed and refined, and :func:`choose_pose` takes the better fit, the one nearer the
+    prior when they fit about equally."""
     stages: dict[str, FloatArray] = {}
     if em is None:
         t0 = time.perf_counter()
@@ -254,12 +287,52 @@ def _local(
     stages['rotation'] = make_transform(R, T0[:3, 3])
     full = src
     src = sample if sample is not None else position_sample(src, cfg.refine.max_cluster_points)
-    # One correspondence cache for the translation and refinement loops (same source points,
-    # same target tree): points that moved less than their certified radius skip the query.
-    neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
+    if cfg.translation.method == 'centroid':
+        t = centroid_translation(R, full.points, tgt.points)
+        trans = _Translation(t, None, 0.0, gates.max_gate, None, 0)
+        neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
+        return _placed(src, tgt, em, trans, cfg, gates, timings, stages, neighbors, refine)
     t0 = time.perf_counter()
-    trans = _translation_stage(full, src, tgt, R, T0, cfg, gates, neighbors, stages)
+    starts = _translation_starts(src, tgt, R, T0, cfg, gates, stages)
     timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
+    placed: list[_Local] = []
+    for t_start in starts:
+        # One correspondence cache per start for the translation and refinement loops (same
+        # source points, same target tree): points that moved less than their certified
+        # radius skip the query.
+        neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
+        t0 = time.perf_counter()
+        trans = _translation_stage(src, tgt, R, t_start, cfg, gates, neighbors)
+        timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
+        placed.append(
+            _placed(src, tgt, em, trans, cfg, gates, timings, dict(stages), neighbors, refine)
+        )
+    if len(placed) == 1:
+        return placed[0]
+    choice = choose_pose(
+        [Candidate(c.T, c.fit.score, c) for c in placed],
+        src.points,
+        gate=gates.distinct,
+        ratio=cfg.search.ambiguity_ratio,
+        prior=T0,
+    )
+    return choice.chosen.origin
+
+
+def _placed(
+    src: PreparedScan,
+    tgt: PreparedScan,
+    em: EMResult,
+    trans: _Translation,
+    cfg: KentRegConfig,
+    gates: _Gates,
+    timings: dict[str, float],
+    stages: dict[str, FloatArray],
+    neighbors: NearestNeighborCache,
+    refine: bool,
+) -> _Local:
+    """The pose of one translation: refined (unless ``refine`` is off) and fitted."""
+    R = em.R
     T = make_transform(R, trans.t)
     stages['translation'] = T
     iterations, converged, inlier = (
@@ -303,7 +376,20 @@ def _local(
         T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
     )
     timings['fit'] = timings.get('fit', 0.0) + elapsed_ms(t0)
-    return _Local(T, em, fit, stages, iterations, converged, inlier, covariance, H_trans, refined)
+    return _Local(
+        T=T,
+        em=em,
+        fit=fit,
+        stages=stages,
+        iterations=iterations,
+        converged=converged,
+        inlier=inlier,
+        covariance=covariance,
+        H_trans=H_trans,
+        source=src,
+        neighbors=neighbors,
+        refined=refined,
+    )
 
 
 def _search_candidates(
@@ -349,6 +435,41 @@ def _search_candidates(
     return out, len(hyp)
 
 
+def _unresolved(
+    directions: FloatArray, best: _Local, tgt: PreparedScan, gates: _Gates, ratio: float
+) -> FloatArray:
+    """The weakly held translation directions along which the data cannot tell the pose apart
+    from one moved along them: the pose moved by :attr:`_Gates.distinct` either way fits at
+    least ``ratio`` times as well (the ambiguity rule of
+    :func:`~kentreg_ros.core.registration.verify.choose_pose`, applied along a line).
+
+    The eigenvalue test on the normal matrix (``translation.degeneracy_ratio``) only nominates
+    directions: its weights are the robust kernel's and the normals' agreement, which shrink
+    on sparse or noisy surfaces (a narrow view with a few dozen points on its side surfaces
+    holds a direction to centimetres with 1-2 % of the largest eigenvalue), while in a corridor
+    or on a single plane the points slide along the direction and keep matching surfaces.
+    """
+    src = best.source
+    R, t = best.T[:3, :3], best.T[:3, 3]
+    kept = []
+    for d in directions:
+        shifted = [
+            balanced_fit(
+                make_transform(R, t + sign * gates.distinct * d),
+                src.points,
+                src.normals,
+                tgt.normals,
+                tgt.centers,
+                gates.fit,
+                neighbors=best.neighbors,
+            ).score
+            for sign in (-1.0, 1.0)
+        ]
+        if max(shifted) >= ratio * best.fit.score:
+            kept.append(d)
+    return np.array(kept).reshape(-1, 3)
+
+
 def position_sample(scan: PreparedScan, cap: int) -> PreparedScan:
     """``scan`` with its points and normals reduced to :func:`stratified_sample` of its normal
     clusters (at most ``cap`` per cluster) for the position stages; its clusters, which the
@@ -379,12 +500,14 @@ def register_robust(
     choice = choose_pose(
         [Candidate(c.T, c.fit.score, c) for c in candidates],
         src.points,
-        gate=2.0 * gates.fit.distance,
+        gate=gates.distinct,
         ratio=cfg.search.ambiguity_ratio,
     )
     best = choice.chosen.origin
     tr_cfg = cfg.translation
     deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
+    if len(deg_dirs) and np.isfinite(best.fit.score):
+        deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
     rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
     degenerate = len(deg_dirs) > 0 or rot_degenerate
     result = finish_result(
