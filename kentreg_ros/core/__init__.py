@@ -36,6 +36,7 @@ from kentreg_ros.core.odometry import (
     ACCEPTED,
     HEALTHS,
     Health,
+    ImplausibleTimesError,
     LocalMap,
     Odometry,
     OdometryStep,
@@ -43,6 +44,7 @@ from kentreg_ros.core.odometry import (
     PipelineError,
     PointTimes,
     VoxelMap,
+    sweep_times,
 )
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
@@ -60,6 +62,7 @@ __all__ = [
     'ConfigError',
     'DegenerateSceneError',
     'Health',
+    'ImplausibleTimesError',
     'InvalidInputError',
     'InvalidPointCloudError',
     'KentRegConfig',
@@ -97,6 +100,7 @@ __all__ = [
     'project_to_so3',
     'register',
     'rotation_angle',
+    'sweep_times',
     'validate_value',
     'voxel_downsample',
 ]

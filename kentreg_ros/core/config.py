@@ -423,10 +423,11 @@ class OdometryConfig(Section, prefix='odometry.'):
     point_time_unit: TimeUnit = setting(
         TimeUnit.AUTO,
         'Unit of the per-point time field: auto reads it from the field (name and datatype of '
-        'the common drivers: Ouster t and Livox offset_time uint32 ns, Velodyne time float32 s, '
-        'Hesai/Robosense timestamp float64 absolute s), then from the values (the unit that '
-        'makes them a sweep of at most 2 s around the stamp); s, ms, us or ns state it for a '
-        'driver that does something else.',
+        'the common drivers: Ouster t and Livox CustomMsg offset_time uint32 ns, Velodyne time '
+        'float32 s, a float64 timestamp absolute s from Hesai/Robosense or absolute ns from '
+        "livox_ros_driver2's PointCloud2), then from the values (the unit that makes them a "
+        'sweep of at most 2 s around the stamp, which also tells those s from ns); s, ms, us or '
+        'ns state it for a driver that does something else.',
     )
     point_time_reference: TimeReference = setting(
         TimeReference.AUTO,

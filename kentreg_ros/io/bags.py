@@ -3,7 +3,9 @@
 Reading
     rosbag2 (``.db3`` or ``.mcap``, the file or its folder) and ROS 1 ``.bag`` files, through
     :class:`rosbags.highlevel.AnyReader` with the ROS 2 Jazzy typestore for bags that embed no
-    message definitions. The PointCloud2 topic is picked automatically when there is exactly one.
+    message definitions. Scans are ``sensor_msgs/PointCloud2`` or Livox ``CustomMsg``
+    (:mod:`kentreg_ros.io.livox`, decoded with the definition the bag carries checked); the
+    scan topic is picked automatically when there is exactly one.
     Faults are one :class:`~kentreg_ros.io.errors.BagError`, raised where they happen: every
     message before the fault has already been yielded. An MCAP file that rosbags cannot open
     (truncated: no summary, no footer) is streamed record by record with the ``mcap`` package,
@@ -29,6 +31,7 @@ from numpy.typing import DTypeLike
 
 from kentreg_ros.core import InvalidPointCloudError, KentRegError
 from kentreg_ros.io.errors import BagError, describe_error
+from kentreg_ros.io.livox import custom_msg_to_array, definition_problem, is_custom_msg
 from kentreg_ros.io.pointcloud2 import (
     _default_typestore,
     pointcloud2_to_array,
@@ -94,12 +97,18 @@ class _Bag:
         elif self.path.is_file() and self.path.suffix.lower() not in BAG_SUFFIXES:
             raise BagError(f'{self.path}: not a bag (expected {", ".join(BAG_SUFFIXES)}).')
         self.salvage: _McapSalvage | None = None
+        #: A ROS 1 bag (its messages are in the ROS 1 wire format, not CDR).
+        self.ros1 = False
+        #: The message types as the bag defines them (rosbags' ``fielddefs``).
+        self.fielddefs: Mapping[str, Any] = {}
         try:
             with self._reader() as reader:
                 self.topics = {
                     name: BagTopic(name, info.msgtype or '?', int(info.msgcount))
                     for name, info in reader.topics.items()
                 }
+                self.ros1 = not reader.is2
+                self.fielddefs = dict(reader.typestore.fielddefs)
         except BagError:
             raise
         except Exception as exc:  # rosbags raises many types for damaged files
@@ -113,6 +122,7 @@ class _Bag:
             )
             self.salvage = _McapSalvage(mcap_file)
             self.topics = self.salvage.topics
+            self.fielddefs = dict(self.salvage.typestore.fielddefs)
 
     def _reader(self) -> Any:
         from rosbags.highlevel import AnyReader
@@ -125,10 +135,11 @@ class _Bag:
         files = [f for f in _storage_files(self.target) if f.suffix.lower() == '.mcap']
         return files[0] if len(files) == 1 else None
 
-    def messages(self, topic: str) -> Iterator[tuple[int, Any]]:
-        """Yield ``(log_time_ns, message)`` of ``topic``; raise BagError at a fault."""
+    def messages(self, topic: str, *, raw: bool = False) -> Iterator[tuple[int, Any]]:
+        """Yield ``(log_time_ns, message)`` of ``topic`` (the serialised bytes when ``raw``);
+        raise BagError at a fault."""
         if self.salvage is not None:
-            yield from self.salvage.messages(topic)
+            yield from self.salvage.messages(topic, raw=raw)
             return
         count = 0
         try:
@@ -141,8 +152,8 @@ class _Bag:
             stream = reader.messages(connections=connections)
             while True:
                 try:
-                    connection, log_time, raw = next(stream)
-                    msg = reader.deserialize(raw, connection.msgtype)
+                    connection, log_time, data = next(stream)
+                    msg = data if raw else reader.deserialize(data, connection.msgtype)
                 except StopIteration:
                     return
                 except Exception as exc:
@@ -221,7 +232,7 @@ class _McapSalvage:
         store.register(types)
         return store
 
-    def messages(self, topic: str) -> Iterator[tuple[int, Any]]:
+    def messages(self, topic: str, *, raw: bool = False) -> Iterator[tuple[int, Any]]:
         count = 0
         wanted = {cid for cid, c in self.channels.items() if c.topic == topic}
         for record in self._records():
@@ -235,7 +246,7 @@ class _McapSalvage:
                     f'{channel.message_encoding!r}, not cdr.'
                 )
             try:
-                msg = self.typestore.deserialize_cdr(record.data, msgtype)
+                msg = record.data if raw else self.typestore.deserialize_cdr(record.data, msgtype)
             except Exception as exc:
                 raise BagError(
                     f'{self.path}: message {count} of {topic} cannot be decoded '
@@ -259,14 +270,17 @@ def bag_topics(path: str | Path) -> dict[str, BagTopic]:
 
 
 class BagScanSource(ScanSource):
-    """PointCloud2 messages of one topic of a bag.
+    """The scans of one topic of a bag: ``sensor_msgs/PointCloud2`` or a Livox ``CustomMsg``
+    (:data:`~kentreg_ros.io.livox.CUSTOM_MSG_TYPES`, decoded by
+    :func:`~kentreg_ros.io.livox.custom_msg_to_array` once the definition the bag carries is
+    found to be the driver's).
 
     Parameters
     ----------
     path : str or Path
         ``.bag``, ``.mcap``, ``.db3`` file, or rosbag2 folder.
     topic : str, optional
-        PointCloud2 topic; needed only when the bag has more than one.
+        The scan topic; needed only when the bag has more than one.
     fields : sequence of str, optional
         Extra fields to keep; None keeps all, ``()`` none.
     dtype : {numpy.float64, numpy.float32}
@@ -274,7 +288,8 @@ class BagScanSource(ScanSource):
     Raises
     ------
     BagError
-        Unreadable bag, no/ambiguous PointCloud2 topic, a topic of another type, no messages.
+        Unreadable bag, no/ambiguous scan topic, a topic of another type, a CustomMsg defined
+        otherwise than by Livox's drivers, no messages.
     """
 
     def __init__(
@@ -290,31 +305,55 @@ class BagScanSource(ScanSource):
         self.fields = fields
         self.dtype = dtype
         topics = self._bag.topics
-        clouds = [t.name for t in topics.values() if t.msgtype == POINTCLOUD2]
+        clouds = [t.name for t in topics.values() if _is_scan_type(t.msgtype)]
+        only_pc2 = all(topics[name].msgtype == POINTCLOUD2 for name in clouds)
+        kind = POINTCLOUD2 if only_pc2 else 'point cloud'
+        listed = f'{"PointCloud2" if only_pc2 else "point cloud"} topics: '
+        listed += ', '.join(clouds) or 'none'
         if topic is None:
             if not clouds:
                 raise BagError(
-                    f'{self.path}: no {POINTCLOUD2} topic; topics: {_topics_text(topics)}.'
+                    f'{self.path}: no {POINTCLOUD2} topic; topics: {_topics_text(topics)} '
+                    '(scans are read from PointCloud2 and Livox CustomMsg topics).'
                 )
             if len(clouds) > 1:
                 raise BagError(
-                    f'{self.path}: {len(clouds)} {POINTCLOUD2} topics ({", ".join(clouds)}); '
+                    f'{self.path}: {len(clouds)} {kind} topics ({", ".join(clouds)}); '
                     'choose one with topic= (--topic on the command line).'
                 )
             topic = clouds[0]
         elif topic not in topics:
+            raise BagError(f'{self.path}: no topic {topic!r}; {listed}.')
+        elif not _is_scan_type(topics[topic].msgtype):
             raise BagError(
-                f'{self.path}: no topic {topic!r}; PointCloud2 topics: '
-                f'{", ".join(clouds) or "none"}.'
+                f'{self.path}: topic {topic} carries {topics[topic].msgtype}, not {POINTCLOUD2} '
+                f'or a Livox CustomMsg; {listed}.'
             )
-        elif topics[topic].msgtype != POINTCLOUD2:
-            raise BagError(
-                f'{self.path}: topic {topic} carries {topics[topic].msgtype}, not {POINTCLOUD2}; '
-                f'PointCloud2 topics: {", ".join(clouds) or "none"}.'
-            )
+        msgtype = topics[topic].msgtype
+        self.livox = is_custom_msg(msgtype)
+        if self.livox:
+            self._check_livox_definition(topic, msgtype)
         if topics[topic].count == 0:
             raise BagError(f'{self.path}: topic {topic} has no messages.')
         self.topic = topic
+
+    def _check_livox_definition(self, topic: str, msgtype: str) -> None:
+        if msgtype not in self._bag.fielddefs:
+            # A rosbag2 recorded before Iron stores no definitions; the type's name is then all
+            # there is, and the decoder's byte counts refuse another layout message by message.
+            logger.info(
+                "%s: the bag carries no definition of %s; reading it as Livox's driver "
+                'defines it.',
+                self.path,
+                msgtype,
+            )
+            return
+        problem = definition_problem(self._bag.fielddefs, msgtype)
+        if problem is not None:
+            raise BagError(
+                f"{self.path}: topic {topic} carries {msgtype}, but not Livox's driver's: "
+                f'{problem}.'
+            )
 
     def __len__(self) -> int:
         return self._bag.topics[self.topic].count
@@ -325,11 +364,17 @@ class BagScanSource(ScanSource):
         return f'{kind} {self.path} topic {self.topic} ({len(self)} messages)'
 
     def entries(self) -> Iterator[Scan | SkippedScan]:
-        for index, (log_time, msg) in enumerate(self._bag.messages(self.topic)):
+        for index, (log_time, msg) in enumerate(self._bag.messages(self.topic, raw=self.livox)):
             try:
-                cloud = pointcloud2_to_array(msg, fields=self.fields, dtype=self.dtype)
+                if self.livox:
+                    cloud = custom_msg_to_array(
+                        msg, ros1=self._bag.ros1, fields=self.fields, dtype=self.dtype
+                    )
+                else:
+                    cloud = pointcloud2_to_array(msg, fields=self.fields, dtype=self.dtype)
             except InvalidPointCloudError as exc:
-                yield SkippedScan(index, _header_stamp(msg) or int(log_time), describe_error(exc))
+                stamp = 0 if self.livox else _header_stamp(msg)
+                yield SkippedScan(index, stamp or int(log_time), describe_error(exc))
                 continue
             self.n_dropped += cloud.n_dropped
             stamp = cloud.stamp_ns or log_time
@@ -339,6 +384,10 @@ class BagScanSource(ScanSource):
         return InvalidPointCloudError(
             f'{self.path}: message {entry.index} of {self.topic}: {entry.reason}'
         )
+
+
+def _is_scan_type(msgtype: str) -> bool:
+    return msgtype == POINTCLOUD2 or is_custom_msg(msgtype)
 
 
 def _header_stamp(msg: Any) -> int:

@@ -38,6 +38,11 @@ loggers (the core's rejected scans, deskewing without per-point times, frame cha
 node's rclpy logger, so to ``/rosout``, throttled per kind of message
 (:class:`~kentreg_ros.ros.logbridge.RclpyLogHandler`).
 
+Input of another type: DDS never delivers a message whose type differs from the subscription's,
+and says nothing. While no scan has come, the node looks at the publishers of its input topic
+every diagnostics period and logs an error once per other type it finds, with what to do for a
+Livox ``CustomMsg`` (:func:`~kentreg_ros.io.livox.live_custom_msg_hint`).
+
 Every output carries the stamp of the scan it was computed from. A stamp that goes backwards
 (a bag played again, a sensor restart) or a change of the sensor frame restarts the trajectory
 with a warning instead of corrupting it; a repeated stamp is dropped and counted.
@@ -75,6 +80,7 @@ from kentreg_ros.cli.common import (
 )
 from kentreg_ros.core import KentRegConfig, PointTimes
 from kentreg_ros.io import names
+from kentreg_ros.io.livox import is_custom_msg, live_custom_msg_hint
 from kentreg_ros.io.params import NODE_NAME, NodeSettings
 from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
 from kentreg_ros.ros import parameters, services
@@ -95,6 +101,7 @@ from kentreg_ros.ros.usage import build_parser
 __all__ = ['KentRegNode', 'StartupError', 'main']
 
 FloatArray = np.ndarray
+POINTCLOUD2_TYPE = 'sensor_msgs/msg/PointCloud2'
 #: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
 ODOMETRY_HISTORY = 4
 #: Seconds between repeated warnings of the same kind (malformed input, drops, the core's).
@@ -181,6 +188,8 @@ class KentRegNode(Node):
         self._errors_in_a_row = 0
         #: Kinds of unexpected error (type, file, line) whose traceback was logged.
         self._error_kinds: set[tuple[str, str, int]] = set()
+        #: Message types other than PointCloud2 seen on the input topic (each said once).
+        self._foreign_input_types: set[str] = set()
 
         try:
             self._create_endpoints(tf)
@@ -479,6 +488,8 @@ class KentRegNode(Node):
         period = max(now - self._window_start, 1e-6)
         self._window_start = now
         total, window = self._counters.take_window()
+        if not total['received']:
+            self.check_input_type()
         with self._lock:  # everything the worker writes is read under the lock
             pending = self._pending_config
             snap = Snapshot(
@@ -504,6 +515,28 @@ class KentRegNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [status]
         self._pub_diag.publish(msg)
+
+    def check_input_type(self) -> list[str]:
+        """Log an error for each message type other than PointCloud2 that a publisher of the
+        input topic offers and that was not said before; return those messages."""
+        topic = self._sub.topic_name
+        try:
+            offered = {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
+        except Exception:  # a graph query racing the node's shutdown; the next period retries
+            return []
+        said = []
+        for msgtype in sorted(offered - self._foreign_input_types - {POINTCLOUD2_TYPE}):
+            self._foreign_input_types.add(msgtype)
+            if is_custom_msg(msgtype):
+                text = live_custom_msg_hint(topic, msgtype)
+            else:
+                text = (
+                    f'{topic} carries {msgtype}, not {POINTCLOUD2_TYPE}: no message of it '
+                    'reaches this node. Remap points to a PointCloud2 topic.'
+                )
+            self.get_logger().error(text)
+            said.append(text)
+        return said
 
     # ----------------------------------------------------------------------------------------
     # Lifecycle

@@ -1,8 +1,9 @@
 """``kentreg_play``: publish the point clouds of a bag or a scan folder on a ROS 2 topic.
 
 A stand-in for ``ros2 bag play`` where ros2cli is not installed (pip-only ROS 2): it feeds
-``kentreg_node`` (or anything else) with the PointCloud2 messages of a bag, or with the scans
-of a folder of ``.pcd``/``.ply``/``.bin``/``.csv`` files, through rclpy.
+``kentreg_node`` (or anything else) with the scans of a bag (a PointCloud2 or Livox
+``CustomMsg`` topic, published as PointCloud2), or with the scans of a folder of
+``.pcd``/``.ply``/``.bin``/``.csv`` files, through rclpy.
 
 Examples
 --------
@@ -30,7 +31,8 @@ is skipped, no gap is compressed to catch up); the time publishing takes does no
 schedule. ``--rate 0`` publishes as fast as possible and ``--hz`` at a fixed rate. ``--loop``
 repeats; with ``--restamp bag`` (default) every pass is shifted by the span of the previous one
 plus one scan period, so the stamps keep increasing. ``--restamp now`` stamps each message with
-the current time instead.
+the current time instead. Absolute per-point times (a Hesai/Robosense or livox_ros_driver2
+``timestamp``) move with the stamp, so re-stamped scans are deskewed like the recorded ones.
 
 A scan that cannot be decoded (a malformed PointCloud2) is skipped, said on stderr (the first
 few) and counted in the summary, as ``kentreg_node`` and ``kentreg_replay`` do; the rest of
@@ -288,7 +290,11 @@ class Player:
         previous: tuple[float, int] | None = None
         previous_stamp_ns: int | None = None
         for stamp_ns, scan in self._scans():
-            msg = self.ros_message(scan, stamp_ns, frame_override)
+            # Re-stamped with the time of publishing, the message is built then (absolute
+            # per-point times move with the stamp).
+            msg = (
+                None if opts.restamp == 'now' else self.ros_message(scan, stamp_ns, frame_override)
+            )
             if due_s is None or previous_stamp_ns is None:
                 due_s = time.monotonic()
             else:
@@ -296,8 +302,9 @@ class Player:
                 self._wait_until(due_s, previous, stamp_ns)
             self._check_ok()
             sent = time.monotonic()
-            if opts.restamp == 'now':
-                msg.header.stamp = self.node.get_clock().now().to_msg()
+            if msg is None:
+                now_ns = int(self.node.get_clock().now().nanoseconds)
+                msg = self.ros_message(scan, now_ns, frame_override)
             else:
                 self._publish_clock(stamp_ns)
             self.publisher.publish(msg)
@@ -317,12 +324,15 @@ class Player:
         return summary
 
     def ros_message(self, scan: Any, stamp_ns: int, frame_id: str | None) -> Any:
-        """An rclpy PointCloud2 of ``scan`` (x, y, z float32 and its extra fields)."""
-        from kentreg_ros.io.pointcloud2 import array_to_pointcloud2
+        """An rclpy PointCloud2 of ``scan`` (x, y, z float32 and its extra fields) stamped
+        ``stamp_ns``; an absolute per-point time field moves with the stamp
+        (:func:`~kentreg_ros.io.pointcloud2.shift_point_times`), so the scans of a loop's later
+        passes, or re-stamped ones, are deskewed as the first pass is."""
+        from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, shift_point_times
 
         return array_to_pointcloud2(
             scan.points,
-            extra=scan.extras,
+            extra=shift_point_times(scan.extras, int(scan.stamp_ns), stamp_ns),
             frame_id=frame_id if frame_id is not None else (scan.frame_id or 'lidar'),
             stamp_ns=stamp_ns,
             factory=self.factory,

@@ -1,7 +1,7 @@
 """The odometry: the loop over stages (:mod:`.loop`, :mod:`.stages`), its report (:mod:`.step`),
 the local map, deskewing and the chained covariance."""
 
-from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.deskew import ImplausibleTimesError, PointTimes, sweep_times
 from kentreg_ros.core.odometry.localmap import LocalMap, VoxelMap
 from kentreg_ros.core.odometry.loop import Odometry
 from kentreg_ros.core.odometry.pipeline import PipelinedOdometry, PipelineError
@@ -11,6 +11,7 @@ __all__ = [
     'ACCEPTED',
     'HEALTHS',
     'Health',
+    'ImplausibleTimesError',
     'LocalMap',
     'Odometry',
     'OdometryStep',
@@ -18,4 +19,5 @@ __all__ = [
     'PipelinedOdometry',
     'PointTimes',
     'VoxelMap',
+    'sweep_times',
 ]

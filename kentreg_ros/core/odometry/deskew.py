@@ -17,9 +17,10 @@ points at the end of a 0.1 s sweep by ``tau^2 |omega| |v| / 2``: 2.6 mm at 1 m/s
 
 Per-point times come in several units and references (Velodyne ``time``: float32 seconds from
 the sweep start; Ouster ``t`` and Livox ``offset_time``: uint32 nanoseconds from it; Hesai and
-Robosense ``timestamp``: float64 absolute seconds). :func:`sweep_times` turns them into seconds
-from the scan's stamp: from what the message says first (the field's name and datatype, see
-:data:`DRIVER_TIME_FIELDS`), then from the values, and a stated unit and reference
+Robosense ``timestamp``: float64 absolute seconds; livox_ros_driver2's ``timestamp``: float64
+absolute nanoseconds, told from seconds by its magnitude). :func:`sweep_times` turns them into
+seconds from the scan's stamp: from what the message says first (the field's name and
+datatype, see :data:`DRIVER_TIME_FIELDS`), then from the values, and a stated unit and reference
 (``odometry.point_time_unit`` / ``odometry.point_time_reference``) overrides both. Times that do
 not describe a plausible sweep around the stamp are not used: a wrong deskew throws points far
 off, which is worse than none.
@@ -63,9 +64,13 @@ DRIVER_TIME_FIELDS: dict[tuple[str, str], DriverTimeField] = {
     ('offset_time', 'u4'): DriverTimeField(TimeUnit.NS, TimeReference.RELATIVE, 'Livox'),
     ('time', 'f4'): DriverTimeField(TimeUnit.S, TimeReference.RELATIVE, 'Velodyne'),
     ('time', 'f8'): DriverTimeField(TimeUnit.S, TimeReference.RELATIVE, 'Velodyne-style'),
-    # float64 absolute: seconds (Hesai, Robosense) or nanoseconds (livox_ros_driver2); the
-    # magnitude tells them apart (1.7e9 against 1.7e18).
-    ('timestamp', 'f8'): DriverTimeField(None, TimeReference.ABSOLUTE, 'Hesai/Robosense'),
+    # float64 absolute: seconds (Hesai, Robosense) or nanoseconds (livox_ros_driver2, its
+    # PointCloud2); the unit that puts them within a sweep of the stamp tells them apart: the
+    # readings are 1e9 apart (1.7e9 s against 1.7e18 ns; on a sensor's clock counting from
+    # its boot, 1e3 s against 1e12 ns), and a sweep is at most MAX_SWEEP_S.
+    ('timestamp', 'f8'): DriverTimeField(
+        None, TimeReference.ABSOLUTE, 'Hesai/Robosense s or livox_ros_driver2 ns'
+    ),
     ('timestamp', 'u8'): DriverTimeField(TimeUnit.NS, TimeReference.ABSOLUTE, 'absolute ns'),
 }
 
@@ -212,8 +217,14 @@ def sweep_times(
             f'{stamp_ns} ns as any of: {tried}'
         )
     u, ref = readings[0]
+    if known is not None and known.unit is None and unit is TimeUnit.AUTO:
+        source = f'{source[:-1]}: {u.value} by the values)'
     out = np.full(len(t), np.nan)
-    out[finite] = _convert(tf, stamp_ns, u, ref)
+    if u is TimeUnit.NS and ref is TimeReference.ABSOLUTE and raw.dtype.kind in 'iu':
+        # Integer absolute ns (1.7e18) lose up to 128 ns as float64: subtract them exactly.
+        out[:] = (raw.ravel().astype(np.int64) - np.int64(stamp_ns)) * 1e-9
+    else:
+        out[finite] = _convert(tf, stamp_ns, u, ref)
     return SweepTimes(out, u, ref, source)
 
 
