@@ -147,11 +147,13 @@ class NormalsConfig(Section, prefix='normals.'):
 
     k_neighbors: int = setting(15, 'Neighbours for PCA normals (paper: 15).', range=(5, 100))
     max_flatness: float = setting(
-        0.25,
+        0.5,
         'Keep a normal only where its neighbourhood is a surface: smallest over middle '
-        'eigenvalue of the neighbourhood covariance at most this. At 0.25 the normal of 15 '
-        'neighbours is determined to about 7 deg; above it the points form a line, a blob or '
-        'a crease (stray returns, far scan rings). 1 keeps every normal.',
+        'eigenvalue of the neighbourhood covariance at most this. At 0.5 the normal of 15 '
+        'neighbours is determined to about 10 deg, which keeps rough surfaces (grass, bark, '
+        'gravel: on a sparse or narrow-view scan the only ones holding some directions); '
+        'above it the points form a line or a blob (far scan rings, stray returns), whose '
+        'normal is arbitrary. 1 keeps every normal.',
         range=(0.0, 1.0),
     )
     outlier_cosine: float = setting(

@@ -309,14 +309,7 @@ def _local(
         )
     if len(placed) == 1:
         return placed[0]
-    choice = choose_pose(
-        [Candidate(c.T, c.fit.score, c) for c in placed],
-        src.points,
-        gate=gates.distinct,
-        ratio=cfg.search.ambiguity_ratio,
-        prior=T0,
-    )
-    return choice.chosen.origin
+    return max(placed, key=lambda c: c.fit.score)
 
 
 def _placed(
