@@ -41,6 +41,8 @@ class Pipeline(Protocol):
     points_used: list[int]
     settings: dict[str, Any]
     health: dict[str, Any]
+    #: The health of every step, in order (kentreg's; empty for pipelines without one).
+    step_health: list[str]
 
     def step(self, scan: Scan) -> FloatArray:
         """Process one scan; its ``T_world_lidar`` (4, 4)."""
@@ -55,6 +57,7 @@ class KentregPipeline:
         self.odometry = Odometry(config, **kwargs)
         self.points_used: list[int] = []
         self.health: dict[str, Any] = dict.fromkeys(HEALTHS, 0)
+        self.step_health: list[str] = []
         initial = 'constant velocity' if config.odometry.constant_velocity else 'previous pose'
         self.settings = {'mode': config.mode, 'config': config.to_flat_dict(),
                          'model': config.odometry.model.replace('_', ' '),
@@ -67,6 +70,7 @@ class KentregPipeline:
         )
         self.points_used.append(step.n_prepared)
         self.health[step.health] = self.health.get(step.health, 0) + 1
+        self.step_health.append(str(step.health))
         return np.asarray(step.T_world_lidar, dtype=np.float64)
 
 
@@ -84,6 +88,7 @@ class ScanToScan:
     settings: dict[str, Any] = field(default_factory=dict)
     health: dict[str, Any] = field(default_factory=dict)
     points_used: list[int] = field(default_factory=list)
+    step_health: list[str] = field(default_factory=list)
     previous: Any = None
     pose: FloatArray = field(default_factory=lambda: np.eye(4))
     motion: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -194,6 +199,7 @@ class KissPipeline:
         self.name = 'kiss_icp'
         self.points_used: list[int] = []
         self.health: dict[str, Any] = {}
+        self.step_health: list[str] = []
         self.has_times = False
         where = '' if max_range is None else f' with data.max_range = {max_range}'
         cfg = self.kiss.config

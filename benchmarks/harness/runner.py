@@ -182,6 +182,7 @@ class Run:
     points_used: FloatArray
     settings: dict[str, Any] = field(default_factory=dict)
     health: dict[str, Any] = field(default_factory=dict)
+    step_health: list[str] = field(default_factory=list)
 
 
 def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup: int = 0) -> Run:
@@ -199,7 +200,15 @@ def run_pipeline(make: Callable[[], Pipeline], scans: Sequence[Scan], *, warmup:
         ms.append(t)
     used = np.array(pipeline.points_used, dtype=np.float64)
     health = dict(pipeline.health)
-    return Run(pipeline.name, np.stack(poses), np.array(ms), used, pipeline.settings, health)
+    return Run(
+        pipeline.name,
+        np.stack(poses),
+        np.array(ms),
+        used,
+        pipeline.settings,
+        health,
+        list(pipeline.step_health),
+    )
 
 
 def combine_rounds(runs: list[Run]) -> Run:
@@ -212,7 +221,9 @@ def combine_rounds(runs: list[Run]) -> Run:
     health = {**first.health, 'rounds': len(runs), 'pose_spread_between_rounds_m': spread,
               'mean_ms_per_scan_per_round': per_round}  # fmt: skip
     ms = np.median(np.stack([r.ms_per_scan for r in runs]), axis=0)
-    return Run(first.name, first.poses, ms, first.points_used, first.settings, health)
+    return Run(
+        first.name, first.poses, ms, first.points_used, first.settings, health, first.step_health
+    )
 
 
 def rotated(names: Sequence[T], rounds: int) -> list[tuple[int, T]]:
