@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kentreg_ros.core import InvalidPointCloudError, exp_so3
+from kentreg_ros.core import InvalidInputError, InvalidPointCloudError, KentRegError, exp_so3
 from kentreg_ros.core.kent import KentParams
 from kentreg_ros.core.kent_sampling import sample_kent
 from kentreg_ros.core.scan.clusters import spherical_kmeans
@@ -119,8 +119,19 @@ def test_plane_normals_are_exact_and_face_the_viewpoint() -> None:
     # normals; neighbours of another shape are refused.
     given = estimate_normals(pts, 15, viewpoint=(0, 0, 0), neighbors=est.neighbors)
     np.testing.assert_array_equal(given.normals, est.normals)
-    with pytest.raises(ValueError, match='neighbors'):
+    with pytest.raises(InvalidInputError, match='neighbors'):
         estimate_normals(pts, 15, neighbors=est.neighbors[:, :10])
+
+
+def test_bad_arguments_are_kentreg_errors_and_still_value_errors() -> None:
+    """The scan room's argument checks raise the library's InvalidInputError, which callers
+    catching ValueError (as before) or KentRegError both catch."""
+    with pytest.raises(InvalidInputError, match=r'`k` >= 3'):
+        estimate_normals(np.zeros((30, 3)), 2)
+    with pytest.raises(KentRegError, match='at least one vector'):
+        spherical_kmeans(np.zeros((0, 3)), 3)
+    with pytest.raises(ValueError, match=r'`voxel_size` > 0'):
+        voxel_downsample(np.zeros((30, 3)), 0.0)
 
 
 def test_neighbourhood_covariances_match_the_dense_computation() -> None:

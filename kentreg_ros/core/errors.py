@@ -1,7 +1,12 @@
 """Exception hierarchy of kentreg_ros.
 
 Every error raised on purpose by the library derives from :class:`KentRegError`, so callers
-can catch one type. Messages name the offending value and what was expected.
+can catch one type. Messages name the offending value and what was expected. Errors of one
+layer that need a name of their own extend this tree in that layer
+(:mod:`kentreg_ros.io.errors`: scan, pose, bag and parameter errors; ``StartupError`` in
+:mod:`kentreg_ros.ros.parameters`; ``CliError`` in :mod:`kentreg_ros.cli.common`). Anything
+else that escapes the library (a ``RuntimeError``, an ``IndexError``) is a bug, not an input
+the library refused.
 """
 
 

@@ -14,11 +14,9 @@ equidistant target points), at a fraction of the cost once the iteration settles
 
 Two candidates rather than one: a point that sits between two target points (the common case
 on a surface sampled at the voxel size) swaps between them as it moves, which one candidate
-cannot certify, and the radius from the third neighbour is larger. Measured on the BALM scans
-and the street frames (50 scans each, both models), this re-queries 29-37 % fewer points than
-one candidate, for the same poses bit for bit; three candidates saved 41 % against one
-candidate's 31 % on the street frames with the local map, for a third distance per point per
-iteration.
+cannot certify, and the radius from the third neighbour is larger. Two re-query markedly fewer
+points than one, for the same poses bit for bit; a third saves little more for a third distance
+per point per iteration (figures in ``docs/notes-registration.md``).
 """
 
 from __future__ import annotations
@@ -27,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import kernels
+from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
@@ -55,7 +54,7 @@ class NearestNeighborCache:
 
     def __init__(self, tree: NeighborIndex, target: FloatArray, n_queries: int) -> None:
         if len(target) != tree.n:
-            raise ValueError(
+            raise InvalidInputError(
                 f'Expected `target` to hold the {tree.n} points of `tree`, got {len(target)}.'
             )
         self._tree = tree

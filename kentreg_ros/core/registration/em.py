@@ -154,14 +154,13 @@ def _shared_e_step(
     over the model bins ``m`` of cluster ``k`` (weights ``v_m``), and
     ``C_k = kappa_k sum_mn tau_mn x_n y_m^T``.
 
-    Cost: a real scan's E-step has some 60k terms (~6 clusters of a few hundred bins on either
-    side). Where numpy's ``exp`` is libm's (x86-64 without AVX-512), the exponentials were two
-    thirds of it (2.4 of 3.6 ms on a 250 x 900 block, measured 2026-12-02); where it is numpy's
-    own (AVX-512), they take ~0.05 ms of a ~0.6 ms pass and the rest is numpy's dozen calls per
-    cluster, so :func:`~kentreg_ros.core.kernels.e_step` writes and sums the terms in compiled
-    passes and leaves only ``exp`` and ``log`` to numpy. No term can be skipped, as only 1-2 %
-    of them lie below ``exp(-40)`` on real scans (KITTI with the local map, BALM with the
-    previous scan).
+    Cost: a real scan's E-step has tens of thousands of terms (a few clusters of a few hundred
+    bins on either side). Where numpy's ``exp`` is libm's (x86-64 without AVX-512), the
+    exponentials are most of it; where it is numpy's own (AVX-512), they are a small part and
+    the rest is numpy's dozen calls per cluster, so :func:`~kentreg_ros.core.kernels.e_step`
+    writes and sums the terms in compiled passes and leaves only ``exp`` and ``log`` to numpy.
+    No term can be skipped, as very few of them lie below ``exp(-40)`` on real scans (figures
+    in ``docs/notes-registration.md``).
     """
     return kernels.e_step(
         z,
@@ -268,9 +267,9 @@ def shared_rotation_em(
         Put the Kent ovalness into the E-step kernels as the paper does. Its term
         ``beta [(g1 . R x)^2 - (g2 . R x)^2]`` acts on the observed normal itself, not on its
         deviation from ``y_m``: a cluster-wide prior pulling normals toward the cluster's major
-        axis, which biased the rotation wherever a cluster's spread differs between the two
-        views (BALM sample, from identity: max error 4.9 deg with it, 0.5 deg without). False
-        (default): von Mises-Fisher kernels; ``beta`` is estimated and returned either way.
+        axis, which biases the rotation wherever a cluster's spread differs between the two
+        views (see ``docs/notes-registration.md``). False (default): von Mises-Fisher kernels;
+        ``beta`` is estimated and returned either way.
     rotation : {'shared', 'averaged'}
         'averaged' solves each cluster's M-step alone and averages the rotations by the
         paper's eq. rot_avg, weighted by posterior mass (an ablation).

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import exp_so3, project_to_so3, vee
 
 FloatArray = NDArray[np.float64]
@@ -145,10 +146,12 @@ def average_rotations(
     """
     Rs = np.asarray(rotations, dtype=np.float64)
     if Rs.ndim != 3 or Rs.shape[1:] != (3, 3) or len(Rs) == 0:
-        raise ValueError(f'Expected `rotations` to have shape (K, 3, 3), got {Rs.shape}.')
+        raise InvalidInputError(f'Expected `rotations` to have shape (K, 3, 3), got {Rs.shape}.')
     w = np.ones(len(Rs)) if weights is None else np.asarray(weights, dtype=np.float64)
     if w.shape != (len(Rs),) or np.any(w < 0) or not w.sum() > 0:
-        raise ValueError(f'Expected {len(Rs)} non-negative weights with a positive sum, got {w}.')
+        raise InvalidInputError(
+            f'Expected {len(Rs)} non-negative weights with a positive sum, got {w}.'
+        )
     Rbar = np.einsum('k,kij->ij', w / w.sum(), Rs)
     evals, U = np.linalg.eigh(Rbar.T @ Rbar)  # ascending: evals[0] is the smallest
     evals = np.maximum(evals, 1e-15)

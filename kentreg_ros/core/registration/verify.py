@@ -19,19 +19,20 @@ from typing import Generic, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
 P = TypeVar('P')
 
-#: Distance gate of a match in voxel edges. At the reference pose of real scan pairs 95 % of
-#: the nearest neighbours lie within 1.8 voxels (two independent voxel samplings of the same
-#: surface put centroids up to about one voxel apart, plus noise).
+#: Distance gate of a match in voxel edges: two independent voxel samplings of the same surface
+#: put centroids up to about one voxel apart, plus noise, so at the reference pose of real scan
+#: pairs nearly all nearest neighbours lie within two (docs/notes-registration.md).
 FIT_DISTANCE_VOXELS = 2.0
-#: Normal agreement of a match. PCA normals over 15 voxel neighbours of real scans differ at
-#: the reference pose by 2.3 deg median and 15 deg at the 90th percentile; 20 deg keeps ~92 %
-#: of true matches while surfaces turned by more than that stop matching.
+#: Normal agreement of a match: wide enough to keep most true matches of PCA normals over 15
+#: voxel neighbours at the reference pose of real scans, whose disagreement has a long tail,
+#: while surfaces turned by more stop matching (docs/notes-registration.md).
 FIT_NORMAL_ANGLE_DEG = 20.0
 #: A target cluster enters the average when it holds at least this share of the matched source
 #: points' normals (smaller groups are a handful of points whose share is noise).
@@ -117,7 +118,7 @@ def balanced_fit(
         dist, idx = neighbors.query(x, gates.distance)
     else:
         if target_tree is None:
-            raise ValueError('Expected `target_tree` or `neighbors`.')
+            raise InvalidInputError('Expected `target_tree` or `neighbors`.')
         dist, idx = target_tree.query(x, distance_upper_bound=gates.distance)
     n_target = len(target_normals)
     found = idx < n_target

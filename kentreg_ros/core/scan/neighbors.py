@@ -6,12 +6,11 @@ within the bound). Its tree is the compiled k-d tree of :mod:`kentreg_ros.core.k
 kernels are compiled (numba, the ``fast`` extra), else small_gicp's (nanoflann, C++) when
 small_gicp is installed, else scipy's cKDTree: all three are exact, so results agree up to the
 order of equidistant neighbours, and the first two give the same distances bit for bit.
-small_gicp answers the queries this package makes about twice as fast as cKDTree on one thread
-(measured: 15 neighbours of 10k points 13.5 against 26 ms, 2 neighbours 3.5 against 6.7 ms);
-the compiled tree answers them as fast as small_gicp's and is built in a third of its time or
-less (map points: 26k street 1.1 against 3.2 ms, 36k BALM 1.9 against 4.7 ms), which
-counts because the local map is indexed anew every step. Neighbour queries are the largest
-cost of preparing and registering a scan (``benchmarks/per_scan.py``).
+small_gicp answers the queries this package makes about twice as fast as cKDTree on one
+thread; the compiled tree answers them as fast as small_gicp's and is built in a fraction of
+its time, which counts because the local map is indexed anew every step (figures in
+``docs/notes-registration.md``). Neighbour queries are the largest cost of preparing and
+registering a scan (``benchmarks/per_scan.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +23,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kentreg_ros.core import kernels
+from kentreg_ros.core.errors import InvalidInputError
 
 FloatArray = NDArray[np.float64]
 
@@ -55,9 +55,8 @@ class NeighborIndex:
     -----
     ``order`` (a permutation of the points, e.g. spatially sorted) is the order the tree is built
     from: a tree is built faster from points whose neighbours lie near them in memory (the
-    local map's points in voxel-key order: the compiled tree of 26k street-map points in 1.1 ms
-    against 1.6 ms in insertion order, 36k BALM ones in 2.0 against 2.3 ms). The answers index
-    ``points`` as given.
+    local map's points in voxel-key order; see ``docs/notes-registration.md``). The answers
+    index ``points`` as given.
     """
 
     def __init__(
@@ -71,13 +70,15 @@ class NeighborIndex:
         self.n = len(pts)
         self.backend = backend or default_backend()
         if self.backend not in BACKENDS:
-            raise ValueError(f'Expected a backend of {BACKENDS}, got {self.backend!r}.')
+            raise InvalidInputError(f'Expected a backend of {BACKENDS}, got {self.backend!r}.')
         if self.backend == 'compiled' and not kernels.enabled():
-            raise ValueError("The 'compiled' backend needs the compiled kernels (numba).")
+            raise InvalidInputError("The 'compiled' backend needs the compiled kernels (numba).")
         if order is not None:
             order = np.asarray(order, dtype=np.intp)
             if order.shape != (self.n,):
-                raise ValueError(f'Expected `order` of shape ({self.n},), got {order.shape}.')
+                raise InvalidInputError(
+                    f'Expected `order` of shape ({self.n},), got {order.shape}.'
+                )
         self._points = pts
         # The tree is built from the points in this order (see Notes); its answers are mapped
         # back to indices into ``points``.
@@ -133,7 +134,7 @@ class NeighborIndex:
         """Indices of the ``k <= n`` nearest points of every row of ``x``, shape (M, k),
         without the distances (the normals' neighbourhoods need only these)."""
         if not 1 <= k <= self.n:
-            raise ValueError(f'Expected 1 <= k <= {self.n}, got {k}.')
+            raise InvalidInputError(f'Expected 1 <= k <= {self.n}, got {k}.')
         queries = np.ascontiguousarray(x, dtype=np.float64)
         if self.backend == 'compiled':
             found = kernels.kdtree_knn(self._tree, queries, k, np.inf)[1]
