@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -21,11 +22,14 @@ from kentreg_ros.core import (
     InvalidPointCloudError,
     KentRegConfig,
     RegistrationResult,
+    Status,
     exp_so3,
     make_transform,
     prepare_scan,
     register,
 )
+from kentreg_ros.core.config import Mode
+from kentreg_ros.core.registration.result import PoseEvidence, finish_result
 from kentreg_ros.core.scan import prepared as scan_module
 
 needs_pair = pytest.mark.skipif(
@@ -72,6 +76,73 @@ def test_result_has_the_documented_fields() -> None:
     assert 0.0 < result.inlier_fraction <= 1.0
     assert {'rotation', 'translation', 'refine', 'total'} <= set(result.timings)
     assert set(result.stages) >= {'rotation', 'translation', 'refine'}
+    assert isinstance(result.status, Status) and result.mode is Mode.ROBUST
+
+
+def test_timings_name_each_stage_once_summed_over_candidates() -> None:
+    """One stopwatch per registration: every stage reports its total (over the candidate
+    poses of a search too), the preparation of each cloud included, within the total."""
+    source, target, _ = _room_pair(3, 5.0, 0.2)
+    s, t = prepare_scan(source), prepare_scan(target)
+    stages = ['prepare_source', 'prepare_target', 'rotation', 'translation', 'refine', 'fit']
+    local = register(s, t, init=np.eye(4))
+    assert list(local.timings) == [*stages, 'total']
+    searched = register(s, t, global_search=True)
+    assert searched.hypotheses > 0
+    assert set(searched.timings) == {*stages, 'search', 'total'}
+    for result in (local, searched):
+        assert all(ms >= 0.0 for ms in result.timings.values())
+        parts = sum(ms for stage, ms in result.timings.items() if stage != 'total')
+        assert parts <= result.timings['total'] + 1e-6
+    assert set(s.timings) == {
+        'downsample', 'neighbours', 'normals', 'outliers', 'clustering', 'total'
+    }  # fmt: skip
+    paper = register(s, t, init=np.eye(4), config=KentRegConfig.paper())
+    assert list(paper.timings) == [*stages[:5], 'total'] and paper.timings['refine'] == 0.0
+
+
+def _evidence(**changes: Any) -> PoseEvidence:
+    values: dict[str, Any] = {
+        'T_target_source': make_transform(exp_so3(np.array([0.0, 0.0, 0.1])), np.ones(3)),
+        'converged': True,
+        'iterations': 7,
+        'kappa': np.array([50.0]),
+        'beta': np.array([5.0]),
+        'log_likelihood': (1.0, 2.0),
+        'inlier_fraction': 0.8,
+        'covariance': np.eye(6),
+        'degenerate_directions': np.zeros((0, 3)),
+        'rotation_degenerate': False,
+        'stages': {},
+    }
+    return PoseEvidence(**(values | changes))
+
+
+@pytest.mark.parametrize(
+    ('changes', 'status', 'message'),
+    [
+        ({}, Status.CONVERGED, 'Converged.'),
+        ({'converged': False}, Status.MAX_ITERATIONS, 'iteration limit'),
+        ({'degenerate_directions': np.array([[1.0, 0.0, 0.0]])}, Status.DEGENERATE, 'along'),
+        ({'rotation_degenerate': True}, Status.DEGENERATE, 'rotation about one axis'),
+        ({'inlier_fraction': 0.01}, Status.FAILED, r'Only 1.0% of the source points'),
+        ({'T_target_source': np.full((4, 4), np.inf)}, Status.FAILED, 'not finite'),
+    ],
+)
+def test_finish_result_judges_the_evidence_into_a_status(
+    changes: dict, status: Status, message: str
+) -> None:
+    result = finish_result(
+        _evidence(**changes), mode=Mode.ROBUST, n_source=10, n_target=12, timings={'total': 1.0}
+    )
+    assert result.status is status and result.status == status.value
+    assert re.search(message, result.message), result.message
+    assert result.ok == (status != Status.FAILED)
+    assert result.converged == (status != Status.FAILED and changes.get('converged', True))
+    assert result.degenerate == (status == Status.DEGENERATE)
+    assert (result.n_source, result.n_target, result.timings) == (10, 12, {'total': 1.0})
+    if status == Status.FAILED and 'T_target_source' in changes:
+        assert np.isnan(result.T_target_source).all()  # never a silent identity
 
 
 def test_prepared_scans_are_reusable_and_give_the_same_result(

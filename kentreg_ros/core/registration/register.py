@@ -15,20 +15,18 @@ rotation averaging (the paper's eq. rot_avg), and ``t = mu_y - R mu_x``.
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.config import KentRegConfig, Mode, SearchMode
 from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform
 from kentreg_ros.core.registration.paper import register_paper
-from kentreg_ros.core.registration.result import (
-    RegistrationResult,
-)
+from kentreg_ros.core.registration.result import RegistrationResult, finish_result
 from kentreg_ros.core.registration.robust import register_robust
-from kentreg_ros.core.scan.prepared import PreparedScan, as_prepared, elapsed_ms
+from kentreg_ros.core.scan.prepared import PreparedScan, as_prepared
+from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
 
@@ -90,22 +88,21 @@ def register(
         raise InvalidInputError(
             f'Expected `config` to be a KentRegConfig, got {type(cfg).__name__}.'
         )
-    t_start = time.perf_counter()
+    watch = Stopwatch()
     T_init = np.eye(4) if init is None else check_transform(init, 'init')
-    t0 = time.perf_counter()
-    src = as_prepared(source, source_normals, cfg, viewpoint, 'source')
-    t_src = elapsed_ms(t0)
-    t0 = time.perf_counter()
-    tgt = as_prepared(target, target_normals, cfg, viewpoint, 'target')
-    t_tgt = elapsed_ms(t0)
-    timings = {'prepare_source': t_src, 'prepare_target': t_tgt}
-    if cfg.mode == 'paper':
-        result = register_paper(src, tgt, T_init, cfg, timings)
+    with watch('prepare_source'):
+        src = as_prepared(source, source_normals, cfg, viewpoint, 'source')
+    with watch('prepare_target'):
+        tgt = as_prepared(target, target_normals, cfg, viewpoint, 'target')
+    if cfg.mode == Mode.PAPER:
+        evidence = register_paper(src, tgt, T_init, cfg, watch=watch)
     else:
         if global_search is None:
-            global_search = cfg.search.mode == 'always' or (
-                cfg.search.mode == 'auto' and init is None
+            global_search = cfg.search.mode == SearchMode.ALWAYS or (
+                cfg.search.mode == SearchMode.AUTO and init is None
             )
-        result = register_robust(src, tgt, T_init, cfg, timings, global_search)
-    timings['total'] = elapsed_ms(t_start)
-    return result
+        evidence = register_robust(src, tgt, T_init, cfg, watch=watch, search=global_search)
+    watch.add('total', watch.elapsed_ms())
+    return finish_result(
+        evidence, mode=cfg.mode, n_source=len(src), n_target=len(tgt), timings=watch.as_dict()
+    )

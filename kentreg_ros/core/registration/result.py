@@ -10,8 +10,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core.registration.em import EMResult
-from kentreg_ros.core.scan.prepared import PreparedScan
+from kentreg_ros.core.config import Mode
 
 logger = logging.getLogger(__name__)
 
@@ -48,8 +47,9 @@ class RegistrationResult:
     converged : bool
     iterations : int
         EM iterations plus translation and refinement iterations.
-    status : str
-        ``'converged'``, ``'max_iterations'``, ``'degenerate'`` or ``'failed'``.
+    status : Status
+        ``CONVERGED``, ``MAX_ITERATIONS``, ``DEGENERATE`` or ``FAILED`` (a ``StrEnum``: it
+        compares equal to ``'converged'``, ...).
     message : str
         Human-readable explanation of the status.
     kappa, beta : ndarray, shape (K,)
@@ -65,11 +65,15 @@ class RegistrationResult:
         True when some direction of motion is not constrained by the scene.
     degenerate_directions : ndarray, shape (D, 3)
         Translation directions (target frame) that are poorly constrained.
-    timings : dict
-        Milliseconds per stage.
+    timings : dict of str to float
+        Milliseconds per stage: ``prepare_source`` and ``prepare_target`` (about 0 for a
+        scan given prepared), ``rotation``, ``translation``, ``refine``, ``fit`` (robust
+        mode), ``search`` (when the start-free search ran) and ``total``; a stage run more
+        than once (for several candidate poses) reports the sum.
     stages : dict
         ``T_target_source`` after each stage (rotation, translation, refine).
-    mode : str
+    mode : Mode
+        The recipe that ran (``ROBUST`` or ``PAPER``).
     n_source, n_target : int
         Points used after preprocessing.
     fit : float
@@ -89,7 +93,7 @@ class RegistrationResult:
     T_target_source: FloatArray
     converged: bool
     iterations: int
-    status: str
+    status: Status
     message: str
     kappa: FloatArray
     beta: FloatArray
@@ -100,7 +104,7 @@ class RegistrationResult:
     degenerate_directions: FloatArray
     timings: dict[str, float]
     stages: dict[str, FloatArray]
-    mode: str
+    mode: Mode
     n_source: int
     n_target: int
     fit: float = float('nan')
@@ -130,23 +134,75 @@ def information_to_covariance(H: FloatArray) -> FloatArray:
     return (evecs * inv) @ evecs.T
 
 
+@dataclass(frozen=True, eq=False)
+class PoseEvidence:
+    """What a recipe (:mod:`.robust`, :mod:`.paper`) found for its pose: the evidence
+    :func:`finish_result` judges into a status and a message.
+
+    Attributes
+    ----------
+    T_target_source : ndarray, shape (4, 4)
+    converged : bool
+        The last stage met its tolerance.
+    iterations : int
+        EM plus translation and refinement iterations.
+    kappa, beta : ndarray, shape (K,)
+        The EM's Kent concentration and ovalness per cluster.
+    log_likelihood : tuple of float
+        The EM's log-likelihood history.
+    inlier_fraction : float
+        Share of the source points with a correspondence at the last stage.
+    covariance : ndarray, shape (6, 6)
+        Order (x, y, z, roll, pitch, yaw).
+    degenerate_directions : ndarray, shape (D, 3)
+        Poorly constrained translation directions (target frame).
+    rotation_degenerate : bool
+        The rotation information has a near-null direction.
+    stages : dict of str to ndarray (4, 4)
+        ``T_target_source`` after each stage.
+    fit, hypotheses, ambiguous, alternatives
+        As in :class:`RegistrationResult` (robust mode; the defaults in paper mode).
+    """
+
+    T_target_source: FloatArray
+    converged: bool
+    iterations: int
+    kappa: FloatArray
+    beta: FloatArray
+    log_likelihood: tuple[float, ...]
+    inlier_fraction: float
+    covariance: FloatArray
+    degenerate_directions: FloatArray
+    rotation_degenerate: bool
+    stages: dict[str, FloatArray]
+    fit: float = float('nan')
+    hypotheses: int = 0
+    ambiguous: bool = False
+    alternatives: tuple[tuple[FloatArray, float], ...] = ()
+
+    @property
+    def degenerate(self) -> bool:
+        """Some translation direction or the rotation is poorly constrained."""
+        return len(self.degenerate_directions) > 0 or self.rotation_degenerate
+
+
 def finish_result(
-    T: FloatArray,
-    converged: bool,
-    iterations: int,
-    em: EMResult,
-    inlier: float,
-    covariance: FloatArray,
-    degenerate: bool,
-    deg_dirs: FloatArray,
-    rot_degenerate: bool,
+    evidence: PoseEvidence,
+    *,
+    mode: Mode,
+    n_source: int,
+    n_target: int,
     timings: dict[str, float],
-    stages: dict[str, FloatArray],
-    mode: str,
-    src: PreparedScan,
-    tgt: PreparedScan,
-    history: list[float],
 ) -> RegistrationResult:
+    """The :class:`RegistrationResult` of ``evidence``: its status and message.
+
+    A pose that is not finite, or at which fewer than :data:`MIN_INLIER_FRACTION` of the
+    source points found a correspondence, is ``FAILED`` (its ``T_target_source`` NaN when not
+    finite); else a degenerate one is ``DEGENERATE``; else ``CONVERGED`` or
+    ``MAX_ITERATIONS``.
+    """
+    ev = evidence
+    T, inlier, deg_dirs = ev.T_target_source, ev.inlier_fraction, ev.degenerate_directions
     if not np.isfinite(T).all():
         status, message = Status.FAILED, 'The estimate is not finite.'
         T = np.full((4, 4), np.nan)
@@ -156,36 +212,40 @@ def finish_result(
             f'Only {inlier:.1%} of the source points found a correspondence; the clouds '
             'do not overlap at this pose.'
         )
-    elif degenerate:
+    elif ev.degenerate:
         status = Status.DEGENERATE
         parts = []
         if len(deg_dirs):
             dirs = ', '.join(np.array2string(d, precision=2) for d in deg_dirs)
             parts.append(f'translation along {dirs} is poorly constrained')
-        if rot_degenerate:
+        if ev.rotation_degenerate:
             parts.append('rotation about one axis is poorly constrained by the normals')
         message = 'Degenerate scene: ' + '; '.join(parts) + '.'
-    elif converged:
+    elif ev.converged:
         status, message = Status.CONVERGED, 'Converged.'
     else:
         status = Status.MAX_ITERATIONS
         message = 'Stopped at the iteration limit before meeting the tolerance.'
     return RegistrationResult(
         T_target_source=T,
-        converged=bool(converged and status != Status.FAILED),
-        iterations=int(iterations),
+        converged=bool(ev.converged and status != Status.FAILED),
+        iterations=int(ev.iterations),
         status=status,
         message=message,
-        kappa=em.kappa,
-        beta=em.beta,
-        log_likelihood=tuple(history),
+        kappa=ev.kappa,
+        beta=ev.beta,
+        log_likelihood=ev.log_likelihood,
         inlier_fraction=float(inlier),
-        covariance=covariance,
-        degenerate=degenerate,
+        covariance=ev.covariance,
+        degenerate=ev.degenerate,
         degenerate_directions=deg_dirs,
         timings=timings,
-        stages=stages,
+        stages=ev.stages,
         mode=mode,
-        n_source=len(src),
-        n_target=len(tgt),
+        n_source=n_source,
+        n_target=n_target,
+        fit=ev.fit,
+        hypotheses=ev.hypotheses,
+        ambiguous=ev.ambiguous,
+        alternatives=ev.alternatives,
     )

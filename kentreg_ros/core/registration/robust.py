@@ -7,7 +7,6 @@ pose wins."""
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -19,8 +18,7 @@ from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.registration.em import EMResult, shared_rotation_em
 from kentreg_ros.core.registration.refine import RefineResult, refine_joint
 from kentreg_ros.core.registration.result import (
-    RegistrationResult,
-    finish_result,
+    PoseEvidence,
     information_to_covariance,
     rotation_degenerate,
 )
@@ -38,8 +36,9 @@ from kentreg_ros.core.registration.verify import (
     balanced_fit,
     choose_pose,
 )
-from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
+from kentreg_ros.core.scan.prepared import PreparedScan
 from kentreg_ros.core.scan.sampling import stratified_sample
+from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
 
@@ -229,7 +228,7 @@ def _translation_stage(
     )
     # One gate schedule across both stages: the translation stage has shrunk the gate while it
     # placed the source; the refinement goes on from there instead of re-opening it to
-    # max_gate (paired on the 49 sample pairs: same errors, ~10 % less registration time).
+    # max_gate: the same errors for less time (docs/notes-registration.md).
     refine_gate = min(gates.max_gate, max(tres.gate, gates.min_gate))
     return _Translation(
         tres.t, tres.hessian, tres.sigma2, refine_gate, tres.inlier_fraction, tres.iterations
@@ -264,7 +263,7 @@ def _local(
     T0: FloatArray,
     cfg: KentRegConfig,
     gates: _Gates,
-    timings: dict[str, float],
+    watch: Stopwatch,
     *,
     em: EMResult | None = None,
     refine: bool = True,
@@ -280,9 +279,8 @@ def _local(
     prior when they fit about equally."""
     stages: dict[str, FloatArray] = {}
     if em is None:
-        t0 = time.perf_counter()
-        em = _rotation_stage(src, tgt, T0[:3, :3], cfg)
-        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
+        with watch('rotation'):
+            em = _rotation_stage(src, tgt, T0[:3, :3], cfg)
     R = em.R
     stages['rotation'] = make_transform(R, T0[:3, 3])
     full = src
@@ -291,21 +289,19 @@ def _local(
         t = centroid_translation(R, full.points, tgt.points)
         trans = _Translation(t, None, 0.0, gates.max_gate, None, 0)
         neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
-        return _placed(src, tgt, em, trans, cfg, gates, timings, stages, neighbors, refine)
-    t0 = time.perf_counter()
-    starts = _translation_starts(src, tgt, R, T0, cfg, gates, stages)
-    timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
+        return _placed(src, tgt, em, trans, cfg, gates, watch, stages, neighbors, refine)
+    with watch('translation'):
+        starts = _translation_starts(src, tgt, R, T0, cfg, gates, stages)
     placed: list[_Local] = []
     for t_start in starts:
         # One correspondence cache per start for the translation and refinement loops (same
         # source points, same target tree): points that moved less than their certified
         # radius skip the query.
         neighbors = NearestNeighborCache(tgt.tree, tgt.points, len(src))
-        t0 = time.perf_counter()
-        trans = _translation_stage(src, tgt, R, t_start, cfg, gates, neighbors)
-        timings['translation'] = timings.get('translation', 0.0) + elapsed_ms(t0)
+        with watch('translation'):
+            trans = _translation_stage(src, tgt, R, t_start, cfg, gates, neighbors)
         placed.append(
-            _placed(src, tgt, em, trans, cfg, gates, timings, dict(stages), neighbors, refine)
+            _placed(src, tgt, em, trans, cfg, gates, watch, dict(stages), neighbors, refine)
         )
     if len(placed) == 1:
         return placed[0]
@@ -319,7 +315,7 @@ def _placed(
     trans: _Translation,
     cfg: KentRegConfig,
     gates: _Gates,
-    timings: dict[str, float],
+    watch: Stopwatch,
     stages: dict[str, FloatArray],
     neighbors: NearestNeighborCache,
     refine: bool,
@@ -335,40 +331,38 @@ def _placed(
     )
     if trans.inlier is not None:
         inlier = trans.inlier
-    t0 = time.perf_counter()
     refined = refine and cfg.refine.method != 'none'
-    if refined:
-        ref = refine_joint(
-            T,
-            src.points,
-            src.normals,
-            tgt.points,
-            tgt.normals,
-            tgt.tree,
-            method=cfg.refine.method,
-            normal_weight=cfg.refine.normal_weight,
-            max_iterations=cfg.refine.max_iterations,
-            max_distance=trans.refine_gate,
-            min_distance=gates.min_gate,
-            tolerance=cfg.refine.tolerance,
-            noise_floor=gates.noise_floor,
-            neighbors=neighbors,
-            max_step_scale=cfg.refine.max_step_scale,
+    with watch('refine'):
+        if refined:
+            ref = refine_joint(
+                T,
+                src.points,
+                src.normals,
+                tgt.points,
+                tgt.normals,
+                tgt.tree,
+                method=cfg.refine.method,
+                normal_weight=cfg.refine.normal_weight,
+                max_iterations=cfg.refine.max_iterations,
+                max_distance=trans.refine_gate,
+                min_distance=gates.min_gate,
+                tolerance=cfg.refine.tolerance,
+                noise_floor=gates.noise_floor,
+                neighbors=neighbors,
+                max_step_scale=cfg.refine.max_step_scale,
+            )
+            T = ref.T
+            stages['refine'] = T
+            iterations += ref.iterations
+            converged = ref.converged
+            inlier = ref.inlier_fraction
+            covariance, H_trans = _refined_covariance(ref)
+        else:
+            covariance, H_trans = _stage_covariance(em, trans, src)
+    with watch('fit'):
+        fit = balanced_fit(
+            T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
         )
-        T = ref.T
-        stages['refine'] = T
-        iterations += ref.iterations
-        converged = ref.converged
-        inlier = ref.inlier_fraction
-        covariance, H_trans = _refined_covariance(ref)
-    else:
-        covariance, H_trans = _stage_covariance(em, trans, src)
-    timings['refine'] = timings.get('refine', 0.0) + elapsed_ms(t0)
-    t0 = time.perf_counter()
-    fit = balanced_fit(
-        T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
-    )
-    timings['fit'] = timings.get('fit', 0.0) + elapsed_ms(t0)
     return _Local(
         T=T,
         em=em,
@@ -391,40 +385,37 @@ def _search_candidates(
     T_init: FloatArray,
     cfg: KentRegConfig,
     gates: _Gates,
-    timings: dict[str, float],
+    watch: Stopwatch,
 ) -> tuple[list[_Local], int]:
     """Start-free search: twist hypotheses ranked by the mixture overlap, the distinct best
     refined by the EM and placed by the translation stage, then verified by their fit; every
     candidate that fits nearly as well as the best is refined in full."""
     sample = position_sample(src, cfg.refine.max_cluster_points)  # once for every candidate
     scfg = cfg.search
-    t0 = time.perf_counter()
-    hyp = twist_hypotheses(src.clusters, tgt.clusters, scfg.twist_step_deg)
-    cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
-    scores = mixture_overlap(hyp, src.clusters, tgt.clusters, cap)
-    chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
-    starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
-    timings['search'] = elapsed_ms(t0)
+    with watch('search'):
+        hyp = twist_hypotheses(src.clusters, tgt.clusters, scfg.twist_step_deg)
+        cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
+        scores = mixture_overlap(hyp, src.clusters, tgt.clusters, cap)
+        chosen = distinct_best(hyp, scores, scfg.candidates, scfg.min_separation_deg)
+        starts = [T_init[:3, :3]] + [hyp[i] for i in chosen]
     cheap: list[_Local] = []
     seen: list[FloatArray] = []
     for R0 in starts:
-        t0 = time.perf_counter()
-        em = _rotation_stage(src, tgt, R0, cfg, max_iterations=SEARCH_EM_PASSES)
-        timings['rotation'] = timings.get('rotation', 0.0) + elapsed_ms(t0)
+        with watch('rotation'):
+            em = _rotation_stage(src, tgt, R0, cfg, max_iterations=SEARCH_EM_PASSES)
         if any(rotation_angle(em.R.T @ R) < np.radians(scfg.min_separation_deg) for R in seen):
             continue  # converged onto a rotation already under consideration
         seen.append(em.R)
         T0 = make_transform(em.R, T_init[:3, 3])
-        cheap.append(_local(src, tgt, T0, cfg, gates, timings, em=em, refine=False, sample=sample))
+        cheap.append(_local(src, tgt, T0, cfg, gates, watch, em=em, refine=False, sample=sample))
     best_cheap = max(c.fit.score for c in cheap)
     out: list[_Local] = []
     for cand in sorted(cheap, key=lambda c: -c.fit.score):
         if cand.fit.score >= scfg.ambiguity_ratio * best_cheap or not out:
-            t0 = time.perf_counter()
-            em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
-            timings['rotation'] += elapsed_ms(t0)
+            with watch('rotation'):
+                em = _rotation_stage(src, tgt, cand.em.R, cfg, anneal=False)
             T0 = make_transform(em.R, T_init[:3, 3])
-            out.append(_local(src, tgt, T0, cfg, gates, timings, em=em, sample=sample))
+            out.append(_local(src, tgt, T0, cfg, gates, watch, em=em, sample=sample))
     return out, len(hyp)
 
 
@@ -480,15 +471,20 @@ def register_robust(
     tgt: PreparedScan,
     T_init: FloatArray,
     cfg: KentRegConfig,
-    timings: dict[str, float],
+    *,
+    watch: Stopwatch,
     search: bool,
-) -> RegistrationResult:
+) -> PoseEvidence:
+    """The robust recipe's pose (see the module docstring): from ``T_init``, or with
+    ``search`` the best-fitting of the start-free search's candidates, with its degenerate
+    directions those the fit cannot resolve (:func:`_unresolved`). Stages are timed on
+    ``watch``."""
     gates = _gates(src, tgt, cfg)
     n_hypotheses = 0
     if search:
-        candidates, n_hypotheses = _search_candidates(src, tgt, T_init, cfg, gates, timings)
+        candidates, n_hypotheses = _search_candidates(src, tgt, T_init, cfg, gates, watch)
     else:
-        candidates = [_local(src, tgt, T_init, cfg, gates, timings)]
+        candidates = [_local(src, tgt, T_init, cfg, gates, watch)]
     candidates.sort(key=lambda c: -c.fit.score)
     choice = choose_pose(
         [Candidate(c.T, c.fit.score, c) for c in candidates],
@@ -501,27 +497,18 @@ def register_robust(
     deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
     if len(deg_dirs) and np.isfinite(best.fit.score):
         deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
-    rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
-    degenerate = len(deg_dirs) > 0 or rot_degenerate
-    result = finish_result(
-        best.T,
-        best.converged,
-        best.iterations,
-        best.em,
-        best.inlier,
-        best.covariance,
-        degenerate,
-        deg_dirs,
-        rot_degenerate,
-        timings,
-        best.stages,
-        'robust',
-        src,
-        tgt,
-        list(best.em.log_likelihood),
-    )
-    return replace(
-        result,
+    return PoseEvidence(
+        T_target_source=best.T,
+        converged=best.converged,
+        iterations=best.iterations,
+        kappa=best.em.kappa,
+        beta=best.em.beta,
+        log_likelihood=tuple(best.em.log_likelihood),
+        inlier_fraction=best.inlier,
+        covariance=best.covariance,
+        degenerate_directions=deg_dirs,
+        rotation_degenerate=rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio),
+        stages=best.stages,
         fit=best.fit.score,
         hypotheses=n_hypotheses,
         ambiguous=bool(choice.rivals),
