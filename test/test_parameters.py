@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from kentreg_ros.core import ConfigError, KentRegConfig
+from kentreg_ros.io.errors import ParameterError
 from kentreg_ros.io.params import (
     CORE_PARAMETERS,
     PARAMETERS,
@@ -97,6 +98,25 @@ def test_a_parameter_file_round_trips_research_fields(tmp_path: Path) -> None:
 def test_bad_values_are_refused_with_the_reason(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         apply_parameters(values)
+
+
+@pytest.mark.parametrize(
+    ('values', 'names'),
+    [
+        ({'max_range': -1}, ('max_range',)),  # named by its research field
+        ({'path_length': 0, 'max_range': 3.0}, ('path_length',)),
+        ({'min_range': 5, 'max_range': 2}, ('min_range', 'max_range')),  # a rule of two
+        ({'base_to_lidar': [0.0, 'a', 0, 0, 0, 0]}, ('base_to_lidar',)),
+        ({'em.tolerance': -1.0}, ('em.tolerance',)),
+        ({'bogus': 1, 'max_range': 3.0}, ('bogus',)),
+    ],
+)
+def test_a_refused_parameter_is_named_with_the_reason(values: dict, names: tuple) -> None:
+    with pytest.raises(ParameterError) as caught:
+        apply_parameters(values)
+    assert caught.value.names == names
+    assert str(caught.value) == caught.value.reason
+    assert isinstance(caught.value, ConfigError)  # callers catching ConfigError still do
 
 
 def test_node_settings_validate_on_construction_like_the_config() -> None:

@@ -44,9 +44,12 @@ from kentreg_ros.core import (  # noqa: E402
     log_so3,
     make_transform,
 )
+from kentreg_ros.io.errors import ParameterError  # noqa: E402
+from kentreg_ros.io.params import apply_parameters  # noqa: E402
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
 from kentreg_ros.ros import outputs as outputs_module  # noqa: E402
+from kentreg_ros.ros import parameters as parameters_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_covariance_in_base  # noqa: E402
 
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
@@ -156,8 +159,25 @@ def test_startup_error_is_a_kentreg_error_naming_the_parameter(make_node: Any) -
     match = r"Expected `odometry.model` to be one of \['previous_scan', 'local_map'\]"
     with pytest.raises(KentRegError, match=match):
         make_node(parameter_overrides=[Parameter('model', value='fast')])
-    with pytest.raises(node_module.StartupError, match='queue_size'):
+    with pytest.raises(node_module.StartupError, match='queue_size') as caught:
         make_node(parameter_overrides=[Parameter('queue_size', value=0)])
+    assert caught.value.names == ('queue_size',)
+
+
+def test_a_refused_change_is_a_parameter_error_naming_it_with_the_reason() -> None:
+    """parameters.changes raises (the node hands str(exc) to ``ros2 param set``) instead of
+    returning the reason in place of the settings."""
+    settings = apply_parameters({})
+    config, node = settings.config, settings.node
+    with pytest.raises(ParameterError, match='takes effect only at startup') as caught:
+        parameters_module.changes([Parameter('qos_depth', value=3)], config, node)
+    assert caught.value.names == ('qos_depth',)
+    with pytest.raises(ParameterError, match=r'`path_length` in \[1, 1000000\]') as caught:
+        given = [Parameter('path_length', value=0), Parameter('use_sim_time', value=True)]
+        parameters_module.changes(given, config, node)
+    assert caught.value.names == ('path_length',)
+    changed = parameters_module.changes([Parameter('max_range', value=30)], config, node)
+    assert changed.config.preprocess.max_range == 30.0 and changed.node == node
 
 
 @pytest.mark.parametrize(

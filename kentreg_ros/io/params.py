@@ -37,6 +37,7 @@ from kentreg_ros.core import (
     nest_keys,
     plain_value,
 )
+from kentreg_ros.io.errors import ParameterError
 
 #: The node's name: the top key of the parameter file.
 NODE_NAME = 'kentreg_node'
@@ -457,13 +458,18 @@ def apply_parameters(
 
     Raises
     ------
-    ConfigError
-        A bad value, a broken cross-field rule, or (``strict``) an unknown name.
+    ParameterError
+        A bad value, a broken cross-field rule, or (``strict``) an unknown name; its ``names``
+        are the parameters the reason names (the one given, when it names none).
     """
+    try:
+        flat = flatten_keys(nest_keys(values))
+    except ConfigError as exc:
+        raise ParameterError(str(exc)) from exc
     core: dict[str, Any] = {}
     own: dict[str, Any] = {}
     unknown: list[str] = []
-    for name, value in flatten_keys(nest_keys(values)).items():
+    for name, value in flat.items():
         if name in CORE_PARAMETERS:
             core[CORE_PARAMETERS[name]] = value
         elif name in _NODE_NAMES:
@@ -475,16 +481,31 @@ def apply_parameters(
     if unknown and strict:
         valid = [p.name for p in PARAMETERS]
         extra = ' or a research field (dotted, e.g. em.tolerance)' if research else ''
-        raise ConfigError(
-            f'Unknown parameter(s) {sorted(unknown)}; expected one of {valid}{extra}.'
+        raise ParameterError(
+            f'Unknown parameter(s) {sorted(unknown)}; expected one of {valid}{extra}.',
+            names=tuple(sorted(unknown)),
         )
     cfg = config if config is not None else KentRegConfig()
     settings = node if node is not None else NodeSettings()
-    return Settings(
-        cfg.with_updates(core) if core else cfg,
-        settings.with_updates(own) if own else settings,
-        tuple(sorted(unknown)),
-    )
+    try:
+        return Settings(
+            cfg.with_updates(core) if core else cfg,
+            settings.with_updates(own) if own else settings,
+            tuple(sorted(unknown)),
+        )
+    except ConfigError as exc:
+        given = [name for name in flat if name not in unknown]
+        raise ParameterError(str(exc), names=named_in(str(exc), given)) from exc
+
+
+def named_in(reason: str, names: Iterable[str]) -> tuple[str, ...]:
+    """The parameters among ``names`` that ``reason`` names, by their own name or by the
+    research field behind them (``max_range`` by ``preprocess.max_range``); the one name
+    given when there is one and the reason names none."""
+    given = list(names)
+    tokens = set(re.findall(r'[A-Za-z_][\w.]*[\w]', reason))
+    named = tuple(n for n in given if n in tokens or CORE_PARAMETERS.get(n) in tokens)
+    return named if named or len(given) != 1 else tuple(given)
 
 
 def product_values(config: KentRegConfig, node: NodeSettings) -> dict[str, Any]:

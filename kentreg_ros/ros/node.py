@@ -94,7 +94,7 @@ from kentreg_ros.ros.outputs import (
     qos_overridable,
     qos_override_errors,
 )
-from kentreg_ros.ros.parameters import StartupError
+from kentreg_ros.ros.parameters import ParameterError, StartupError
 from kentreg_ros.ros.pipeline import close_odometry, create_odometry, discard, prefetch
 from kentreg_ros.ros.usage import build_parser
 
@@ -250,10 +250,11 @@ class KentRegNode(Node):
     # Parameters
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        changed = parameters.changes(params, self._config, self._settings)
-        if isinstance(changed, str):
-            self.get_logger().warning(f'Rejected parameter change: {changed}')
-            return SetParametersResult(successful=False, reason=changed)
+        try:
+            changed = parameters.changes(params, self._config, self._settings)
+        except ParameterError as exc:
+            self.get_logger().warning(f'Rejected parameter change: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
         with self._lock:
             if changed.config != self._config:
                 self._config = changed.config

@@ -5,8 +5,10 @@ Numbers are read as a user writes them: an integer for a floating-point paramete
 100``, ``-p max_range:=100``, ``ros2 param set ... max_range 100``) is accepted, since the value
 is checked and converted by :func:`~kentreg_ros.io.params.apply_parameters`, the same function
 the command lines use; the floating-point parameters are declared with dynamic typing for that.
-Names that are not the node's (a shared bringup file under ``/**`` holds other nodes' keys;
-research fields such as ``em.tolerance``) are warned about once and ignored.
+A value refused is a :class:`~kentreg_ros.io.errors.ParameterError` naming the parameters and
+the reason (:class:`StartupError` at startup), which the node hands to ``ros2 param set`` or logs
+before it exits. Names that are not the node's (a shared bringup file under ``/**`` holds other
+nodes' keys; research fields such as ``em.tolerance``) are warned about once and ignored.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from rclpy.parameter import Parameter as RosParameter
 from rclpy.time_source import USE_SIM_TIME_NAME
 from rclpy.type_description_service import START_TYPE_DESCRIPTION_SERVICE_PARAM
 
-from kentreg_ros.core import ConfigError, KentRegConfig, KentRegError
+from kentreg_ros.core import KentRegConfig
+from kentreg_ros.io.errors import ParameterError
 from kentreg_ros.io.params import (
     PARAMETERS,
     NodeSettings,
@@ -43,8 +46,9 @@ QOS_OVERRIDES_PREFIX = 'qos_overrides.'
 _BY_NAME = {p.name: p for p in PARAMETERS}
 
 
-class StartupError(KentRegError):
-    """The node cannot start with the given parameters (message says which and why).
+class StartupError(ParameterError):
+    """The node cannot start with the given parameters (message says which and why; ``names``
+    which, where it can tell).
 
     Part of the library's error hierarchy (like the command lines' ``CliError``), so callers
     that construct the node catch it with ``except KentRegError``.
@@ -101,8 +105,8 @@ def declare(node: Node) -> Settings:
     values = {name: p.value for name, p in given.items() if name in _BY_NAME}
     try:
         settings = apply_parameters(values, research=False, strict=False)
-    except ConfigError as exc:
-        raise StartupError(str(exc)) from exc
+    except ParameterError as exc:
+        raise StartupError(exc.reason, names=exc.names) from exc
     unknown = not_ours(given)
     for name in values:
         node.undeclare_parameter(name)
@@ -120,22 +124,25 @@ def declare(node: Node) -> Settings:
     return Settings(settings.config, settings.node, tuple(unknown))
 
 
-def changes(
-    params: Iterable[RosParameter], config: KentRegConfig, node: NodeSettings
-) -> Settings | str:
-    """The settings after a run-time change of ``params``, or the reason it is refused."""
+def changes(params: Iterable[RosParameter], config: KentRegConfig, node: NodeSettings) -> Settings:
+    """The settings after a run-time change of ``params`` (names that are not the node's,
+    such as rclpy's ``use_sim_time``, are left to rclpy).
+
+    Raises
+    ------
+    ParameterError
+        The change is refused: a read-only parameter, a bad value or a broken rule; ``str()``
+        is the reason ``ros2 param set`` shows.
+    """
     updates: dict[str, Any] = {}
     for p in params:
         spec = _BY_NAME.get(p.name)
         if spec is None:
             continue  # rclpy's own (use_sim_time, ...)
         if spec.read_only:
-            return f'{p.name} takes effect only at startup'
+            raise ParameterError(f'{p.name} takes effect only at startup', names=(p.name,))
         updates[p.name] = p.value
-    try:
-        return apply_parameters(updates, config=config, node=node, research=False)
-    except ConfigError as exc:
-        return str(exc)
+    return apply_parameters(updates, config=config, node=node, research=False)
 
 
 def values_text(params: Mapping[str, Any] | Iterable[RosParameter]) -> str:
