@@ -30,14 +30,8 @@ from kentreg_ros.io.livox import (
     definition_problem,
     live_custom_msg_hint,
 )
-from kentreg_ros.io.pointcloud2 import (
-    FLOAT32,
-    FLOAT64,
-    UINT8,
-    point_time_field,
-    pointcloud2_to_array,
-    shift_point_times,
-)
+from kentreg_ros.io.pointcloud2 import FLOAT32, FLOAT64, UINT8, pointcloud2_to_array
+from kentreg_ros.io.pointtimes import point_time_field, shift_point_times
 from kentreg_ros.io.sources import SkippedScan, open_scan_source
 
 rosbags = pytest.importorskip('rosbags', reason='rosbags is not installed (pip install -e .[io])')

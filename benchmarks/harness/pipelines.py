@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core import HEALTHS, KentRegConfig, Odometry
-from kentreg_ros.io.pointcloud2 import point_time_field
+from kentreg_ros.io.pointtimes import point_time_field
 from kentreg_ros.io.sources import Scan
 
 from .methods import RawMethod

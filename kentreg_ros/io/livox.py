@@ -265,6 +265,31 @@ def _read_head(buf: bytes | memoryview, ros1: bool) -> _Head:
     )
 
 
+def _check_extent(head: _Head, size: int, ros1: bool) -> None:
+    """Refuse a message whose bytes do not hold exactly ``point_num`` points after its head.
+
+    Raises
+    ------
+    InvalidPointCloudError
+        Truncated, bytes after the points (beyond CDR's alignment padding), or ``point_num``
+        not the number of points the bytes hold.
+    """
+    n = head.n_points
+    end = head.offset + (head.stride * (n - 1) + _POINT_SIZE if n else 0)
+    if end > size:
+        raise InvalidPointCloudError(
+            f'CustomMsg of {size} bytes is truncated: its {n} points need {end}.'
+        )
+    if size - end > (0 if ros1 else _MAX_CDR_PADDING):
+        raise InvalidPointCloudError(
+            f'CustomMsg has {size - end} bytes after its {n} points: not the Livox layout.'
+        )
+    if head.point_num != n:
+        raise InvalidPointCloudError(
+            f'CustomMsg point_num is {head.point_num} but it holds {n} points.'
+        )
+
+
 def custom_msg_to_array(
     raw: bytes | memoryview,
     *,
@@ -319,20 +344,8 @@ def custom_msg_to_array(
         )
     buf = memoryview(raw).cast('B') if not isinstance(raw, bytes) else raw
     head = _read_head(buf, ros1)
+    _check_extent(head, len(buf), ros1)
     n = head.n_points
-    end = head.offset + (head.stride * (n - 1) + _POINT_SIZE if n else 0)
-    if end > len(buf):
-        raise InvalidPointCloudError(
-            f'CustomMsg of {len(buf)} bytes is truncated: its {n} points need {end}.'
-        )
-    if len(buf) - end > (0 if ros1 else _MAX_CDR_PADDING):
-        raise InvalidPointCloudError(
-            f'CustomMsg has {len(buf) - end} bytes after its {n} points: not the Livox layout.'
-        )
-    if head.point_num != n:
-        raise InvalidPointCloudError(
-            f'CustomMsg point_num is {head.point_num} but it holds {n} points.'
-        )
     stamp_ns = head.stamp_ns or head.timebase_ns
     o = head.order
     record = np.dtype(

@@ -326,9 +326,10 @@ class Player:
     def ros_message(self, scan: Any, stamp_ns: int, frame_id: str | None) -> Any:
         """An rclpy PointCloud2 of ``scan`` (x, y, z float32 and its extra fields) stamped
         ``stamp_ns``; an absolute per-point time field moves with the stamp
-        (:func:`~kentreg_ros.io.pointcloud2.shift_point_times`), so the scans of a loop's later
+        (:func:`~kentreg_ros.io.pointtimes.shift_point_times`), so the scans of a loop's later
         passes, or re-stamped ones, are deskewed as the first pass is."""
-        from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, shift_point_times
+        from kentreg_ros.io.pointcloud2 import array_to_pointcloud2
+        from kentreg_ros.io.pointtimes import shift_point_times
 
         return array_to_pointcloud2(
             scan.points,
