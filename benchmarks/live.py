@@ -206,7 +206,8 @@ def measure_throughput(
     """Milliseconds per scan of the sequential and the pipelined loop, fed as fast as they take
     the scans (the next scan handed over before each step), in alternating rounds; and whether
     their poses are identical."""
-    from kentreg_ros.core import KentRegConfig, Odometry, PipelinedOdometry
+    from kentreg_ros.core import KentRegConfig, Odometry
+    from kentreg_ros.runtime import ProcessPreparer
 
     config = KentRegConfig().with_updates({'odometry.model': model})
     times: dict[str, list[float]] = {'sequential': [], 'pipelined': []}
@@ -222,18 +223,18 @@ def measure_throughput(
         ]
         times['sequential'].append(1e3 * (time.perf_counter() - t0) / n)
         cpu['sequential'].append(1e3 * (time.process_time() - c0) / n)
-        with PipelinedOdometry(config) as pipelined:
+        with ProcessPreparer() as preparer:
+            pipelined = Odometry(config, preparer=preparer)
             time.sleep(SETTLE_S)
-            worker = pipelined.worker_pid
+            worker = preparer.worker_pid
             got = []
             t0, c0 = time.perf_counter(), time.process_time()
             w0 = runner.tree_cpu_s(worker) if worker else 0.0
-            pipelined.prefetch(scans[0], stamps[0])
+            preparer.prefetch(scans[0], stamps[0])
             for i, (p, s) in enumerate(zip(scans, stamps, strict=True)):
                 if i + 1 < len(scans):
-                    pipelined.prefetch(scans[i + 1], stamps[i + 1])
+                    preparer.prefetch(scans[i + 1], stamps[i + 1])
                 got.append(pipelined.step(p, s).T_world_lidar)
-            pipelined.update_model()
             times['pipelined'].append(1e3 * (time.perf_counter() - t0) / n)
             cpu['main'].append(1e3 * (time.process_time() - c0) / n)
             w1 = runner.tree_cpu_s(worker) if worker else 0.0

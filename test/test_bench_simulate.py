@@ -33,7 +33,7 @@ from kentreg_ros.core import (  # noqa: E402
     exp_so3,
     make_transform,
 )
-from kentreg_ros.core.odometry import stages as odometry_module  # noqa: E402
+from kentreg_ros.core.odometry import deskew as odometry_module  # noqa: E402
 from kentreg_ros.core.odometry.deskew import deskew  # noqa: E402
 from kentreg_ros.eval import run_odometry  # noqa: E402
 from kentreg_ros.eval.metrics import rpe  # noqa: E402

@@ -10,7 +10,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from kentreg_ros.core import KentRegConfig, Odometry
+from kentreg_ros.core import KentRegConfig, KentRegError, Odometry
 from kentreg_ros.core.geometry import hat, rotation_angle, row_norms
 from kentreg_ros.core.odometry.deskew import (
     ImplausibleTimesError,
@@ -212,8 +212,9 @@ def test_a_stated_unit_and_reference_override_the_field() -> None:
 
 
 def test_times_that_are_no_sweep_are_refused_not_misread() -> None:
-    with pytest.raises(ImplausibleTimesError, match='no sweep'):
+    with pytest.raises(KentRegError, match='no sweep') as caught:  # one error hierarchy
         sweep_times(np.array([0.0, 5.0]), STAMP_NS, unit='s')  # 5 s: no sweep
+    assert isinstance(caught.value, ImplausibleTimesError)
     with pytest.raises(ImplausibleTimesError, match='no sweep'):  # absolute, 1 h off the stamp
         sweep_times(STAMP_NS * 1e-9 + 3600.0 + np.array([0.0, 0.1]), STAMP_NS, field='timestamp')
 
@@ -300,9 +301,10 @@ def test_each_deskew_round_is_judged_on_its_own(
     when they break the speed limits."""
     import dataclasses
 
-    import kentreg_ros.core.odometry.stages as odometry_module
+    import kentreg_ros.core.odometry.deskew as deskew_stage
+    import kentreg_ros.core.odometry.verify as verify_stage
 
-    real = odometry_module.register
+    real = verify_stage.register
     calls: list[bool | None] = []  # global_search of each call in the current step
 
     def spy(*args: object, **kwargs: object) -> object:
@@ -317,7 +319,8 @@ def test_each_deskew_round_is_judged_on_its_own(
                 result = dataclasses.replace(result, T_target_source=T)
         return result
 
-    monkeypatch.setattr(odometry_module, 'register', spy)
+    monkeypatch.setattr(verify_stage, 'register', spy)  # the first registration, the search
+    monkeypatch.setattr(deskew_stage, 'register', spy)  # the deskewing rounds
     world, start = world_and_start
     config = KentRegConfig().with_updates({'search.mode': 'always'})
     odometry = Odometry(config, initial_pose=start)

@@ -134,11 +134,37 @@ def test_outside_core_reaches_it_through_its_facade(path: Path) -> None:
     assert bad == [], f'{path.relative_to(PACKAGE)} imports {bad}'
 
 
+#: What runs processes: the process pipeline's plumbing, which lives in kentreg_ros/runtime/.
+_PROCESS_MODULES = ('subprocess', 'multiprocessing', 'fcntl', 'signal')
+
+
+@pytest.mark.parametrize('path', modules(PACKAGE / 'core'), ids=lambda p: p.name)
+def test_core_runs_no_processes_and_never_imports_the_runtime(path: Path) -> None:
+    """The core is numpy/scipy registration and odometry: a worker process, its messages and
+    its hand-over files are the runtime's (kentreg_ros/runtime/)."""
+    names = imported_modules(path, 'kentreg_ros.core')
+    bad = sorted(n for n in names if n.split('.')[0] in _PROCESS_MODULES)
+    bad += sorted(n for n in names if n.startswith('kentreg_ros.runtime'))
+    assert bad == [], f'{path.name} imports {bad}'
+
+
+@pytest.mark.parametrize('path', modules(PACKAGE / 'runtime'), ids=lambda p: p.name)
+def test_the_runtime_imports_only_the_core_through_its_facade(path: Path) -> None:
+    """core <- runtime <- ros: the runtime runs the core's odometry on more than one core and
+    knows nothing of the node, the evaluation, the inputs or the command lines."""
+    outside = sorted(
+        n
+        for n in kentreg_imports(path)
+        if not n.startswith(('kentreg_ros.core', 'kentreg_ros.runtime'))
+    )
+    assert outside == [], f'runtime/{path.name} imports {outside}'
+
+
 @pytest.mark.parametrize(
     ('folder', 'forbidden'),
     [
-        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros')),
-        ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros')),
+        ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros', 'kentreg_ros.runtime')),
+        ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros', 'kentreg_ros.runtime')),
     ],
 )
 def test_io_and_eval_never_import_the_command_lines_or_the_node(
@@ -204,7 +230,7 @@ def test_the_ros_package_is_where_rclpy_is_imported() -> None:
         assert any(n.split('.')[0] == 'rclpy' for n in names), name
 
 
-@pytest.mark.parametrize('folder', ['core', 'io', 'eval', 'cli'])
+@pytest.mark.parametrize('folder', ['core', 'io', 'eval', 'cli', 'runtime'])
 def test_no_other_package_imports_the_ros_package(folder: str) -> None:
     for path in modules(PACKAGE / folder):
         bad = sorted(n for n in kentreg_imports(path) if n.startswith('kentreg_ros.ros'))

@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import kentreg_ros.core.odometry.stages as stages
+import kentreg_ros.core.odometry.deskew as deskew_stage
+import kentreg_ros.core.odometry.verify as verify_stage
 from kentreg_ros.core import (
     KentRegConfig,
     KentRegError,
     Odometry,
     OdometryStep,
+    OutOfOrder,
     PreparedScan,
+    ScanOrderError,
     rotation_angle,
 )
 from kentreg_ros.core.odometry.covariance import propagate_covariance
@@ -131,7 +134,7 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
     prepared: list[float] = []
     registered: list[tuple[object, object]] = []
     hints: list[object] = []
-    real_prepare, real_register = stages.prepare_scan, stages.register
+    real_prepare, real_register = deskew_stage.prepare_scan, verify_stage.register
 
     def counting_prepare(*args: object, **kwargs: object) -> PreparedScan:
         scan = real_prepare(*args, **kwargs)  # type: ignore[arg-type]
@@ -143,8 +146,8 @@ def test_odometry_prepares_each_scan_once(scans: tuple[np.ndarray, list[np.ndarr
         registered.append((source, target))
         return real_register(source, target, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(stages, 'prepare_scan', counting_prepare)
-    monkeypatch.setattr(stages, 'register', checking_register)
+    monkeypatch.setattr(deskew_stage, 'prepare_scan', counting_prepare)
+    monkeypatch.setattr(verify_stage, 'register', checking_register)
     run(Odometry(KentRegConfig().with_updates({'preprocess.target_points': 5000})), clouds[:4])
     assert len(prepared) == 4
     assert hints == [0.0, *prepared[:-1]]  # each voxel search starts at the last scan's size
@@ -218,13 +221,105 @@ def test_odometry_falls_back_when_registration_raises(
     def broken_register(*args: object, **kwargs: object) -> object:
         raise KentRegError('No cluster pair had enough normals for the EM.')
 
-    monkeypatch.setattr(stages, 'register', broken_register)
+    monkeypatch.setattr(verify_stage, 'register', broken_register)
     step = odom.step(clouds[3], 3 * STEP_NS)
     assert step.health == 'fell_back' and step.result is None
     assert 'KentRegError' in step.message
     # Constant velocity: the prediction repeats the motion from scan 1 to scan 2.
     poses = odom.poses
     np.testing.assert_allclose(step.T_prev_curr, np.linalg.inv(poses[1]) @ poses[2], atol=1e-9)
+
+
+def test_a_bug_in_the_registration_propagates_instead_of_falling_back(
+    scans: tuple[np.ndarray, list[np.ndarray]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only the library's own errors (a scene it cannot solve) fall back; any other exception
+    is a bug, raised from the step (the node counts it as an error), which changes nothing."""
+    _, clouds = scans
+    odom = Odometry()
+    run(odom, clouds[:2])
+
+    def buggy_register(*args: object, **kwargs: object) -> object:
+        raise TypeError("unsupported operand type(s) for @: 'NoneType' and 'float'")
+
+    monkeypatch.setattr(verify_stage, 'register', buggy_register)
+    poses = odom.poses
+    with pytest.raises(TypeError, match='unsupported operand'):
+        odom.step(clouds[2], 2 * STEP_NS)
+    assert odom.n_steps == 2 and odom.counts['fell_back'] == 0
+    np.testing.assert_array_equal(odom.poses, poses)
+    monkeypatch.undo()
+    assert odom.step(clouds[2], 2 * STEP_NS).ok  # the same scan, stepped once the bug is gone
+
+
+@pytest.mark.parametrize(
+    ('stamp', 'frame', 'kind', 'match'),
+    [
+        (STEP_NS, 'lidar', OutOfOrder.REPEATED_STAMP, "repeats the last scan's stamp"),
+        (STEP_NS // 2, 'lidar', OutOfOrder.EARLIER_STAMP, 'Time went backwards by 0.050 s'),
+        (2 * STEP_NS, 'other', OutOfOrder.OTHER_FRAME, "from 'lidar' to 'other'"),
+    ],
+)
+def test_a_scan_that_does_not_continue_the_trajectory_is_refused_and_changes_nothing(
+    scans: tuple[np.ndarray, list[np.ndarray]],
+    stamp: int,
+    frame: str,
+    kind: OutOfOrder,
+    match: str,
+) -> None:
+    """The core checks the order of stamps and the frame, once; a caller reacts to the kind
+    (the node drops a repeated stamp and restarts for the others; the replay stops there)."""
+    _, clouds = scans
+    odom = Odometry()
+    run(odom, clouds[:2])
+    with pytest.raises(ScanOrderError, match=match) as caught:
+        odom.step(clouds[2], stamp, frame_id=frame)
+    assert caught.value.kind is kind and isinstance(caught.value, KentRegError)
+    assert odom.n_steps == 2
+    np.testing.assert_array_equal(odom.stamps_ns, [0, STEP_NS])
+    odom.reset()
+    assert odom.step(clouds[2], stamp, frame_id=frame).health == 'first'
+
+
+def test_the_model_moves_once_a_step_with_the_first_scan_deskewed_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The first scan, prepared before any motion was known, is deskewed again by the deskew
+    stage with the first registered motion; the model takes it at the end of the step (its
+    update), never in the middle: the deskewing rounds register against a model made beside
+    it (ModelStrategy.with_first)."""
+    from kentreg_ros.core import PointTimes
+
+    rng = np.random.default_rng(5)
+    T_true = true_trajectory(3)
+    clouds = [observe(rng, T) for T in T_true]
+    # A sweep of a sensor turning around z: each point's time from its azimuth (0.1 s).
+    times = [
+        PointTimes(((np.arctan2(c[:, 1], c[:, 0]) + np.pi) / (2 * np.pi) * 1e8).astype(np.uint32),
+                   't')
+        for c in clouds
+    ]  # fmt: skip
+    seen: list[tuple[object, object, object]] = []
+    real_iterate = deskew_stage.Deskewer.iterate
+
+    def watching(self: object, sweep: object, scan: object, outcome: object, used: object,
+                 model: object, gap_ns: int) -> deskew_stage.Deskewed:  # fmt: skip
+        before = (model.scan, model.map, model.first_sweep)  # type: ignore[attr-defined]
+        done = real_iterate(self, sweep, scan, outcome, used, model, gap_ns)  # type: ignore[arg-type]
+        after = (model.scan, model.map, model.first_sweep)  # type: ignore[attr-defined]
+        assert all(a is b for a, b in zip(before, after, strict=True)), 'the model moved'
+        seen.append((done.first, before[1], model))
+        return done
+
+    monkeypatch.setattr(deskew_stage.Deskewer, 'iterate', watching)
+    odom = Odometry(KentRegConfig().with_updates({'odometry.model': 'local_map'}))
+    for i, (cloud, t) in enumerate(zip(clouds, times, strict=True)):
+        odom.step(cloud, i * STEP_NS, point_times=t)
+    first, map_before, model = seen[0]
+    assert first is not None, 'the first scan was not deskewed again'
+    assert first.map is not map_before and model.first_sweep is None
+    assert model.map is first.map  # taken by the update at the end of the step
+    assert seen[1][0] is None  # once: the model is no longer the first scan alone
 
 
 def test_odometry_stretches_constant_velocity_over_a_dropped_scan(

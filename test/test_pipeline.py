@@ -1,5 +1,5 @@
-"""The pipelined odometry (prepare stage in a worker process, model upkeep after the pose) gives
-the sequential loop's poses bit for bit, surfaces the worker's errors and leaves no process
+"""The odometry with its prepare stage in a worker process (kentreg_ros.runtime.ProcessPreparer)
+gives the sequential loop's poses bit for bit, surfaces the worker's errors and leaves no process
 behind."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from kentreg_ros.core import KentRegConfig, Odometry, PointTimes
-from kentreg_ros.core.odometry.pipeline import PipelinedOdometry, PipelineError
+from kentreg_ros.runtime import MAX_OPEN_JOBS, PipelineError, ProcessPreparer
 
 NS = 1_000_000_000
 
@@ -66,14 +66,15 @@ def test_pipelined_poses_equal_the_sequential_loop_on_balm_50(
     config = KentRegConfig().with_updates({'odometry.model': model})
     sequential = Odometry(config)
     expected = [sequential.step(p, t).T_world_lidar for p, t in balm_50]
-    with PipelinedOdometry(config) as odometry:
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(config, preparer=preparer)
         got = []
-        odometry.prefetch(*balm_50[0])
+        preparer.prefetch(*balm_50[0])
         for i, (points, stamp) in enumerate(balm_50):
             if i + 1 < len(balm_50):
-                odometry.prefetch(*balm_50[i + 1])  # the next scan is prepared meanwhile
+                preparer.prefetch(*balm_50[i + 1])  # the next scan is prepared meanwhile
             got.append(odometry.step(points, stamp).T_world_lidar)
-        stats = odometry.stats
+        stats = preparer.stats
     assert all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
     # The worker prepared every scan (none was prepared again here): the overlap is real.
     assert stats.prepared_remote == len(balm_50), stats
@@ -88,15 +89,16 @@ def test_pipelined_poses_equal_the_sequential_loop_with_per_point_times(
     sequential = Odometry(config)
     expected = [sequential.step(p, t, point_times=pt) for p, t, pt in scans]
     assert any(s.n_prepared and s.timings for s in expected)
-    with PipelinedOdometry(config) as odometry:
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(config, preparer=preparer)
         got = []
         for i, (points, stamp, times) in enumerate(scans):
             if i == 0:
-                odometry.prefetch(points, stamp, point_times=times)
+                preparer.prefetch(points, stamp, point_times=times)
             if i + 1 < len(scans):
-                odometry.prefetch(scans[i + 1][0], scans[i + 1][1], point_times=scans[i + 1][2])
+                preparer.prefetch(scans[i + 1][0], scans[i + 1][1], point_times=scans[i + 1][2])
             got.append(odometry.step(points, stamp, point_times=times))
-        assert odometry.stats.prepared_remote == len(scans)
+        assert preparer.stats.prepared_remote == len(scans)
     for a, b in zip(expected, got, strict=True):
         assert np.array_equal(a.T_world_lidar, b.T_world_lidar)
         assert a.health == b.health
@@ -112,14 +114,14 @@ def test_dropped_scans_reset_and_reconfigure_keep_the_sequential_poses(
     dropped = {3, 4, 9}
     other = KentRegConfig().with_updates({'odometry.model': 'local_map'})
 
-    def run(odometry: Odometry) -> list[np.ndarray]:
+    def run(odometry: Odometry, preparer: ProcessPreparer | None = None) -> list[np.ndarray]:
         poses = []
         for i, (points, stamp) in enumerate(scans):
-            if isinstance(odometry, PipelinedOdometry):
+            if preparer is not None:
                 if i == 0:
-                    odometry.prefetch(points, stamp)
+                    preparer.prefetch(points, stamp)
                 if i + 1 < len(scans):
-                    odometry.prefetch(*scans[i + 1])
+                    preparer.prefetch(*scans[i + 1])
             if i in dropped:
                 continue
             if i == 6:
@@ -130,10 +132,10 @@ def test_dropped_scans_reset_and_reconfigure_keep_the_sequential_poses(
         return poses
 
     expected = run(Odometry(KentRegConfig()))
-    with PipelinedOdometry(KentRegConfig()) as odometry:
+    with ProcessPreparer() as preparer:
         # Whether the worker had prepared a scan before its inputs changed (then it is
         # prepared again here) depends on timing; the poses must not.
-        got = run(odometry)
+        got = run(Odometry(KentRegConfig(), preparer=preparer), preparer)
     assert all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
 
 
@@ -145,15 +147,14 @@ def test_a_caller_more_than_max_open_jobs_behind_gets_every_scan(
     when stepped, with newer ids than the scans prefetched after them. The replies of those
     later scans arrive first and must be kept (they were dropped, and the next step waited
     forever)."""
-    from kentreg_ros.core.odometry.pipeline import MAX_OPEN_JOBS
-
     scans = balm_50[: MAX_OPEN_JOBS + 4]
     sequential = Odometry(KentRegConfig())
     expected = [sequential.step(p, t).T_world_lidar for p, t in scans]
     got: list[np.ndarray] = []
-    with PipelinedOdometry(KentRegConfig()) as odometry:
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(KentRegConfig(), preparer=preparer)
         for points, stamp in scans:
-            odometry.prefetch(points, stamp)  # all of them before the first step
+            preparer.prefetch(points, stamp)  # all of them before the first step
 
         def step_all() -> None:
             got.extend(odometry.step(p, t).T_world_lidar for p, t in scans)
@@ -170,10 +171,10 @@ def test_an_error_in_the_worker_is_raised_from_its_step_and_the_loop_goes_on(
 ) -> None:
     """A scan the worker fails on (here: its hand-over file is garbage) raises PipelineError
     from its step, with the worker's traceback; the worker and the loop go on."""
-    import kentreg_ros.core.odometry.pipeline as pipeline_module
+    import kentreg_ros.runtime.preparer as preparer_module
 
     (p0, t0), (p1, t1), (p2, t2) = balm_50[:3]
-    real = pipeline_module.write_scan_file
+    real = preparer_module.write_scan_file
 
     def garbage_for_p1(path: str, points: np.ndarray, times: np.ndarray | None) -> None:
         if points is p1:
@@ -181,14 +182,15 @@ def test_an_error_in_the_worker_is_raised_from_its_step_and_the_loop_goes_on(
         else:
             real(path, points, times)
 
-    monkeypatch.setattr(pipeline_module, 'write_scan_file', garbage_for_p1)
-    with PipelinedOdometry() as odometry:
+    monkeypatch.setattr(preparer_module, 'write_scan_file', garbage_for_p1)
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(preparer=preparer)
         odometry.step(p0, t0)
         with pytest.raises(PipelineError, match='could not be read'):
             odometry.step(p1, t1)
         step = odometry.step(p2, t2)
         assert step.ok, step.message
-        assert odometry.n_worker_restarts == 0
+        assert preparer.n_worker_restarts == 0
         assert odometry.n_steps == 2  # the failed scan did not step
 
 
@@ -201,7 +203,8 @@ def test_a_scan_that_cannot_be_handed_over_is_prepared_here(
     bad_times = np.array(['x'] * len(p1), dtype=object)
     with pytest.raises(ValueError):
         Odometry().step(p1, t1, point_times=bad_times)
-    with PipelinedOdometry() as odometry:
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(preparer=preparer)
         odometry.step(p0, t0)
         with pytest.raises(ValueError):
             odometry.step(p1, t1, point_times=bad_times)
@@ -212,28 +215,31 @@ def test_a_killed_worker_is_replaced_and_no_scan_is_lost(
 ) -> None:
     sequential = Odometry()
     expected = [sequential.step(p, t).T_world_lidar for p, t in balm_50[:4]]
-    with PipelinedOdometry() as odometry:
+    with ProcessPreparer() as preparer:
+        odometry = Odometry(preparer=preparer)
         got = [odometry.step(*balm_50[0]).T_world_lidar]
-        first = odometry.worker_pid
+        first = preparer.worker_pid
         assert first is not None
-        odometry.prefetch(*balm_50[1])
+        preparer.prefetch(*balm_50[1])
         os.kill(first, signal.SIGKILL)
         got += [odometry.step(p, t).T_world_lidar for p, t in balm_50[1:4]]
-        assert odometry.n_worker_restarts == 1
-        assert odometry.worker_pid not in (None, first)
+        assert preparer.n_worker_restarts == 1
+        assert preparer.worker_pid not in (None, first)
     assert _wait_gone(first)
     assert all(np.array_equal(a, b) for a, b in zip(expected, got, strict=True))
 
 
 def test_close_stops_the_worker() -> None:
-    odometry = PipelinedOdometry()
-    pid = odometry.worker_pid
+    preparer = ProcessPreparer()
+    odometry = Odometry(preparer=preparer)
+    pid = preparer.worker_pid
     assert pid is not None and _alive(pid)
-    odometry.close()
-    odometry.close()  # idempotent
+    preparer.close()
+    preparer.close()  # idempotent
     assert _wait_gone(pid)
     with pytest.raises(PipelineError, match='closed'):
         odometry.step(np.zeros((100, 3)), 1)
+    assert odometry.n_steps == 0
 
 
 def test_the_worker_exits_when_its_parent_is_killed(tmp_path: Path) -> None:
@@ -242,9 +248,9 @@ def test_the_worker_exits_when_its_parent_is_killed(tmp_path: Path) -> None:
     script = textwrap.dedent(
         """
         import os, signal, sys
-        from kentreg_ros.core.odometry.pipeline import PipelinedOdometry
-        odometry = PipelinedOdometry()
-        print(odometry.worker_pid, flush=True)
+        from kentreg_ros.runtime import ProcessPreparer
+        preparer = ProcessPreparer()
+        print(preparer.worker_pid, flush=True)
         os.kill(os.getpid(), signal.SIGKILL)
         """
     )

@@ -291,6 +291,27 @@ def test_run_odometry_stride_selects_start_plus_multiples() -> None:
             run_odometry(scans, Recorder(), stride=stride)  # type: ignore[arg-type]
 
 
+def test_run_odometry_stops_at_a_scan_that_does_not_continue_the_trajectory() -> None:
+    """A stamp that repeats (or goes back) ends the run there, as a damaged bag does: the scans
+    before it are kept and the odometry's reason is the run's error (the replay then writes
+    what it has and exits 2)."""
+    from test_odometry import STEP_NS, observe, true_trajectory
+
+    from kentreg_ros.core import Odometry
+    from kentreg_ros.eval.run import run_odometry
+    from kentreg_ros.io.sources import Scan
+
+    rng = np.random.default_rng(2)
+    clouds = [observe(rng, T) for T in true_trajectory(4)]
+    stamps = [0, STEP_NS, STEP_NS, 3 * STEP_NS]
+    scans = [Scan(t, 'lidar', c, {}) for t, c in zip(stamps, clouds, strict=True)]
+    run = run_odometry(scans, Odometry())
+    assert len(run.steps) == 2 and run.input_indices == [0, 1]
+    assert run.error is not None and run.error.startswith(
+        "scan 2: The scan repeats the last scan's stamp"
+    )
+
+
 def test_replay_paper_mode_config_runs_end_to_end(sample_bag: Path, tmp_path: Path) -> None:
     config = tmp_path / 'paper.yaml'
     config.write_text(dump_config(KentRegConfig.paper()))

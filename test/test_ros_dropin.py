@@ -192,7 +192,7 @@ def test_an_initial_pose_moves_the_next_pose_and_the_path(
     np.testing.assert_allclose(T_next, P @ np.linalg.inv(T_wl[1]) @ T_wl[2], atol=1e-9)
     assert np.linalg.norm(T_next[:3, 3] - P[:3, 3]) < 0.1
     # The path was redrawn: its pose of scan 1 is now P.
-    assert node._outputs.publish_path(node._settings, force=True)
+    assert node._outputs.publish_path(node._worker.settings, force=True)
     poses = [pose_from_msg(p.pose) for p in paths[-1].poses]
     assert len(poses) == 3
     np.testing.assert_allclose(poses[1], P, atol=1e-9)
@@ -237,7 +237,7 @@ def test_save_map_writes_the_map_of_the_whole_run_and_the_trajectory(
     assert node._on_save_map(Trigger.Request(), Trigger.Response()).success
     assert len(list((tmp_path / 'maps').iterdir())) == 2
     # The published map: the saved map's points within map_radius of the sensor.
-    assert node._outputs.publish_map(node._settings, force=True)
+    assert node._outputs.publish_map(node._worker.settings, force=True)
     shown = pointcloud2_to_array(maps[-1]).points
     assert maps[-1].header.frame_id == 'odom' and 0 < len(shown) < len(saved)
     assert np.linalg.norm(shown - run.poses[-1][:3, 3], axis=1).max() <= 10.0 + 1e-4

@@ -50,6 +50,7 @@ from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # no
 from kentreg_ros.ros import node as node_module  # noqa: E402
 from kentreg_ros.ros import outputs as outputs_module  # noqa: E402
 from kentreg_ros.ros import parameters as parameters_module  # noqa: E402
+from kentreg_ros.ros import worker as worker_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_covariance_in_base  # noqa: E402
 
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
@@ -250,7 +251,7 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     for k in range(3):
         feed(node, k)
         assert wait_until(lambda k=k: handled(node) == k + 1)
-        assert node._outputs.publish_path(node._settings, force=True)
+        assert node._outputs.publish_path(node._worker.settings, force=True)
     path = node._outputs._poses
     # From this thread, as the executor thread runs `ros2 param set`.
     (result,) = node.set_parameters([Parameter('path_length', value=2)])
@@ -258,8 +259,8 @@ def test_path_length_changes_reach_the_path_through_the_worker_only(
     assert node._outputs._poses is path and path.maxlen == 5, 'the parameter thread touched it'
     feed(node, 3)
     assert wait_until(lambda: handled(node) == 4)
-    assert node._outputs.publish_path(node._settings, force=True)
-    assert not node._outputs.publish_path(node._settings, force=True), 'nothing new to send'
+    assert node._outputs.publish_path(node._worker.settings, force=True)
+    assert not node._outputs.publish_path(node._worker.settings, force=True), 'nothing new to send'
     assert [len(p.poses) for p in paths] == [1, 2, 3, 2]
     assert [stamp_ns(p.header.stamp) for p in paths[-1].poses] == [3 * 10**9, 4 * 10**9]
     assert total(node, 'errors') == 0
@@ -281,16 +282,18 @@ def test_the_path_goes_out_on_the_timer_not_with_every_scan(
         feed(node, k)
         assert wait_until(lambda k=k: handled(node) == k + 1)
     assert paths == [], 'the worker published the path'
-    assert node._outputs.publish_path(node._settings)  # the first is due at once
+    assert node._outputs.publish_path(node._worker.settings)  # the first is due at once
     assert [len(p.poses) for p in paths] == [2]
     feed(node, 2)
     assert wait_until(lambda: handled(node) == 3)
     clock.now += 0.5 * outputs_module.PATH_PERIOD_S  # halves: exact in binary
-    assert not node._outputs.publish_path(node._settings), 'sent before PATH_PERIOD_S passed'
+    assert not node._outputs.publish_path(node._worker.settings), (
+        'sent before PATH_PERIOD_S passed'
+    )
     clock.now += 0.5 * outputs_module.PATH_PERIOD_S
-    assert node._outputs.publish_path(node._settings)
+    assert node._outputs.publish_path(node._worker.settings)
     clock.now += 10 * outputs_module.PATH_PERIOD_S
-    assert not node._outputs.publish_path(node._settings), 'sent again without a new pose'
+    assert not node._outputs.publish_path(node._worker.settings), 'sent again without a new pose'
     assert [len(p.poses) for p in paths] == [2, 3]
     assert stamp_ns(paths[-1].header.stamp) == 3 * 10**9
 
@@ -324,14 +327,14 @@ def test_destroy_keeps_the_publishers_while_the_worker_still_holds_a_scan(
     """A worker that outlives destroy_node's wait publishes its scan on live publishers (before,
     they were destroyed under it and the scan ended in an error)."""
     entered, release = threading.Event(), threading.Event()
-    process = node_module.KentRegNode._process
+    process = worker_module.ScanWorker.process
 
-    def held(node: Any, scan: Any, settings: Any) -> None:
+    def held(worker: Any, scan: Any, settings: Any) -> None:
         entered.set()
         release.wait(TIMEOUT_S)
-        process(node, scan, settings)
+        process(worker, scan, settings)
 
-    monkeypatch.setattr(node_module.KentRegNode, '_process', held)
+    monkeypatch.setattr(worker_module.ScanWorker, 'process', held)
     node = make_node()
     node.WORKER_STOP_TIMEOUT_S = 0.1
     feed(node, 0)
@@ -483,7 +486,7 @@ def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
     diags: list[Any] = []
     monkeypatch.setattr(node._outputs.odom, 'publish', odoms.append)
     monkeypatch.setattr(node._pub_diag, 'publish', diags.append)
-    monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2}))
+    monkeypatch.setattr(node._worker.odometry, 'step', _Failing(node._worker.odometry.step, {2}))
     for k in range(5):
         feed(node, k)
         assert wait_until(lambda k=k: handled(node) == k + 1)
@@ -504,6 +507,32 @@ def test_an_unexpected_error_skips_the_scan_counts_it_and_keeps_the_trajectory(
     assert err.count('Traceback (most recent call last)') == 1 and 'restart' not in err
 
 
+def test_a_bug_in_the_registration_is_counted_as_an_error_not_a_fall_back(
+    make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The core falls back only on its own errors (a scene it cannot solve): a bug in the
+    registration (here a TypeError on the third scan) reaches the worker, which counts it in
+    errors with its traceback, not as a scan that fell back."""
+    import kentreg_ros.core.odometry.verify as verify_stage
+
+    real, raised = verify_stage.register, []
+
+    def buggy_on_the_third_scan(*args: Any, **kwargs: Any) -> Any:
+        if node._worker.odometry.n_steps == 2 and not raised:
+            raised.append(True)
+            raise TypeError('a bug')
+        return real(*args, **kwargs)
+
+    node = make_node()
+    monkeypatch.setattr(verify_stage, 'register', buggy_on_the_third_scan)
+    for k in range(4):
+        feed(node, k)
+        assert wait_until(lambda k=k: handled(node) == k + 1)
+    assert (total(node, 'errors'), total(node, 'fell_back'), total(node, 'processed')) == (1, 0, 3)
+    err = capfd.readouterr().err
+    assert 'TypeError: a bug' in err and 'the scan is skipped' in err
+
+
 def test_errors_in_a_row_restart_the_trajectory_after_three_and_say_why(
     make_node: Any, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -513,7 +542,9 @@ def test_errors_in_a_row_restart_the_trajectory_after_three_and_say_why(
     node = make_node()
     odoms: list[Any] = []
     monkeypatch.setattr(node._outputs.odom, 'publish', odoms.append)
-    monkeypatch.setattr(node._odometry, 'step', _Failing(node._odometry.step, {2, 3, 5, 6, 7}))
+    monkeypatch.setattr(
+        node._worker.odometry, 'step', _Failing(node._worker.odometry.step, {2, 3, 5, 6, 7})
+    )
     for k in range(9):
         feed(node, k)
         assert wait_until(lambda k=k: handled(node) == k + 1)

@@ -20,7 +20,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import KentRegError, Odometry, OdometryStep
+from kentreg_ros.core import KentRegError, Odometry, OdometryStep, ScanOrderError
 from kentreg_ros.io.pointcloud2 import point_time_field
 from kentreg_ros.io.runmap import DEFAULT_MAX_POINTS, RunMap
 from kentreg_ros.io.sources import ScanSource, SkippedScan
@@ -127,10 +127,11 @@ def run_odometry(
     A selected scan that cannot be decoded (a malformed PointCloud2 in a bag, an unreadable scan
     file; :meth:`~kentreg_ros.io.sources.ScanSource.entries`) is skipped and counted in
     :attr:`OdometryRun.n_skipped`, the first few named in :attr:`OdometryRun.skipped`; the run
-    goes on, as the ROS node does. A read error of the container itself (a damaged bag) ends
-    the run early; the scans read before it are kept and the error is recorded in
-    :attr:`OdometryRun.error`. Ctrl-C does the same with :attr:`OdometryRun.interrupted`. A
-    generator source is closed at the end (a bag is closed now, not at garbage collection).
+    goes on, as the ROS node does. A read error of the container itself (a damaged bag), or a
+    scan the odometry refuses (:class:`~kentreg_ros.core.ScanOrderError`), ends the run early;
+    the scans before it are kept and the error is recorded in :attr:`OdometryRun.error`. Ctrl-C
+    does the same with :attr:`OdometryRun.interrupted`. A generator source is closed at the end
+    (a bag is closed now, not at garbage collection).
 
     Parameters
     ----------
@@ -194,9 +195,8 @@ def run_odometry(
                 logger.info('Scan %d skipped: %s', index, scan.reason)
                 continue
             run.read_ms.append((time.perf_counter() - t0) * 1e3)
-            step = _step(odometry, scan, index, run)
-            if on_step is not None:
-                on_step(step)
+            if not _step(odometry, scan, index, run, on_step):
+                break  # the odometry refused the scan: the run's error says why
     except KeyboardInterrupt:
         run.interrupted = True
     finally:
@@ -206,14 +206,26 @@ def run_odometry(
     return run
 
 
-def _step(odometry: Odometry, scan: ScanLike, index: int, run: OdometryRun) -> OdometryStep:
-    """One scan through the odometry, recorded in ``run`` (and its map)."""
-    step = odometry.step(
-        scan.points,
-        scan.stamp_ns,
-        frame_id=scan.frame_id,
-        point_times=point_time_field(getattr(scan, 'extras', None)),
-    )
+def _step(
+    odometry: Odometry,
+    scan: ScanLike,
+    index: int,
+    run: OdometryRun,
+    on_step: Callable[[OdometryStep], object] | None,
+) -> bool:
+    """One scan through the odometry, recorded in ``run`` (and its map) and given to
+    ``on_step``; False when the odometry refused it (its stamp or frame does not continue the
+    trajectory), which is then the run's error."""
+    try:
+        step = odometry.step(
+            scan.points,
+            scan.stamp_ns,
+            frame_id=scan.frame_id,
+            point_times=point_time_field(getattr(scan, 'extras', None)),
+        )
+    except ScanOrderError as exc:
+        run.error = f'scan {index}: {exc}'
+        return False
     run.steps.append(step)
     run.input_indices.append(index)
     if run.map is not None and step.ok and step.points is not None:
@@ -221,7 +233,9 @@ def _step(odometry: Odometry, scan: ScanLike, index: int, run: OdometryRun) -> O
     logger.debug(
         'Scan %d: %s in %.0f ms (%s)', index, step.health, step.timings['total'], step.message
     )
-    return step
+    if on_step is not None:
+        on_step(step)
+    return True
 
 
 def _indices(n_total: int, start: int, max_scans: int | None, stride: int) -> range:

@@ -25,16 +25,15 @@ diagnostics :mod:`kentreg_ros.ros.diagnostics`. ``qos_overrides.<topic>.<publish
 subscription>.{history,depth,reliability}`` apply to the input and every output topic.
 
 Threading: the subscription callback only decodes the message (numpy views of its buffer) and
-puts the scan into a bounded queue; one worker thread runs
-:class:`~kentreg_ros.core.odometry.Odometry` and publishes. When the queue is full the oldest
-scan is dropped by default ("latest wins"), so the odometry never lags the sensor; every drop
-is counted and reported in ``diagnostics``. Parameter changes and resets are handed to the
-worker and applied between scans. An unexpected error while the worker handles a scan (a bug)
-skips that scan, counts it and logs its traceback once per kind of error; the trajectory goes
-on, and restarts only after :data:`MAX_ERRORS_IN_A_ROW` errors in a row.
+hands the scan to the worker (:class:`~kentreg_ros.ros.worker.ScanWorker`): a bounded queue
+and one thread that runs :class:`~kentreg_ros.core.Odometry` and publishes. The worker owns
+what happens to a scan: drops (counted and reported in ``diagnostics``), parameter changes and
+resets applied between scans, stamps and frames that do not continue the trajectory,
+unexpected errors. This module is the ROS wiring around it: parameters, endpoints, callbacks,
+services, timers, diagnostics and the node's life.
 
 Logging: from start-up to :meth:`KentRegNode.destroy_node` the records of the package's Python
-loggers (the core's rejected scans, deskewing without per-point times, frame changes) go to the
+loggers (the core's rejected scans and fall-backs, deskewing without per-point times) go to the
 node's rclpy logger, so to ``/rosout``, throttled per kind of message
 (:class:`~kentreg_ros.ros.logbridge.RclpyLogHandler`).
 
@@ -50,12 +49,8 @@ with a warning instead of corrupting it; a repeated stamp is dropped and counted
 
 from __future__ import annotations
 
-import collections
 import sys
-import threading
 import time
-import traceback
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -78,14 +73,15 @@ from kentreg_ros.cli.common import (
     CliError,
     interrupt_through_rclpy,
 )
-from kentreg_ros.core import KentRegConfig, PointTimes
+from kentreg_ros.core import Odometry
 from kentreg_ros.io import names
 from kentreg_ros.io.livox import is_custom_msg, live_custom_msg_hint
-from kentreg_ros.io.params import NODE_NAME, NodeSettings
-from kentreg_ros.io.pointcloud2 import POINT_TIME_FIELDS, point_time_field, pointcloud2_to_array
+from kentreg_ros.io.params import NODE_NAME, NodeSettings, PipelineMode
+from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
+from kentreg_ros.io.pointtimes import POINT_TIME_FIELDS, point_time_field
 from kentreg_ros.ros import parameters, services
-from kentreg_ros.ros.diagnostics import Counters, Snapshot, odometry_status
-from kentreg_ros.ros.frames import Frames, moving_frame
+from kentreg_ros.ros.diagnostics import Counters, odometry_status
+from kentreg_ros.ros.frames import Frames
 from kentreg_ros.ros.logbridge import RclpyLogHandler
 from kentreg_ros.ros.outputs import (
     MAP_TICK_S,
@@ -95,36 +91,13 @@ from kentreg_ros.ros.outputs import (
     qos_override_errors,
 )
 from kentreg_ros.ros.parameters import ParameterError, StartupError
-from kentreg_ros.ros.pipeline import close_odometry, create_odometry, discard, prefetch
 from kentreg_ros.ros.usage import build_parser
+from kentreg_ros.ros.worker import ODOMETRY_HISTORY, THROTTLE_S, QueuedScan, ScanWorker
+from kentreg_ros.runtime import create_preparer
 
 __all__ = ['KentRegNode', 'StartupError', 'main']
 
-FloatArray = np.ndarray
 POINTCLOUD2_TYPE = 'sensor_msgs/msg/PointCloud2'
-#: Poses the odometry keeps (the prediction needs two); the path keeps its own bounded history.
-ODOMETRY_HISTORY = 4
-#: Seconds between repeated warnings of the same kind (malformed input, drops, the core's).
-THROTTLE_S = 5.0
-#: Unexpected worker errors in a row after which the trajectory restarts. One error costs one
-#: scan (skipped; the pose goes on from the scans before, and odom must not jump, REP-105). But
-#: errors that keep coming on scan after scan point at the odometry's own state (a model or a
-#: velocity left broken), which only a restart clears; three in a row tells that apart from
-#: two unrelated odd scans, and costs a 10 Hz sensor 0.3 s of odometry.
-MAX_ERRORS_IN_A_ROW = 3
-#: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
-#: one-line message only, so a node failing in ever new ways cannot fill its log.
-MAX_ERROR_KINDS = 32
-
-
-@dataclass
-class _Scan:
-    points: np.ndarray
-    stamp_ns: int
-    frame_id: str
-    received: float  # time.monotonic()
-    n_nonfinite: int
-    point_times: PointTimes | None = None  # the driver's per-point times, for deskewing
 
 
 class KentRegNode(Node):
@@ -145,7 +118,7 @@ class KentRegNode(Node):
         # before __init__ returns, so the node can see what it was given through the public
         # parameter API, validate it and warn about names it does not know (parameters.declare).
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True, **kwargs)
-        # The core's warnings (rejected scans, deskew without times, frame changes) reach this
+        # The core's warnings (rejected scans, deskew without times, fall-backs) reach this
         # node's logger, and so /rosout, from now until destroy_node.
         self._log_handler = RclpyLogHandler(self.get_logger(), throttle_s=THROTTLE_S).attach()
         self._counters = Counters()
@@ -155,7 +128,7 @@ class KentRegNode(Node):
             self._log_handler.detach()
             super().destroy_node()
             raise
-        self._config, self._settings = declared.config, declared.node
+        self._config = declared.config  # the latest accepted (the worker takes it between scans)
         if declared.unknown:
             self.get_logger().warning(
                 f'Ignoring parameter(s) {list(declared.unknown)}: not parameters of this node '
@@ -163,54 +136,43 @@ class KentRegNode(Node):
                 'Python or the command lines).'
             )
 
-        self._lock = threading.Condition()
-        self._queue: collections.deque[_Scan] = collections.deque()
-        self._pending_config: KentRegConfig | None = None
-        #: The model the worker registers against (changed by the worker, under the lock, when
-        #: it adopts a pending configuration); self._config is the latest accepted one.
-        self._model_in_use = self._config.odometry.model
-        self._pending_reset = False
-        self._stop = False
-
-        # Worker state: only the worker thread reads or writes these after start-up. Changes
-        # from the executor thread (parameters, reset) reach it under the lock as pending
-        # values or through the settings it copies before each scan.
-        self._odometry = create_odometry(self._config, self._settings, ODOMETRY_HISTORY)
-        self._frame_id: str | None = None
-        self._last_stamp_ns: int | None = None  # of the last scan taken (duplicates, going back)
-        self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped with
-        self._last_health = ''
-        self._last_message = ''
-        self._latencies_ms: collections.deque[float] = collections.deque(maxlen=1000)
-        self._step_ms: collections.deque[float] = collections.deque(maxlen=1000)
         self._last_received = time.monotonic()
         self._window_start = time.monotonic()
-        self._errors_in_a_row = 0
-        #: Kinds of unexpected error (type, file, line) whose traceback was logged.
-        self._error_kinds: set[tuple[str, str, int]] = set()
         #: Message types other than PointCloud2 seen on the input topic (each said once).
         self._foreign_input_types: set[str] = set()
 
+        # The odometry (and where it prepares the scans) before the publishers and
+        # subscriptions: it loads the compiled kernels (numba), which, loaded after them, left
+        # the node to crash (SIGSEGV) when Ctrl-C came again while it shut down (test_node).
+        preparer = create_preparer(process=declared.node.pipeline == PipelineMode.PROCESS)
+        odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY, preparer=preparer)
         try:
-            self._create_endpoints(tf)
+            self._create_endpoints(declared.node, tf)
         except StartupError:
+            preparer.close()
             self._log_handler.detach()
             super().destroy_node()
             raise
+        self._worker = ScanWorker(
+            odometry,
+            preparer,
+            declared.node,
+            self._counters,
+            self._frames,
+            self._outputs,
+            self.get_logger(),
+            self.context.ok,
+        )
         self.add_on_set_parameters_callback(self._on_set_parameters)
-
-        self._worker = threading.Thread(target=self._run_worker, name='kentreg_worker')
-        self._worker.daemon = True
-        self._worker.start()
-        self._log_handler.own_thread(self._worker.ident)
-        child = self._settings.base_frame or "the cloud's frame"
+        self._log_handler.own_thread(self._worker.start())
+        child = declared.node.base_frame or "the cloud's frame"
         self.get_logger().info(
             f'kentreg_node ready: model={self._config.odometry.model}, listening on '
             f'{self._sub.topic_name}, publishing {self._outputs.odom.topic_name} in '
-            f'{self._settings.odom_frame} -> {child}.'
+            f'{declared.node.odom_frame} -> {child}.'
         )
 
-    def _create_endpoints(self, tf: Any) -> None:
+    def _create_endpoints(self, settings: NodeSettings, tf: Any) -> None:
         """Frames (``tf``: stand-ins for tf2_ros's broadcasters and buffer, see
         :class:`~kentreg_ros.ros.frames.Frames`), publishers, subscriptions, services and
         timers; ``qos_overrides.*`` apply.
@@ -220,7 +182,6 @@ class KentRegNode(Node):
         StartupError
             A QoS override rclpy cannot apply (an unknown policy value, a wrong type).
         """
-        settings = self._settings
         with qos_override_errors():
             self._frames = Frames(self, settings, tf)
             self._outputs = Outputs(self, self._frames, settings)
@@ -251,31 +212,16 @@ class KentRegNode(Node):
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:
-            changed = parameters.changes(params, self._config, self._settings)
+            changed = parameters.changes(params, self._config, self._worker.settings)
         except ParameterError as exc:
             self.get_logger().warning(f'Rejected parameter change: {exc}')
             return SetParametersResult(successful=False, reason=str(exc))
-        with self._lock:
-            if changed.config != self._config:
-                self._config = changed.config
-                self._pending_config = changed.config
-            if changed.node != self._settings:
-                self._apply_settings(changed.node)
+        config = changed.config if changed.config != self._config else None
+        settings = changed.node if changed.node != self._worker.settings else None
+        self._config = changed.config
+        self._worker.change(config, settings)
         self.get_logger().info(f'Parameters changed: {parameters.values_text(params)}')
         return SetParametersResult(successful=True)
-
-    def _apply_settings(self, settings: NodeSettings) -> None:
-        """Adopt new runtime node settings (called with the lock held)."""
-        old = self._settings
-        self._settings = settings  # path_length reaches the worker's path through it
-        if settings.base_to_lidar != old.base_to_lidar or (
-            settings.odom_frame,
-            settings.base_frame,
-        ) != (old.odom_frame, old.base_frame):
-            self._pending_reset = True  # the published frame changed: start a new trajectory
-        while len(self._queue) > settings.queue_size:
-            self._queue.popleft()
-            self._counters.add('dropped_queue')
 
     # ----------------------------------------------------------------------------------------
     # Input (executor thread)
@@ -302,7 +248,7 @@ class KentRegNode(Node):
             return
         if cloud.n_dropped:
             self._counters.add('nonfinite_points', cloud.n_dropped)
-        scan = _Scan(
+        scan = QueuedScan(
             points=cloud.points,
             stamp_ns=cloud.stamp_ns,  # type: ignore[arg-type]  # a PointCloud2 has a stamp
             frame_id=cloud.frame_id or '',
@@ -310,26 +256,17 @@ class KentRegNode(Node):
             n_nonfinite=cloud.n_dropped,
             point_times=point_time_field(cloud.extras),
         )
-        prefetch(self._odometry, scan.points, scan.stamp_ns, scan.point_times)
-        with self._lock:
-            if len(self._queue) >= self._settings.queue_size:
-                self._counters.add('dropped_queue')  # the oldest: latest wins
-                discard(self._odometry, self._queue.popleft().points)
-            self._queue.append(scan)
-            self._lock.notify()
+        self._worker.put(scan)
 
     def _on_reset(self, request: Any, response: Any) -> Any:
-        with self._lock:
-            self._pending_reset = True
-            self._lock.notify()
+        self._worker.request_reset()
         response.success = True
         response.message = 'The trajectory restarts at the next scan.'
         self.get_logger().info('Reset requested: the trajectory restarts at the next scan.')
         return response
 
     def _on_save_map(self, request: Any, response: Any) -> Any:
-        with self._lock:
-            settings = self._settings
+        settings = self._worker.settings
         response.success, response.message, _ = services.save_map(self._outputs, settings)
         if response.success:  # rclpy's logger wants one severity per call site
             self.get_logger().info(f'~/save_map: {response.message}')
@@ -338,8 +275,7 @@ class KentRegNode(Node):
         return response
 
     def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        with self._lock:
-            settings = self._settings
+        settings = self._worker.settings
         T = services.initial_pose(msg, settings, self._frames)
         if isinstance(T, str):
             self.get_logger().warning(f'Ignored an initialpose message: {T}.')
@@ -351,135 +287,9 @@ class KentRegNode(Node):
         )
 
     def _publish_map_and_path(self) -> None:
-        with self._lock:
-            settings = self._settings
+        settings = self._worker.settings
         self._outputs.publish_map(settings)
         self._outputs.publish_path(settings)
-
-    # ----------------------------------------------------------------------------------------
-    # Worker thread
-
-    def _run_worker(self) -> None:
-        while True:
-            with self._lock:
-                while not self._queue and not self._stop:
-                    self._lock.wait(timeout=0.5)
-                if self._stop:
-                    return
-                scan = self._queue.popleft()
-                config, self._pending_config = self._pending_config, None
-                reset, self._pending_reset = self._pending_reset, False
-                settings = self._settings
-            try:
-                if config is not None:
-                    self._odometry.reconfigure(config)
-                    with self._lock:
-                        self._model_in_use = config.odometry.model
-                if reset:
-                    self._reset('reset requested')
-                self._process(scan, settings)
-            except Exception as exc:
-                if not self.context.ok():
-                    # Ctrl-C (or an external shutdown) took the ROS context down under the scan
-                    # in hand, so its outputs could not go out: the end of the node, not an
-                    # error of the scan. Nothing more can be published; the worker stops.
-                    return
-                # Broad on purpose: an exception would end this thread silently, leaving a node
-                # that still subscribes and reports but never publishes odometry again.
-                self._on_worker_error(exc, scan)
-            else:
-                self._errors_in_a_row = 0
-
-    def _on_worker_error(self, exc: Exception, scan: _Scan) -> None:
-        """Count an unexpected error, skip its scan and keep the trajectory (REP-105: ``odom``
-        must not jump); log the traceback once per kind of error; restart the trajectory only
-        after :data:`MAX_ERRORS_IN_A_ROW` in a row."""
-        self._counters.add('errors')
-        self._errors_in_a_row += 1
-        log = self.get_logger()
-        text = f'{type(exc).__name__}: {exc}'
-        # The kind of an error: its type and the line that raised it.
-        frames = traceback.extract_tb(exc.__traceback__)
-        where = (frames[-1].filename, frames[-1].lineno or 0) if frames else ('', 0)
-        kind = (type(exc).__qualname__, *where)
-        skipped = (
-            f'Unexpected error on the scan stamped {scan.stamp_ns * 1e-9:.3f} s ({text}): the '
-            'scan is skipped (diagnostics count it in errors), the trajectory goes on.'
-        )
-        if kind not in self._error_kinds and len(self._error_kinds) < MAX_ERROR_KINDS:
-            self._error_kinds.add(kind)
-            trace = ''.join(traceback.format_exception(exc)).rstrip()
-            log.error(f'{skipped} Its traceback (shown once for this kind of error):\n{trace}')
-        else:
-            log.error(skipped, throttle_duration_sec=THROTTLE_S)
-        if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:
-            log.error(
-                f'{self._errors_in_a_row} unexpected errors in a row: the odometry state is '
-                'taken to be broken, so the trajectory restarts (odom starts again at the '
-                'identity).'
-            )
-            self._errors_in_a_row = 0
-            self._reset(f'{MAX_ERRORS_IN_A_ROW} unexpected errors in a row')
-
-    def _reset(self, why: str) -> None:
-        self._odometry.reset()
-        self._outputs.reset()
-        self._frames.reset()
-        with self._lock:
-            self._frame_id = None
-        self._last_stamp_ns = None
-        self._last_stepped_ns = None
-        self._counters.add('resets')
-        self.get_logger().info(f'Trajectory restarted ({why}).')
-
-    def _process(self, scan: _Scan, settings: NodeSettings) -> None:
-        log = self.get_logger()
-        if self._frame_id is not None and scan.frame_id != self._frame_id:
-            log.warning(
-                f'The sensor frame changed from {self._frame_id!r} to {scan.frame_id!r}: '
-                'restarting the trajectory.'
-            )
-            self._reset('sensor frame changed')
-        if self._last_stamp_ns is not None:
-            if scan.stamp_ns == self._last_stamp_ns:
-                self._counters.add('dropped_duplicate_stamp')
-                log.warning(
-                    'Dropped a scan with the same stamp as the previous one.',
-                    throttle_duration_sec=THROTTLE_S,
-                )
-                return
-            if scan.stamp_ns < self._last_stamp_ns:
-                log.warning(
-                    f'Time went backwards by {(self._last_stamp_ns - scan.stamp_ns) * 1e-9:.3f} s '
-                    '(bag replayed? sensor restarted?): restarting the trajectory.'
-                )
-                self._reset('time went backwards')
-        T_moving_lidar = self._frames.mount(scan.frame_id, settings, time.monotonic())
-        if T_moving_lidar is None:
-            self._counters.add('dropped_waiting_for_tf')
-            return
-        with self._lock:
-            self._frame_id = scan.frame_id
-        self._last_stamp_ns = scan.stamp_ns
-
-        step = self._odometry.step(
-            scan.points, scan.stamp_ns, frame_id=scan.frame_id, point_times=scan.point_times
-        )
-        # The twist spans the odometry's own last step: after a scan skipped by an error the
-        # scan before it, not the skipped one.
-        prev_stamp, self._last_stepped_ns = self._last_stepped_ns, scan.stamp_ns
-        self._counters.add('processed')
-        self._counters.add(step.health)
-        if step.searched:
-            self._counters.add('searched')
-        child = moving_frame(scan.frame_id, settings)
-        self._outputs.publish(step, T_moving_lidar, prev_stamp, settings, child)
-        self._counters.add('published')
-        latency_ms = (time.monotonic() - scan.received) * 1e3
-        with self._lock:  # read by the diagnostics timer on the executor thread
-            self._last_health, self._last_message = step.health, step.message
-            self._latencies_ms.append(latency_ms)
-            self._step_ms.append(step.timings.get('total', 0.0))
 
     # ----------------------------------------------------------------------------------------
     # Diagnostics (executor thread)
@@ -491,18 +301,7 @@ class KentRegNode(Node):
         total, window = self._counters.take_window()
         if not total['received']:
             self.check_input_type()
-        with self._lock:  # everything the worker writes is read under the lock
-            pending = self._pending_config
-            snap = Snapshot(
-                queued=len(self._queue),
-                model=str(self._model_in_use),
-                pending_model=str(pending.odometry.model) if pending is not None else '',
-                latencies_ms=list(self._latencies_ms)[-max(window['published'], 1) :],
-                steps_ms=list(self._step_ms)[-max(window['processed'], 1) :],
-                frame_id=self._frame_id or '',
-                last_health=str(self._last_health),
-                last_message=self._last_message,
-            )
+        snap = self._worker.snapshot(window['published'], window['processed'])
         status = odometry_status(
             self.get_name(),
             self._sub.topic_name,
@@ -551,13 +350,9 @@ class KentRegNode(Node):
         still publish with them. It stops after that scan; its thread is a
         daemon, so it does not keep the process alive.
         """
-        with self._lock:
-            self._stop = True
-            self._lock.notify_all()
-        self._worker.join(timeout=self.WORKER_STOP_TIMEOUT_S)
-        close_odometry(self._odometry, self._worker)
+        stopped = self._worker.stop(self.WORKER_STOP_TIMEOUT_S)
         self._log_handler.detach()
-        if self._worker.is_alive():
+        if not stopped:
             self.get_logger().error(
                 f'The worker did not stop within {self.WORKER_STOP_TIMEOUT_S:g} s (a scan still '
                 'in hand); leaving its publishers in place and destroying only the input side.'

@@ -1,22 +1,29 @@
 """Scan-to-model LiDAR odometry: register each scan against the model, chain ``T_world_lidar``.
 
-:meth:`Odometry.step` runs the stages of :mod:`kentreg_ros.core.odometry.stages` in order::
+:meth:`Odometry.step` runs the stages in this order, each in one module::
 
     predict    T_world_pred = T_world_last @ motion  (the last *accepted* motion, or none)
-    prepare    the scan once, deskewed with that motion (crop, voxels, normals, clusters)
+                                                                              motion.py
+    prepare    the scan once, deskewed with that motion (crop, voxels, normals, clusters),
+               by the preparer the caller chose (here, or ahead in a worker)  preparation.py
     register   source = the scan, target = the model, init = the prediction
     verify     a doubtful step (failed, too fast, fitting clearly worse than the last accepted
                ones) is searched again without a start and the best-fitting plausible pose is
                chosen, the one nearest the prediction among those fitting about equally;
-               nothing plausible that fits -> fall back to the prediction
+               nothing plausible that fits -> fall back to the prediction    verify.py
     deskew     again with the registered motion, registering again, while that matters
-    chain      T_world_curr = T_world_model @ T_model_curr
+                                                                              deskew.py
+    chain      T_world_curr = T_world_model @ T_model_curr, with its covariance
+                                                                              motion.py
     model      the previous scan, or the local map of the accepted scans, moves on
+                                                                              models.py
 
 A step that fell back keeps the predicted pose and is flagged; it never feeds the motion, so
 one bad step cannot be repeated by the next prediction (a runaway). A cloud that cannot be
 used at all (:class:`~kentreg_ros.core.errors.InvalidPointCloudError`, e.g. too few points) is
-flagged ``rejected``, gets the predicted pose, and the model is kept for the next scan.
+flagged ``rejected``, gets the predicted pose, and the model is kept for the next scan. A scan
+that does not continue the trajectory (its stamp not after the last one, another sensor frame)
+is refused with :class:`~kentreg_ros.core.odometry.step.ScanOrderError` before anything changes.
 
 :class:`Odometry` keeps no global state; the ROS node runs one instance in one worker thread.
 An instance is not meant to be shared between threads.
@@ -25,10 +32,7 @@ An instance is not meant to be shared between threads.
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,14 +41,31 @@ from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig, Model
 from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform, invert_transform
-from kentreg_ros.core.odometry.covariance import prediction_covariance, propagate_covariance
-from kentreg_ros.core.odometry.deskew import PointTimes
+from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep
 from kentreg_ros.core.odometry.localmap import LocalMap
-from kentreg_ros.core.odometry.models import LocalMapModel, ModelStrategy, PreviousScanModel
-from kentreg_ros.core.odometry.preparation import Preparation, prepare_input
-from kentreg_ros.core.odometry.stages import Deskewer, Motion, Outcome, Sweep, Verifier, predict
-from kentreg_ros.core.odometry.step import HEALTHS, Health, OdometryStep
-from kentreg_ros.core.scan.prepared import PreparedScan, elapsed_ms
+from kentreg_ros.core.odometry.models import (
+    LocalMapModel,
+    ModelStrategy,
+    PosedScan,
+    PreviousScanModel,
+)
+from kentreg_ros.core.odometry.motion import Chained, Motion, chain, predict
+from kentreg_ros.core.odometry.preparation import (
+    InThreadPreparer,
+    Preparation,
+    PrepareInputs,
+    Preparer,
+    RawScan,
+)
+from kentreg_ros.core.odometry.step import (
+    HEALTHS,
+    Health,
+    OdometryStep,
+    OutOfOrder,
+    ScanOrderError,
+)
+from kentreg_ros.core.odometry.verify import Outcome, Verifier
+from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
 
@@ -52,27 +73,6 @@ FloatArray = NDArray[np.float64]
 
 #: Registration stages whose times a step reports.
 STAGE_TIMINGS = ('rotation', 'translation', 'refine', 'search')
-
-
-def _as_stamp(stamp_ns: int) -> int:
-    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer):
-        raise InvalidInputError(
-            f'Expected `stamp_ns` to be an integer number of nanoseconds, got {stamp_ns!r}.'
-        )
-    return int(stamp_ns)
-
-
-@dataclass
-class _Pending:
-    """What is known of a step before its outcome."""
-
-    index: int
-    stamp_ns: int
-    frame_id: str | None
-    T_model_pred: FloatArray
-    n_points: int
-    t_start: float
-    timings: dict[str, float] = field(default_factory=dict)
 
 
 class Odometry:
@@ -89,6 +89,11 @@ class Odometry:
         Keep only the last ``max_history`` poses and stamps (at least 2, which the prediction
         needs) in :attr:`poses` / :attr:`stamps_ns`, so that a long-running node does not grow
         without bound. None (default) keeps every pose, as offline replay wants.
+    preparer : Preparer, optional
+        Where the prepare stage runs (default :class:`InThreadPreparer`: in the thread that
+        steps). A preparer that works ahead, e.g. in a worker process
+        (:class:`kentreg_ros.runtime.ProcessPreparer`), gives the same poses; the caller owns
+        it (and closes it).
 
     Notes
     -----
@@ -98,7 +103,7 @@ class Odometry:
 
     The constant-velocity prediction repeats the last accepted motion, stretched by the ratio
     of the time gaps when scans arrive irregularly (e.g. a dropped scan in the ROS node; see
-    :func:`~kentreg_ros.core.odometry.stages.predict`).
+    :func:`~kentreg_ros.core.odometry.motion.predict`).
 
     Examples
     --------
@@ -111,12 +116,25 @@ class Odometry:
     (N, 4, 4)
     """
 
+    # The trajectory so far (set by reset).
+    _model: ModelStrategy
+    _poses: deque[FloatArray]
+    _stamps: deque[int]
+    _frame_id: str | None
+    _motion: Motion | None  # the last accepted motion
+    _fits: deque[float]  # the fits of the last accepted steps
+    _voxel_size_hint: float
+    _counts: dict[Health, int]
+    _n_searched: int
+    _warned: set[str]
+
     def __init__(
         self,
         config: KentRegConfig | None = None,
         *,
         initial_pose: ArrayLike | None = None,
         max_history: int | None = None,
+        preparer: Preparer | None = None,
     ) -> None:
         if max_history is not None and (isinstance(max_history, bool) or max_history < 2):
             raise InvalidInputError(f'Expected `max_history` >= 2 or None, got {max_history!r}.')
@@ -124,6 +142,7 @@ class Odometry:
         self._initial_pose = (
             np.eye(4) if initial_pose is None else check_transform(initial_pose, 'initial_pose')
         )
+        self._preparer: Preparer = preparer if preparer is not None else InThreadPreparer()
         self._set_config(config if config is not None else KentRegConfig())
         # Compile (or load) the per-point kernels now, not in the first scan's time budget.
         kernels.warm_up()
@@ -139,6 +158,196 @@ class Odometry:
         self._deskewer = Deskewer(config, self._verifier)
 
     # ----------------------------------------------------------------------------------------
+    # The loop
+
+    def step(
+        self,
+        points: ArrayLike,
+        stamp_ns: int,
+        *,
+        frame_id: str | None = None,
+        point_times: ArrayLike | PointTimes | None = None,
+    ) -> OdometryStep:
+        """Register a new scan against the model (previous scan or local map); return its pose.
+
+        Parameters
+        ----------
+        points : array_like, shape (N, 3)
+            Finite points of the new scan in its sensor frame (drop NaN/inf first).
+        stamp_ns : int
+            Acquisition time, integer nanoseconds (e.g. the message header stamp), after the
+            last scan's.
+        frame_id : str, optional
+            Sensor frame of the scan: the same as the last scan's (None: not checked).
+        point_times : array_like, shape (N,), or PointTimes, optional
+            The driver's per-point acquisition times (any unit, relative or absolute; a
+            :class:`~kentreg_ros.core.odometry.deskew.PointTimes` also names the field, which
+            tells the unit: see :func:`~kentreg_ros.core.odometry.deskew.sweep_times`). With
+            ``odometry.deskew`` 'auto' or 'on' every point is moved to the stamp's time with
+            the motion of the sweep (constant velocity, iterated with the registration). Points
+            whose time is not finite are dropped and counted (``n_untimed``); times that are
+            no plausible sweep leave the scan undeskewed, with one warning.
+
+        Returns
+        -------
+        OdometryStep
+            The pose and the health of the step. Never raises for a cloud that is merely
+            unusable or a registration that fails: those are the ``rejected`` and
+            ``fell_back`` healths.
+
+        Raises
+        ------
+        ScanOrderError
+            The stamp is not after the last scan's, or the frame is another (``kind`` says
+            which); nothing changed.
+        InvalidInputError
+            ``stamp_ns`` is not an integer (also a ``TypeError``).
+        """
+        watch = Stopwatch()
+        stamp = self._check_order(stamp_ns, frame_id)
+        index, model, model_index = self.n_steps, self._model, self._model.index
+        # predict: the last pose moved by the last accepted motion, and in the model's frame.
+        T_world_pred = self._predict(stamp)
+        T_model_pred = invert_transform(model.T_world) @ T_world_pred
+        # prepare: the scan once, deskewed with that motion, by the preparer the caller chose.
+        prep = self._preparer.prepare(RawScan(points, point_times, stamp), self.next_inputs)
+        watch.add('preprocess', prep.ms)
+        watch.merge(prep.timings, 'prepare.')
+        # register from the prediction, verify (the one place a pose is chosen), deskew again.
+        done = self._register(prep, model, T_model_pred, stamp, watch)
+        outcome, scan = done.outcome, done.scan
+        # chain: the pose in the world with its covariance; what the next scans learn from it.
+        pose = chain(model.T_world, model.cov, outcome, T_world_pred, T_model_pred)
+        T_prev_curr = self._learn(index, stamp, frame_id, prep, outcome, pose)
+        self._preparer.expect(self.next_inputs)  # known now: a preparer ahead can go on
+        # model: the previous scan, or the local map of the accepted scans, moves on.
+        posed = PosedScan(scan, outcome.health, pose, stamp, index, prep.timed_sweep, done.first)
+        model.update(posed, watch)
+        watch.merge(outcome.stage_timings(STAGE_TIMINGS))
+        watch.add('total', watch.elapsed_ms())
+        return OdometryStep(
+            index=index,
+            stamp_ns=stamp,
+            frame_id=frame_id,
+            T_world_lidar=pose.T_world.copy(),
+            T_prev_curr=T_prev_curr,
+            T_model_pred=T_model_pred,
+            model_index=model_index,
+            result=outcome.result,
+            health=outcome.health,
+            message=outcome.message,
+            timings=watch.as_dict(),
+            n_points=int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0,
+            n_prepared=len(scan) if scan is not None else 0,
+            n_untimed=prep.sweep.n_untimed if prep.sweep is not None else 0,
+            covariance=pose.covariance,
+            fit=outcome.fit if outcome.accepted else float('nan'),
+            searched=outcome.searched,
+            points=scan.points if scan is not None else None,
+        )
+
+    def _register(
+        self,
+        prep: Preparation,
+        model: ModelStrategy,
+        T_model_pred: FloatArray,
+        stamp: int,
+        watch: Stopwatch,
+    ) -> Deskewed:
+        """The step's pose in the model frame (an :class:`Outcome`) and its scan, deskewed again
+        when that mattered (the model's first scan with it)."""
+        if prep.scan is None:
+            return Deskewed(None, Outcome.rejected(prep.rejected))
+        if model.scan is None:
+            return Deskewed(prep.scan, Outcome.first())
+        gap = stamp - model.stamp_ns
+        with watch('register'):
+            fits = list(self._fits)
+            outcome = self._verifier.choose(prep.scan, model.scan, T_model_pred, gap, fits)
+            sweep = prep.timed_sweep
+            if sweep is None or not outcome.accepted:
+                return Deskewed(prep.scan, outcome)
+            assert prep.twist is not None  # a sweep with times was deskewed with it
+            return self._deskewer.iterate(sweep, prep.scan, outcome, prep.twist, model, gap)
+
+    def _learn(
+        self,
+        index: int,
+        stamp: int,
+        frame_id: str | None,
+        prep: Preparation,
+        outcome: Outcome,
+        pose: Chained,
+    ) -> FloatArray:
+        """Keep the step: its pose and stamp; an accepted motion for the next prediction and
+        its fit for the next steps' doubt; the prepared scan's voxel size, where the next
+        search starts. Returns the motion since the last pose, ``T_prev_curr``."""
+        self._log(index, prep.sweep, outcome)
+        if outcome.accepted:
+            self._motion = Motion(pose.T_model, stamp - self._model.stamp_ns)
+            if np.isfinite(outcome.fit):
+                self._fits.append(outcome.fit)
+        if prep.scan is not None:
+            self._voxel_size_hint = prep.scan.voxel_size
+        last = self._poses[-1] if self._poses else None
+        self._poses.append(pose.T_world.copy())
+        self._stamps.append(stamp)
+        self._frame_id = frame_id if frame_id is not None else self._frame_id
+        self._counts[outcome.health] += 1
+        self._n_searched += int(outcome.searched)
+        return invert_transform(last) @ pose.T_world if last is not None else np.eye(4)
+
+    def _check_order(self, stamp_ns: int, frame_id: str | None) -> int:
+        """The stamp as an integer, after checking that the scan continues the trajectory."""
+        if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer):
+            raise InvalidInputError(
+                f'Expected `stamp_ns` to be an integer number of nanoseconds, got {stamp_ns!r}.'
+            )
+        stamp = int(stamp_ns)
+        last = self._stamps[-1] if self._stamps else None
+        if last is not None and stamp == last:
+            raise ScanOrderError(
+                f"The scan repeats the last scan's stamp ({stamp} ns).", OutOfOrder.REPEATED_STAMP
+            )
+        if last is not None and stamp < last:
+            raise ScanOrderError(
+                f'Time went backwards by {(last - stamp) * 1e-9:.3f} s: the scan is stamped '
+                f'{stamp} ns, the last one {last} ns.',
+                OutOfOrder.EARLIER_STAMP,
+            )
+        if frame_id is not None and self._frame_id is not None and frame_id != self._frame_id:
+            raise ScanOrderError(
+                f'The sensor frame changed from {self._frame_id!r} to {frame_id!r}.',
+                OutOfOrder.OTHER_FRAME,
+            )
+        return stamp
+
+    def _predict(self, stamp: int) -> FloatArray:
+        if not self._poses:
+            return self._initial_pose.copy()
+        motion = self._motion if self._config.odometry.constant_velocity else None
+        return predict(self._poses[-1], self._stamps[-1], stamp, motion)
+
+    def _log(self, index: int, sweep: Sweep | None, outcome: Outcome) -> None:
+        """Say what became of the scan: a fall-back or a rejection as a warning, the other
+        healths but ok and first as information; a sweep's warning once per trajectory."""
+        if sweep is not None and sweep.warning and sweep.warning_kind not in self._warned:
+            self._warned.add(sweep.warning_kind)
+            logger.warning(sweep.warning)
+        health = outcome.health
+        if health in (Health.FELL_BACK, Health.REJECTED):
+            logger.warning('Scan %d: %s', index, outcome.message)
+        elif health not in (Health.OK, Health.FIRST):
+            logger.info('Scan %d: %s', index, outcome.message)
+
+    @property
+    def next_inputs(self) -> PrepareInputs:
+        """What the next scan is prepared with besides itself: the configuration, the twist of
+        the last accepted motion (zero before one) and the last prepared scan's voxel size."""
+        twist = self._motion.twist() if self._motion is not None else np.zeros(6)
+        return PrepareInputs(self._config, twist, self._voxel_size_hint)
+
+    # ----------------------------------------------------------------------------------------
     # State
 
     def reset(self, initial_pose: ArrayLike | None = None) -> None:
@@ -151,18 +360,17 @@ class Odometry:
         """
         if initial_pose is not None:
             self._initial_pose = check_transform(initial_pose, 'initial_pose')
-        self._model: ModelStrategy = self._new_model(PreviousScanModel(self._initial_pose))
+        self._model = self._new_model(PreviousScanModel(self._initial_pose))
         self._voxel_size_hint = 0.0
-        self._poses: deque[FloatArray] = deque(maxlen=self._max_history)
-        self._stamps: deque[int] = deque(maxlen=self._max_history)
-        self._frame_id: str | None = None
+        self._poses = deque(maxlen=self._max_history)
+        self._stamps = deque(maxlen=self._max_history)
+        self._frame_id = None
         self._counts = dict.fromkeys(HEALTHS, 0)
-        self._motion: Motion | None = None  # the last accepted motion
-        self._fits: deque[float] = deque(maxlen=self._config.odometry.fit_window)
+        self._motion = None
+        self._fits = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
-        self._warned: set[str] = set()
-        #: The last step's model upkeep, when it was deferred (see update_model).
-        self._deferred: Callable[[], None] | None = None
+        self._warned = set()
+        self._preparer.expect(self.next_inputs)
 
     def _new_model(self, current: ModelStrategy) -> ModelStrategy:
         """The model strategy the configuration asks for, continuing from ``current``."""
@@ -186,13 +394,13 @@ class Odometry:
         The model keeps the preprocessing it was prepared with; the next scan is prepared with
         the new settings and registered against it, so the trajectory continues without a gap.
         """
-        self.update_model()  # the last step's upkeep runs with the settings it was taken with
         previous = self._config.preprocess
         self._set_config(config)
         self._fits = deque(self._fits, maxlen=config.odometry.fit_window)
         if config.preprocess != previous:
             self._voxel_size_hint = 0.0  # the previous size was searched for other settings
         self._model = self._new_model(self._model)
+        self._preparer.expect(self.next_inputs)
 
     @property
     def poses(self) -> FloatArray:
@@ -237,235 +445,9 @@ class Odometry:
 
         Owned by this instance: read it from the thread that calls :meth:`step`.
         """
-        self.update_model()
         return self._model.map if isinstance(self._model, LocalMapModel) else None
 
     @property
     def has_model(self) -> bool:
         """True once a scan has been accepted as the model."""
-        self.update_model()
         return self._model.scan is not None
-
-    # ----------------------------------------------------------------------------------------
-    # The loop
-
-    def step(
-        self,
-        points: ArrayLike,
-        stamp_ns: int,
-        *,
-        frame_id: str | None = None,
-        point_times: ArrayLike | PointTimes | None = None,
-    ) -> OdometryStep:
-        """Register a new scan against the model (previous scan or local map); return its pose.
-
-        Parameters
-        ----------
-        points : array_like, shape (N, 3)
-            Finite points of the new scan in its sensor frame (drop NaN/inf first).
-        stamp_ns : int
-            Acquisition time, integer nanoseconds (e.g. the message header stamp).
-        frame_id : str, optional
-            Sensor frame of the scan; recorded in the step.
-        point_times : array_like, shape (N,), or PointTimes, optional
-            The driver's per-point acquisition times (any unit, relative or absolute; a
-            :class:`~kentreg_ros.core.odometry.deskew.PointTimes` also names the field, which
-            tells the unit: see :func:`~kentreg_ros.core.odometry.deskew.sweep_times`). With
-            ``odometry.deskew`` 'auto' or 'on' every point is moved to the stamp's time with
-            the motion of the sweep (constant velocity, iterated with the registration). Points
-            whose time is not finite are dropped and counted (``n_untimed``); times that are
-            no plausible sweep leave the scan undeskewed, with one warning.
-
-        Returns
-        -------
-        OdometryStep
-            The pose and the health of the step. Never raises for a cloud that is merely
-            unusable or a registration that fails: those are the ``rejected`` and
-            ``fell_back`` healths.
-
-        Raises
-        ------
-        InvalidInputError
-            ``stamp_ns`` is not an integer (also a ``TypeError``).
-        """
-        stamp = _as_stamp(stamp_ns)
-        pending = self._begin(points, stamp, frame_id)
-        self.update_model()
-        return self._step(pending, self._prepare_here(points, point_times, stamp))
-
-    def _prepare_here(
-        self, points: ArrayLike, point_times: ArrayLike | PointTimes | None, stamp: int
-    ) -> Preparation:
-        """The prepare stage in this thread, with the inputs the loop gives it now."""
-        return prepare_input(
-            points, point_times, stamp, self._config, self.twist_for_next, self._voxel_size_hint
-        )
-
-    @property
-    def twist_for_next(self) -> FloatArray:
-        """The twist the next scan is deskewed with: the last accepted motion's, or zero."""
-        return self._motion.twist() if self._motion is not None else np.zeros(6)
-
-    @property
-    def voxel_size_hint(self) -> float:
-        """Where the next scan's voxel-size search starts: the last prepared scan's size
-        (0: search from the scan's own extent). Part of the prepare stage's inputs."""
-        return self._voxel_size_hint
-
-    def update_model(self) -> None:
-        """Move the model on with the last step's scan, when :meth:`_step` deferred it.
-
-        A pipeline defers the model's upkeep (the local map's insertion and target) past the
-        publication of the step's pose and runs it while the next scan is prepared; the next
-        step needs it, so :meth:`step` calls this first. Without a deferred update it does
-        nothing.
-        """
-        deferred, self._deferred = self._deferred, None
-        if deferred is not None:
-            deferred()
-
-    def _step(self, pending: _Pending, prep: Preparation, *, defer: bool = False) -> OdometryStep:
-        """The stages after preparation: register, verify, deskew again, chain, model."""
-        stamp = pending.stamp_ns
-        # 1. predict: the last pose moved by the last accepted motion.
-        T_world_pred = self._predict(stamp)
-        pending.T_model_pred = invert_transform(self._model.T_world) @ T_world_pred
-        # 2. the scan prepared once, deskewed with the predicted motion (prepare_input).
-        pending.timings['preprocess'] = prep.ms
-        sweep, scan = prep.sweep, prep.scan
-        if sweep is not None and sweep.warning:
-            self._warn_once(sweep.warning_kind, sweep.warning)
-        if scan is None:
-            rejected = f'Rejected the scan: {prep.rejected} The pose is the prediction.'
-            outcome = Outcome(None, np.eye(4), float('nan'), Health.REJECTED, rejected)
-            return self._finish(pending, T_world_pred, outcome, None, None, defer)
-        self._voxel_size_hint = scan.voxel_size
-        pending.timings |= {f'prepare.{k}': v for k, v in scan.timings.items() if k != 'total'}
-        if self._model.scan is None:
-            first = Outcome(
-                None, np.eye(4), float('nan'), Health.FIRST, 'First scan: it becomes the model.'
-            )
-            return self._finish(pending, T_world_pred, first, scan, sweep, defer)
-        assert sweep is not None  # a prepared scan has its sweep
-        # 3. register from the prediction, and 4. verify: the only place a pose is chosen.
-        t0 = time.perf_counter()
-        gap = stamp - self._model.stamp_ns
-        outcome = self._verifier.choose(
-            scan, self._model.scan, pending.T_model_pred, gap, list(self._fits)
-        )
-        # 5. deskew again with the registered motion while that moves the points.
-        if sweep.times is not None and outcome.accepted:
-            twist = prep.twist if prep.twist is not None else self.twist_for_next
-            scan, outcome = self._deskewer.iterate(sweep, scan, outcome, twist, self._model, gap)
-        pending.timings['register'] = elapsed_ms(t0)
-        # 6. chain the pose; the model moves on.
-        T_world = T_world_pred if not outcome.accepted else self._model.T_world @ outcome.T
-        return self._finish(pending, T_world, outcome, scan, sweep, defer)
-
-    def _begin(self, points: ArrayLike, stamp: int, frame_id: str | None) -> _Pending:
-        """Check the stamp's order and the frame; what is known of the step before it runs."""
-        index = self.n_steps
-        if self._stamps and stamp <= self._stamps[-1]:
-            logger.warning(
-                'Scan %d: stamp %d ns is not after the previous one (%d ns).',
-                index,
-                stamp,
-                self._stamps[-1],
-            )
-        if frame_id is not None:
-            if self._frame_id is not None and frame_id != self._frame_id:
-                logger.warning(
-                    'Scan %d: frame_id changed from %r to %r.', index, self._frame_id, frame_id
-                )
-            self._frame_id = frame_id
-        n_points = int(np.shape(points)[0]) if np.ndim(points) >= 1 else 0
-        return _Pending(index, stamp, frame_id, np.eye(4), n_points, time.perf_counter())
-
-    def _predict(self, stamp: int) -> FloatArray:
-        if not self._poses:
-            return self._initial_pose.copy()
-        motion = self._motion if self._config.odometry.constant_velocity else None
-        return predict(self._poses[-1], self._stamps[-1], stamp, motion)
-
-    def _warn_once(self, kind: str, message: str) -> None:
-        """Log ``message`` the first time a warning of its ``kind`` comes in this trajectory."""
-        if kind not in self._warned:
-            self._warned.add(kind)
-            logger.warning(message)
-
-    def _finish(
-        self,
-        pending: _Pending,
-        T_world_curr: FloatArray,
-        outcome: Outcome,
-        scan: PreparedScan | None,
-        sweep: Sweep | None,
-        defer: bool = False,
-    ) -> OdometryStep:
-        """Append the pose, feed the motion and the fits, move the model (or, ``defer``, leave
-        that to :meth:`update_model`), build the step."""
-        model = self._model
-        health = outcome.health
-        if health == Health.FELL_BACK:
-            logger.warning('Scan %d: %s', pending.index, outcome.message)
-        elif health not in (Health.OK, Health.FIRST):
-            log = logger.warning if health == Health.REJECTED else logger.info
-            log('Scan %d: %s', pending.index, outcome.message)
-        T_model_curr = invert_transform(model.T_world) @ T_world_curr
-        if model.scan is None and scan is not None:
-            covariance = model.cov.copy()  # the first pose is the origin of the frame
-        else:
-            if outcome.accepted and outcome.result is not None:
-                cov_step = np.asarray(outcome.result.covariance, dtype=np.float64)
-            else:
-                cov_step = prediction_covariance(pending.T_model_pred)
-            covariance = propagate_covariance(model.cov, model.T_world, T_model_curr, cov_step)
-        if outcome.accepted and model.scan is not None:
-            # Only accepted motions feed the prediction and the fits a step is judged by.
-            self._motion = Motion(T_model_curr, pending.stamp_ns - model.stamp_ns)
-            if np.isfinite(outcome.fit):
-                self._fits.append(outcome.fit)
-        model_index = model.index
-        T_prev_curr = (
-            invert_transform(self._poses[-1]) @ T_world_curr if self._poses else np.eye(4)
-        )
-        timed = sweep if sweep is not None and sweep.times is not None else None
-        stamp, index = pending.stamp_ns, pending.index
-
-        def move_model() -> None:
-            model.update(scan, health, T_world_curr, covariance, stamp, index, timed)
-
-        if defer:
-            self._deferred = move_model
-        else:
-            move_model()
-            pending.timings |= {f'model.{k}': v for k, v in model.timings.items()}
-        self._poses.append(T_world_curr.copy())
-        self._stamps.append(pending.stamp_ns)
-        self._counts[health] += 1
-        self._n_searched += int(outcome.searched)
-        if outcome.result is not None:
-            for stage in STAGE_TIMINGS:
-                if stage in outcome.result.timings:
-                    pending.timings[stage] = outcome.result.timings[stage]
-        pending.timings['total'] = elapsed_ms(pending.t_start)
-        return OdometryStep(
-            index=pending.index,
-            stamp_ns=pending.stamp_ns,
-            frame_id=pending.frame_id,
-            T_world_lidar=T_world_curr.copy(),
-            T_prev_curr=T_prev_curr,
-            T_model_pred=pending.T_model_pred,
-            model_index=model_index,
-            result=outcome.result,
-            health=health,
-            message=outcome.message,
-            timings=pending.timings,
-            n_points=pending.n_points,
-            n_prepared=len(scan) if scan is not None and health != Health.REJECTED else 0,
-            n_untimed=sweep.n_untimed if sweep is not None else 0,
-            covariance=covariance,
-            fit=outcome.fit if outcome.accepted else float('nan'),
-            searched=outcome.searched,
-            points=scan.points if scan is not None else None,
-        )

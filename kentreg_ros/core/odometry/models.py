@@ -1,10 +1,15 @@
 """The model strategies of the odometry: what each scan is registered against (the previous scan,
-or a local map of the accepted scans), and the only thing that moves it."""
+or a local map of the accepted scans), and the only thing that moves it.
+
+A model moves once per step, at its end (:meth:`ModelStrategy.update`), never in the middle of
+one: the first scan deskewed again during a step (:class:`~.deskew.Deskewer`) is made into a
+:class:`FirstAgain` beside the model (:meth:`ModelStrategy.with_first`) and taken by the update.
+"""
 
 from __future__ import annotations
 
 import logging
-import time
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -13,15 +18,54 @@ from numpy.typing import NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.geometry import row_norms
+from kentreg_ros.core.odometry.deskew import Sweep
 from kentreg_ros.core.odometry.localmap import LocalMap, nearest_spacing
-from kentreg_ros.core.odometry.stages import Sweep, prepare
+from kentreg_ros.core.odometry.motion import Chained
 from kentreg_ros.core.odometry.step import Health
 from kentreg_ros.core.scan import PreparedScan
-from kentreg_ros.core.scan.prepared import elapsed_ms
+from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class PosedScan:
+    """What a step gives the model: its scan with the pose and health the step chose.
+
+    Attributes
+    ----------
+    scan : PreparedScan or None
+        The prepared scan (None: rejected).
+    health : Health
+    pose : Chained
+        Its pose in the world (``T_world``) with the covariance.
+    stamp_ns, index : int
+    sweep : Sweep or None
+        The scan's sweep when it has times (a first scan keeps it, to be deskewed again once a
+        motion is known).
+    first : FirstAgain or None
+        The model's first scan, deskewed again during this step: taken before the scan.
+    """
+
+    scan: PreparedScan | None
+    health: Health
+    pose: Chained
+    stamp_ns: int
+    index: int
+    sweep: Sweep | None = None
+    first: FirstAgain | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FirstAgain:
+    """The model's first scan deskewed again, and the model it makes (the scan itself, or a
+    local map of it in the first scan's frame)."""
+
+    scan: PreparedScan
+    target: PreparedScan
+    map: LocalMap | None = None
 
 
 class ModelStrategy(Protocol):
@@ -29,6 +73,8 @@ class ModelStrategy(Protocol):
 
     ``scan`` is the model in its own frame, posed at ``T_world`` (with covariance ``cov``),
     taken at ``stamp_ns`` from scan number ``index``; None before the first scan.
+    ``first_sweep`` is the sweep of the first scan while the model is that scan alone and it
+    has per-point times (it was prepared before any motion was known, so not deskewed).
     """
 
     scan: PreparedScan | None
@@ -36,24 +82,14 @@ class ModelStrategy(Protocol):
     cov: FloatArray
     stamp_ns: int
     index: int
-    #: Milliseconds of the last update's parts (empty where it has none worth timing).
-    timings: dict[str, float]
+    first_sweep: Sweep | None
 
-    def update(
-        self,
-        scan: PreparedScan | None,
-        outcome: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        """Take the step's scan (None: rejected) with its pose and health."""
+    def update(self, posed: PosedScan, watch: Stopwatch) -> None:
+        """Take the step's scan with its pose and health (its upkeep timed in ``watch`` as
+        ``model.<part>``)."""
 
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        """The model, with the first scan deskewed by ``twist`` if it was prepared before any
-        motion was known (its sweep moved like the current one: constant velocity)."""
+    def with_first(self, first: PreparedScan) -> FirstAgain:
+        """The model as it would be with ``first`` as its first scan; nothing changes here."""
 
 
 class PreviousScanModel:
@@ -67,9 +103,7 @@ class PreviousScanModel:
         self.cov = np.zeros((6, 6))
         self.stamp_ns = 0
         self.index = -1
-        self.timings: dict[str, float] = {}
-        # Raw points and times of a first scan prepared before any motion was known.
-        self._first_sweep: Sweep | None = None
+        self.first_sweep: Sweep | None = None
 
     @classmethod
     def like(cls, other: ModelStrategy, config: KentRegConfig) -> PreviousScanModel:
@@ -87,44 +121,23 @@ class PreviousScanModel:
             other.index,
         )
 
-    def update(
-        self,
-        scan: PreparedScan | None,
-        health: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        if scan is None:
-            self.timings = {}
+    def update(self, posed: PosedScan, watch: Stopwatch) -> None:
+        if posed.first is not None:
+            self.scan = posed.first.target
+        if posed.scan is None:
             return
-        self._move(scan, T_world_scan, cov, stamp_ns, index)
-        self._first_sweep = sweep if health == Health.FIRST and sweep is not None else None
-        self._index_target()
+        self._move(posed, posed.scan)
+        # Built now, with the model's upkeep, not at the next registration's first query.
+        with watch('model.target_tree'):
+            posed.scan.tree.build()
 
-    def _index_target(self) -> None:
-        """Build the next registration's target index now, with the model's upkeep (which a
-        pipeline runs after the pose is out), not at that registration's first query: ~1.2 ms
-        of a 10k-point scan off the next scan's latency."""
-        assert self.scan is not None
-        t0 = time.perf_counter()
-        self.scan.tree.build()
-        self.timings = {'target_tree': elapsed_ms(t0)}
+    def _move(self, posed: PosedScan, model: PreparedScan) -> None:
+        self.scan, self.T_world, self.cov = model, posed.pose.T_world.copy(), posed.pose.covariance
+        self.stamp_ns, self.index = posed.stamp_ns, posed.index
+        self.first_sweep = posed.sweep if posed.health == Health.FIRST else None
 
-    def _move(
-        self, scan: PreparedScan, T_world: FloatArray, cov: FloatArray, stamp_ns: int, index: int
-    ) -> None:
-        self.scan, self.T_world, self.cov = scan, T_world.copy(), cov
-        self.stamp_ns, self.index = stamp_ns, index
-
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        assert self.scan is not None
-        if self._first_sweep is not None:
-            self.scan = prepare(self._first_sweep, twist, config, self.scan.voxel_size)
-            self._first_sweep = None
-        return self.scan
+    def with_first(self, first: PreparedScan) -> FirstAgain:
+        return FirstAgain(first, first)
 
 
 class LocalMapModel(PreviousScanModel):
@@ -144,59 +157,51 @@ class LocalMapModel(PreviousScanModel):
         out._take_over(other)
         return out
 
-    def update(
-        self,
-        scan: PreparedScan | None,
-        health: Health,
-        T_world_scan: FloatArray,
-        cov: FloatArray,
-        stamp_ns: int,
-        index: int,
-        sweep: Sweep | None,
-    ) -> None:
-        self.timings = {}
-        if scan is None:
+    def update(self, posed: PosedScan, watch: Stopwatch) -> None:
+        if posed.first is not None:
+            self.map, self.scan = posed.first.map, posed.first.target
+        if posed.scan is None:
             return
-        if self.scan is not None and self.map is not None and not health.accepted:
+        if self.scan is not None and self.map is not None and not posed.health.accepted:
             return  # a fall-back stays out of the map
-        super().update(
-            self._insert(scan, T_world_scan), health, T_world_scan, cov, stamp_ns, index, sweep
+        self.map = self._map_for(posed.scan, self.map)
+        # The map's index is built by LocalMap.target, with the rest of the upkeep.
+        self._move(posed, self._insert(self.map, posed.scan, posed.pose.T_world, watch))
+
+    def with_first(self, first: PreparedScan) -> FirstAgain:
+        assert self.map is not None  # the first scan is in it
+        empty = LocalMap(
+            self.map.voxel_size, max_points_per_voxel=self.map.voxels.max_points_per_voxel
         )
+        lmap = self._map_for(first, empty)
+        return FirstAgain(first, self._insert(lmap, first, self.T_world, Stopwatch()), lmap)
 
-    def _index_target(self) -> None:
-        """Nothing: :meth:`LocalMap.target` builds the map's index with the rest of the upkeep
-        (a scan that stands in for a map too small to be a target is indexed when queried);
-        the map's own timings stay as :meth:`update` set them."""
-
-    def _insert(self, scan: PreparedScan, T_world_scan: FloatArray) -> PreparedScan:
-        """Insert ``scan`` (posed at ``T_world_scan``) into the map, drop what lies beyond the
-        map radius, and return the map in the scan's frame as the next model."""
+    def _map_for(self, scan: PreparedScan, lmap: LocalMap | None) -> LocalMap:
+        """``lmap``, or a new map when there is none or the settings changed its voxels."""
         odo = self.config.odometry
         if (
-            self.map is None
-            or self.map.voxels.max_points_per_voxel != odo.map_points_per_voxel
-            or (odo.map_voxel_size > 0.0 and self.map.voxel_size != odo.map_voxel_size)
+            lmap is None
+            or lmap.voxels.max_points_per_voxel != odo.map_points_per_voxel
+            or (odo.map_voxel_size > 0.0 and lmap.voxel_size != odo.map_voxel_size)
         ):
             voxel = odo.map_voxel_size or scan.voxel_size or nearest_spacing(scan.points)
-            self.map = LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
+            return LocalMap(voxel, max_points_per_voxel=odo.map_points_per_voxel)
+        return lmap
+
+    def _insert(
+        self, lmap: LocalMap, scan: PreparedScan, T_world_scan: FloatArray, watch: Stopwatch
+    ) -> PreparedScan:
+        """Insert ``scan`` (posed at ``T_world_scan``) into ``lmap``, drop what lies beyond the
+        map radius, and return the map in the scan's frame as the next model."""
+        odo = self.config.odometry
         radius = odo.map_radius or float(np.max(row_norms(scan.points)))
-        t0 = time.perf_counter()
-        self.map.insert_scan(scan, T_world_scan, radius=radius)
-        self.timings = {'map_insert': elapsed_ms(t0)}
+        with watch('model.map_insert'):
+            lmap.insert_scan(scan, T_world_scan, radius=radius)
         try:
-            target = self.map.target(T_world_scan, rotation_model=scan, config=self.config)
-            self.timings |= {f'map_{k}': v for k, v in target.timings.items() if k != 'total'}
-            return target
+            target = lmap.target(T_world_scan, rotation_model=scan, config=self.config)
         except InvalidPointCloudError as exc:
             # Too few map points survive the radius: register against the scan itself.
             logger.warning('The local map cannot be a target (%s); using the scan itself.', exc)
             return scan
-
-    def deskew_first(self, twist: FloatArray, config: KentRegConfig) -> PreparedScan:
-        assert self.scan is not None
-        if self._first_sweep is not None and self.map is not None:
-            first = prepare(self._first_sweep, twist, config, self.scan.voxel_size)
-            self.map.clear()  # the map holds only the first scan yet
-            self.scan = self._insert(first, self.T_world)
-            self._first_sweep = None
-        return self.scan
+        watch.merge({k: v for k, v in target.timings.items() if k != 'total'}, 'model.map_')
+        return target

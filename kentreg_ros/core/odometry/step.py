@@ -1,4 +1,5 @@
-"""What :meth:`kentreg_ros.core.odometry.loop.Odometry.step` reports: the step and its health."""
+"""What :meth:`kentreg_ros.core.odometry.loop.Odometry.step` reports: the step and its health,
+or, for a scan that does not continue the trajectory, :class:`ScanOrderError`."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
+from kentreg_ros.core.errors import KentRegError
 from kentreg_ros.core.registration.result import RegistrationResult
 
 FloatArray = NDArray[np.float64]
@@ -35,6 +37,33 @@ class Health(StrEnum):
     def accepted(self) -> bool:
         """The pose comes from a registration (it feeds the velocity and the fit window)."""
         return self in ACCEPTED
+
+
+class OutOfOrder(StrEnum):
+    """How a scan fails to continue the trajectory."""
+
+    #: Its stamp is the last scan's.
+    REPEATED_STAMP = 'repeated_stamp'
+    #: Its stamp is before the last scan's (a bag played again, a sensor restarted).
+    EARLIER_STAMP = 'earlier_stamp'
+    #: Its sensor frame is not the last scan's.
+    OTHER_FRAME = 'other_frame'
+
+
+class ScanOrderError(KentRegError, ValueError):
+    """A scan that does not continue the trajectory; the odometry did not take it.
+
+    Attributes
+    ----------
+    kind : OutOfOrder
+        What is wrong: a repeated or earlier stamp, or another sensor frame. A caller that
+        follows a live sensor drops a repeated stamp, and restarts the trajectory
+        (:meth:`Odometry.reset`) for the others.
+    """
+
+    def __init__(self, message: str, kind: OutOfOrder) -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 #: Every health value of an :class:`OdometryStep`, in order of severity.
@@ -80,14 +109,14 @@ class OdometryStep:
     message : str
         Human-readable explanation of the health.
     timings : dict of str to float
-        Milliseconds: ``'preprocess'`` (:func:`prepare_scan` of this scan), ``'register'``
-        (total of :func:`register`), the registration stages (``'rotation'``,
-        ``'translation'``, ``'refine'``) when it ran, the preparation's stages as
-        ``'prepare.<stage>'`` (``downsample``, ``neighbours``, ``normals``, ``outliers``,
-        ``clustering``: :attr:`PreparedScan.timings`), the model's upkeep when the step ran it
-        (not when a pipeline deferred it) as ``'model.<part>'`` (the local map's
-        ``map_insert``, ``map_frame`` and ``map_tree``), and ``'total'`` for the whole
-        step.
+        Milliseconds: ``'preprocess'`` (the prepare stage, wherever it ran), the preparation's
+        stages as ``'prepare.<stage>'`` (``downsample``, ``neighbours``, ``normals``,
+        ``outliers``, ``clustering``: :attr:`PreparedScan.timings`), ``'register'`` (the
+        registrations, the search and the deskewing rounds) when it ran, the model's upkeep as
+        ``'model.<part>'`` (the previous scan's ``target_tree``; the local map's
+        ``map_insert``, ``map_frame`` and ``map_tree``), the registration stages
+        (``'rotation'``, ``'translation'``, ``'refine'``, ``'search'``) of the result used,
+        and ``'total'`` for the whole step.
     n_points : int
         Points given.
     n_prepared : int
