@@ -1,6 +1,8 @@
 """Everything that talks ROS 2 through rclpy: the node, its parameters, message conversions, play.
 
-- :mod:`kentreg_ros.ros.node`: ``kentreg_node``, live odometry from PointCloud2 messages.
+- :mod:`kentreg_ros.ros.node`: ``kentreg_node``, live odometry from PointCloud2 messages (the
+  ROS wiring); :mod:`kentreg_ros.ros.worker`: its queue and the thread that steps the odometry
+  and publishes.
 - :mod:`kentreg_ros.ros.parameters`: the node's parameters (:mod:`kentreg_ros.io.params`) through
   rclpy; :mod:`kentreg_ros.ros.frames`: its moving frame, the sensor mount and TF;
   :mod:`kentreg_ros.ros.outputs`: what it publishes (and the map of the run);

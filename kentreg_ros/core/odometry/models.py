@@ -127,7 +127,8 @@ class PreviousScanModel:
         if posed.scan is None:
             return
         self._move(posed, posed.scan)
-        # Built now, with the model's upkeep, not at the next registration's first query.
+        # Built now, with the model's upkeep (model.target_tree), not inside the next
+        # registration's first query: the registration's timings then hold only its own work.
         with watch('model.target_tree'):
             posed.scan.tree.build()
 
