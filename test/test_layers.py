@@ -61,12 +61,24 @@ def test_core_imports_nothing_from_kentreg_ros_outside_core(path: Path) -> None:
 
 #: The rooms of the core, each importing only the ones before it (and itself): the floor
 #: (configuration, errors, SO(3)/SE(3), the Kent distribution, the per-point kernels, the
-#: stopwatch of stage timings), the prepared scan, the registration, the odometry.
+#: stopwatch of stage timings), the prepared scan, the registration, the odometry, the
+#: localization in a saved map.
 CORE_ROOMS = (
-    ('config', 'errors', 'fields', 'geometry', 'kent', 'kent_sampling', 'kernels', 'stopwatch'),
+    (
+        'config',
+        'errors',
+        'fields',
+        'geometry',
+        'kent',
+        'kent_sampling',
+        'kernels',
+        'stopwatch',
+        'localization_config',
+    ),
     ('scan',),
     ('registration',),
     ('odometry',),
+    ('localization',),
 )
 
 

@@ -32,6 +32,16 @@ from kentreg_ros.core.geometry import (
     project_to_so3,
     rotation_angle,
 )
+from kentreg_ros.core.localization import (
+    LocalizationResult,
+    LocalizationStatus,
+    Localizer,
+    PointMap,
+    TrackingState,
+    TrackStep,
+    Window,
+    localize,
+)
 from kentreg_ros.core.odometry import (
     ACCEPTED,
     HEALTHS,
@@ -119,4 +129,12 @@ __all__ = [
     'sweep_times',
     'validate_value',
     'voxel_downsample',
+    'Localizer',
+    'LocalizationResult',
+    'LocalizationStatus',
+    'PointMap',
+    'TrackingState',
+    'TrackStep',
+    'Window',
+    'localize',
 ]

@@ -27,6 +27,7 @@ from kentreg_ros.core.fields import (
     plain_value,
     setting,
 )
+from kentreg_ros.core.localization_config import LocalizationConfig
 
 
 class Mode(StrEnum):
@@ -498,6 +499,7 @@ class KentRegConfig(Section):
     refine: RefineConfig = field(default_factory=RefineConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
 
     def check(self) -> None:
         hints = get_type_hints(KentRegConfig)

@@ -1,0 +1,411 @@
+"""``localize(scan, map)``: where a scan is in a saved map, or that it cannot say.
+
+Candidates come from :mod:`~kentreg_ros.core.localization.search` (or the start, with a tight
+window); each is registered against the map around it (:func:`register_in_map`: the map's
+points within the scan's reach, their normal axes oriented toward the candidate's sensor, the
+robust registration from the candidate) and judged on the points:
+
+- its balanced fit (:func:`~kentreg_ros.core.registration.verify.balanced_fit`) at least
+  ``localization.min_fit``;
+- free space (:func:`free_space_violation`): map points the scan should see, lying clearly in
+  front of what it measured along the same ray, at most ``localization.max_violation`` of
+  those in view (a scan placed in the wrong place sees through the map's walls);
+- no distinct pose (points moved by more than twice the fit's distance gate) among the valid
+  ones fitting ``search.ambiguity_ratio`` as well: then the result is ``ambiguous`` and no pose
+  is given.
+
+The result is ``localized`` only when a candidate passes all three; otherwise ``ambiguous`` or
+``not_found``. A single scan is all this function sees; agreement over consecutive scans is
+:class:`~kentreg_ros.core.localization.tracker.Localizer`'s.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
+from kentreg_ros.core.geometry import check_transform, rotation_angle
+from kentreg_ros.core.localization.pointmap import PointMap
+from kentreg_ros.core.localization.search import Hypothesis, Window, rotations, translations
+from kentreg_ros.core.registration import RegistrationResult, Status, register
+from kentreg_ros.core.registration.verify import FIT_DISTANCE_VOXELS, rms_displacement
+from kentreg_ros.core.scan import PreparedScan, prepare_scan
+from kentreg_ros.core.scan.clusters import cluster_normals
+from kentreg_ros.core.scan.neighbors import NeighborIndex
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: A ray passed through a map point when its return lies beyond the point by more than this
+#: share of the return's range or the fit's distance gate, whichever is larger: a surface at a
+#: grazing angle spreads over range along a spacing's width.
+FREE_SPACE_RANGE_SHARE = 0.05
+#: Candidates registered in full (with the joint refinement), best coarse fit first.
+FULLY_REGISTERED = 3
+#: Map points the free-space test looks at, at most (every n-th of those within reach): a share
+#: of 20,000 is known to within half a percent.
+FREE_SPACE_SAMPLE = 20_000
+#: Candidates whose starts lie within this many search cells and
+#: ``search.min_separation_deg`` of a better one are the same candidate.
+SAME_START_CELLS = 1.5
+
+
+class LocalizationStatus(StrEnum):
+    """What :func:`localize` could say."""
+
+    LOCALIZED = 'localized'
+    AMBIGUOUS = 'ambiguous'
+    NOT_FOUND = 'not_found'
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """A pose considered, registered against the map and judged.
+
+    Attributes
+    ----------
+    T_map_scan : ndarray, shape (4, 4)
+    fit : float
+        Balanced fit of the registered pose (0 when the registration failed).
+    violation : float
+        Share of the map points in view that the scan saw through (1 when none in view).
+    visible : int
+        Map points in the scan's view.
+    score : float
+        The search's correlation score of its start.
+    valid : bool
+        Fit and free space within the gates.
+    result : RegistrationResult or None
+    """
+
+    T_map_scan: FloatArray
+    fit: float
+    violation: float
+    visible: int
+    score: float
+    valid: bool
+    result: RegistrationResult | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class LocalizationResult:
+    """Outcome of :func:`localize`.
+
+    Attributes
+    ----------
+    status : LocalizationStatus
+    T_map_scan : ndarray, shape (4, 4), or None
+        The pose when ``localized``, else None.
+    covariance : ndarray, shape (6, 6), or None
+        Its covariance (x, y, z, roll, pitch, yaw about the map's axes), as a registration's.
+    candidates : list of Candidate
+        Every pose judged, best fit first (valid ones first).
+    message : str
+    timings : dict
+        Milliseconds: ``prepare``, ``search``, ``register``, ``total``.
+    """
+
+    status: LocalizationStatus
+    T_map_scan: FloatArray | None
+    covariance: FloatArray | None
+    candidates: list[Candidate]
+    message: str
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def localized(self) -> bool:
+        return self.status is LocalizationStatus.LOCALIZED
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.candidates[0] if self.candidates else None
+
+
+def localize(
+    scan: ArrayLike | PreparedScan,
+    pmap: PointMap,
+    *,
+    init: ArrayLike | None = None,
+    window: Window | None = None,
+    config: KentRegConfig | None = None,
+) -> LocalizationResult:
+    """Localize ``scan`` in ``pmap``: its pose ``T_map_scan``, or that it cannot say which.
+
+    Parameters
+    ----------
+    scan : array_like, shape (N, 3), or PreparedScan
+        Points in the sensor frame, or a scan prepared with the same configuration.
+    pmap : PointMap
+    init : array_like, shape (4, 4), optional
+        A start. Without ``window`` the registration from it is the only candidate (tracking);
+        with one the search keeps within it.
+    window : Window, optional
+        How far ``init`` may be off (needs ``init``).
+    config : KentRegConfig, optional
+
+    Returns
+    -------
+    LocalizationResult
+        Never raises for a scan that cannot be localized: that is ``not_found``.
+
+    Raises
+    ------
+    InvalidPointCloudError
+        A malformed or unusable scan.
+    """
+    cfg = config or KentRegConfig()
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    start = None if init is None else check_transform(init, 'init')
+    if window is not None and start is None:
+        raise KentRegError('A search `window` needs an `init` pose.')
+    prepared = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, config=cfg)
+    timings['prepare'] = _ms(t_start)
+    t0 = time.perf_counter()
+    if start is not None and window is None:
+        starts = [Hypothesis(start, float('inf'))]
+    else:
+        starts = _search(prepared, pmap, cfg, start, window)
+    timings['search'] = _ms(t0)
+    t0 = time.perf_counter()
+    candidates = _register_candidates(prepared, pmap, starts, cfg)
+    timings['register'] = _ms(t0)
+    result = decide(candidates, prepared, pmap, cfg)
+    timings['total'] = _ms(t_start)
+    return LocalizationResult(
+        result.status, result.T_map_scan, result.covariance, result.candidates,
+        result.message, timings,
+    )  # fmt: skip
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _search(
+    scan: PreparedScan,
+    pmap: PointMap,
+    cfg: KentRegConfig,
+    start: FloatArray | None,
+    window: Window | None,
+) -> list[Hypothesis]:
+    """The candidates' starts: the best correlation peaks of every rotation hypothesis, the
+    same start once, at most ``localization.refined`` of them."""
+    loc = cfg.localization
+    hyps: list[Hypothesis] = []
+    for R in rotations(scan, pmap, cfg, start=start, window=window):
+        hyps += translations(scan, R, pmap, loc.peaks, start=start, window=window)
+    hyps.sort(key=lambda h: -h.score)
+    kept: list[Hypothesis] = []
+    cell = pmap.grid.cell * SAME_START_CELLS
+    min_angle = np.radians(cfg.search.min_separation_deg)
+    for h in hyps:
+        same = any(
+            np.linalg.norm(h.T[:3, 3] - k.T[:3, 3]) < cell
+            and rotation_angle(h.T[:3, :3].T @ k.T[:3, :3]) < min_angle
+            for k in kept
+        )
+        if not same:
+            kept.append(h)
+        if len(kept) >= loc.refined:
+            break
+    return kept
+
+
+def _register_candidates(
+    scan: PreparedScan, pmap: PointMap, starts: list[Hypothesis], cfg: KentRegConfig
+) -> list[Candidate]:
+    """Every start registered without the joint refinement (rotation EM, translation, fit), then
+    the :data:`FULLY_REGISTERED` best of those in full: the refinement is most of a
+    registration's cost, and a start whose coarse pose fits poorly does not turn into the best
+    by refining."""
+    if len(starts) <= FULLY_REGISTERED:
+        return [judge(scan, pmap, h, cfg) for h in starts]
+    coarse_cfg = cfg.with_updates({'refine.method': 'none'})
+    coarse = [judge(scan, pmap, h, coarse_cfg) for h in starts]
+    order = sorted(range(len(starts)), key=lambda i: -coarse[i].fit)
+    full = set(order[:FULLY_REGISTERED])
+    return [
+        judge(scan, pmap, Hypothesis(coarse[i].T_map_scan, starts[i].score), cfg)
+        if i in full
+        else coarse[i]
+        for i in range(len(starts))
+    ]
+
+
+def register_in_map(
+    scan: PreparedScan, pmap: PointMap, T0: FloatArray, config: KentRegConfig
+) -> RegistrationResult | None:
+    """The robust registration of ``scan`` against the map around ``T0`` (module docstring);
+    None when the map holds too little there."""
+    t = T0[:3, 3]
+    reach = float(np.sqrt(np.max(np.einsum('ij,ij->i', scan.points, scan.points))))
+    d2 = np.einsum('ij,ij->i', pmap.points - t, pmap.points - t)
+    rows = np.flatnonzero(d2 <= (reach + 2.0 * pmap.grid.cell) ** 2)
+    need = max(config.normals.k_neighbors, 4 * config.clustering.n_clusters, 50)
+    if len(rows) < need:
+        return None
+    points = pmap.points[rows]
+    normals = pmap.normals[rows]
+    away = np.einsum('ij,ij->i', normals, t - points) < 0.0
+    normals[away] *= -1.0  # the surfaces the sensor sees face it
+    labels, centers, clusters = cluster_normals(normals, config)
+    target = PreparedScan(
+        points=points,
+        normals=normals,
+        labels=labels,
+        centers=centers,
+        clusters=clusters,
+        tree=NeighborIndex(points).build(),
+        voxel_size=pmap.voxel_size,
+        viewpoint=t.copy(),
+        n_input=len(points),
+        n_isolated=0,
+        min_voxel_points=1,
+        n_normal_outliers=0,
+    )
+    try:
+        return register(scan, target, init=T0, config=config, global_search=False)
+    except (InvalidPointCloudError, np.linalg.LinAlgError) as exc:
+        logger.info('Registration in the map from a candidate failed: %s', exc)
+        return None
+
+
+def judge(
+    scan: PreparedScan, pmap: PointMap, start: Hypothesis, config: KentRegConfig
+) -> Candidate:
+    """Register from ``start``; the pose and its fit (its free space is judged later, by
+    :func:`decide`, for the few candidates that need it)."""
+    result = register_in_map(scan, pmap, start.T, config)
+    if result is None or result.status == Status.FAILED:
+        return Candidate(start.T, 0.0, 1.0, 0, start.score, False, result)
+    fit = float(result.fit) if np.isfinite(result.fit) else 0.0
+    return Candidate(result.T_target_source, fit, float('nan'), 0, start.score, False, result)
+
+
+def _with_free_space(
+    scan: PreparedScan, pmap: PointMap, c: Candidate, config: KentRegConfig
+) -> Candidate:
+    """``c`` with its free-space test done and its validity set."""
+    if c.result is None or not np.isnan(c.violation):
+        return c
+    loc = config.localization
+    violation, visible = free_space_violation(scan, pmap, c.T_map_scan)
+    valid = c.fit >= loc.min_fit and violation <= loc.max_violation
+    valid &= visible >= loc.min_visible
+    return replace(c, violation=violation, visible=visible, valid=valid)
+
+
+def free_space_violation(
+    scan: PreparedScan, pmap: PointMap, T_map_scan: FloatArray
+) -> tuple[float, int]:
+    """Share of the map points a ray of the scan passed through, among those its rays reach.
+
+    A map point (within the scan's reach) is *in view* of the scan ray nearest its direction
+    when the ray passes through its voxel (within one sampling spacing; a point between the
+    rays of a sparse scan is no evidence either way) and its return lies no nearer than
+    the point by more than the margin (:data:`FREE_SPACE_RANGE_SHARE` of the range, or the
+    fit's distance gate); it is *passed through* when the return lies beyond it by more than
+    that margin: the scan saw empty space where the map has a surface. A scan in the wrong
+    place sees through the map's walls; in the right place only moving objects and thin
+    structures do.
+
+    Returns
+    -------
+    violation : float
+        Passed through / in view (1.0 when nothing is in view).
+    visible : int
+        Map points in view.
+    """
+    R, t = T_map_scan[:3, :3], T_map_scan[:3, 3]
+    r_scan = np.sqrt(np.einsum('ij,ij->i', scan.points, scan.points))
+    reach = float(r_scan.max())
+    d2 = np.einsum('ij,ij->i', pmap.points - t, pmap.points - t)
+    rows = np.flatnonzero(d2 <= reach * reach)
+    rows = rows[:: max(1, len(rows) // FREE_SPACE_SAMPLE)]  # a share needs no more
+    q = (pmap.points[rows] - t) @ R  # map points in the scan's frame
+    r_map = np.sqrt(np.einsum('ij,ij->i', q, q))
+    ok = r_map > 1e-6
+    q, r_map = q[ok], r_map[ok]
+    rays = scan.points / np.maximum(r_scan, 1e-9)[:, None]
+    chord, nearest = NeighborIndex(rays).query(q / r_map[:, None], k=1)
+    chord, nearest = np.asarray(chord).reshape(-1), np.asarray(nearest).reshape(-1)
+    spacing = max(scan.voxel_size, pmap.voxel_size)
+    r_ret = r_scan[nearest]
+    margin = np.maximum(FREE_SPACE_RANGE_SHARE * r_ret, FIT_DISTANCE_VOXELS * spacing)
+    on_ray = chord * r_map <= spacing  # the ray passes within a spacing of the point
+    in_view = on_ray & (r_ret >= r_map - margin)
+    through = on_ray & (r_ret > r_map + margin)
+    visible = int(np.count_nonzero(in_view))
+    if visible == 0:
+        return 1.0, 0
+    return float(np.count_nonzero(through)) / visible, visible
+
+
+@dataclass(frozen=True, eq=False)
+class _Decision:
+    status: LocalizationStatus
+    T_map_scan: FloatArray | None
+    covariance: FloatArray | None
+    candidates: list[Candidate]
+    message: str
+
+
+def decide(
+    candidates: list[Candidate], scan: PreparedScan, pmap: PointMap, config: KentRegConfig
+) -> _Decision:
+    """The gates of the module docstring over the judged candidates; the free-space test
+    runs on those that fit well enough, best first, until the decision is made."""
+    loc = config.localization
+    ratio = config.search.ambiguity_ratio
+    gate = 2.0 * FIT_DISTANCE_VOXELS * max(scan.voxel_size, pmap.voxel_size, 1e-6)
+    ranked = sorted(candidates, key=lambda c: -c.fit)
+    best: Candidate | None = None
+    rivals: list[Candidate] = []
+    for i, c in enumerate(ranked):
+        if c.fit < loc.min_fit or (best is not None and c.fit < ratio * best.fit):
+            break
+        if (
+            best is not None
+            and rms_displacement(scan.points, c.T_map_scan, best.T_map_scan) <= gate
+        ):
+            continue  # the same pose as the best
+        ranked[i] = c = _with_free_space(scan, pmap, c, config)
+        if not c.valid:
+            continue
+        if best is None:
+            best = c
+        else:
+            rivals.append(c)
+    ranked.sort(key=lambda c: (not c.valid, -c.fit))
+    if best is None:
+        top = ranked[0] if ranked else None
+        why = (
+            'no candidate pose' if top is None
+            else f'the best pose fits {top.fit:.2f} (localization.min_fit={loc.min_fit})'
+            + ('' if np.isnan(top.violation) else f' and its scan sees through '
+               f'{top.violation:.0%} of the {top.visible} map points in view '
+               f'(localization.max_violation={loc.max_violation})')
+        )  # fmt: skip
+        return _Decision(LocalizationStatus.NOT_FOUND, None, None, ranked, f'Not found: {why}.')
+    if rivals:
+        message = (
+            f'Ambiguous: {len(rivals) + 1} distinct poses fit about equally '
+            f'({best.fit:.2f} and {rivals[0].fit:.2f}, search.ambiguity_ratio={ratio}).'
+        )
+        return _Decision(LocalizationStatus.AMBIGUOUS, None, None, ranked, message)
+    assert best.result is not None
+    message = (
+        f'Localized: fit {best.fit:.2f}, its scan sees through {best.violation:.1%} of '
+        f'{best.visible} map points in view.'
+    )
+    cov = np.asarray(best.result.covariance, dtype=np.float64)
+    return _Decision(LocalizationStatus.LOCALIZED, best.T_map_scan, cov, ranked, message)

@@ -1,0 +1,176 @@
+"""Candidate poses of a scan in a map, without a start: rotations from the Kent mixtures, then
+for each the translations from a correlation of the normal channels' occupancy.
+
+Rotations: the twist hypotheses of :mod:`kentreg_ros.core.registration.search` between the
+scan's mixture and the map's (normals and their opposites), ranked by the mixtures' overlap,
+the distinct best refined by a few passes of the shared-rotation EM. A window (a start and how
+far it may be off) keeps the hypotheses within it.
+
+Translations: for a rotation R, the scan's points (within :data:`~.pointmap.SEARCH_REACH` of
+its sensor) turned by R are binned per normal axis like the map's, and the correlation
+``c(s) = sum_axis sum_u map_axis(u + s) scan_axis(u)`` over every shift s of the grid comes
+from one product of spectra per axis and one inverse FFT; its highest peaks, at least two cells
+apart, are the candidate translations. Only the cells' coincidence is scored here: the
+registration from each candidate and its fit decide.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft as sfft
+from numpy.typing import NDArray
+
+from kentreg_ros.core.config import KentRegConfig
+from kentreg_ros.core.geometry import make_transform, rotation_angle
+from kentreg_ros.core.localization.pointmap import AXIAL_ROTATIONS_FACTOR, SEARCH_REACH, PointMap
+from kentreg_ros.core.registration.em import shared_rotation_em
+from kentreg_ros.core.registration.search import distinct_best, mixture_overlap, twist_hypotheses
+from kentreg_ros.core.scan import PreparedScan
+
+FloatArray = NDArray[np.float64]
+
+#: EM passes refining a rotation hypothesis (the search's, see ``robust.SEARCH_EM_PASSES``).
+EM_PASSES = 6
+#: Correlation values examined for peaks, best first (the suppression keeps a few of them).
+PEAK_POOL = 4096
+#: Peaks of one rotation closer than this many cells are one peak.
+PEAK_SEPARATION_CELLS = 2.0
+
+
+@dataclass(frozen=True)
+class Window:
+    """How far a start may be off: the search keeps to rotations within ``angle_deg`` of the
+    start's and translations within ``distance`` (m) of its position."""
+
+    distance: float
+    angle_deg: float
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """A candidate pose ``T_map_scan`` and its correlation score (cells in agreement)."""
+
+    T: FloatArray
+    score: float
+
+
+def rotations(
+    scan: PreparedScan,
+    pmap: PointMap,
+    config: KentRegConfig,
+    *,
+    start: FloatArray | None = None,
+    window: Window | None = None,
+) -> list[FloatArray]:
+    """Distinct rotation hypotheses ``R_map_scan``, best overlap first (within the window of
+    ``start`` when both are given)."""
+    scfg = config.search
+    hyp = twist_hypotheses(scan.clusters, pmap.clusters, scfg.twist_step_deg)
+    if start is not None and window is not None:
+        near = _angles(hyp, start[:3, :3]) <= np.radians(window.angle_deg)
+        hyp = np.concatenate([start[None, :3, :3], hyp[near]])
+    cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
+    scores = mixture_overlap(hyp, scan.clusters, pmap.clusters, cap)
+    count = config.localization.rotations * (1 if pmap.oriented else AXIAL_ROTATIONS_FACTOR)
+    chosen = distinct_best(hyp, scores, count, scfg.min_separation_deg)
+    em_cfg = config.em
+    out: list[FloatArray] = []
+    for i in chosen:
+        em = shared_rotation_em(
+            scan.clusters.bins,
+            pmap.clusters,
+            hyp[i],
+            outlier_weight=em_cfg.outlier_weight,
+            use_beta=em_cfg.kent_beta,
+            rotation=em_cfg.rotation,
+            kappa_cap_start=em_cfg.kappa_cap_start,
+            kappa_cap_end=em_cfg.kappa_cap_end,
+            kappa_cap_growth=em_cfg.kappa_cap_growth,
+            max_iterations=EM_PASSES,
+            tolerance=em_cfg.tolerance,
+        )
+        R = em.R
+        if start is not None and window is not None:
+            if rotation_angle(start[:3, :3].T @ R) > np.radians(window.angle_deg):
+                R = hyp[i]  # the EM left the window: keep the hypothesis itself
+        if all(rotation_angle(R.T @ Q) >= np.radians(scfg.min_separation_deg) for Q in out):
+            out.append(R)
+    return out
+
+
+def _subcell(corr: NDArray[np.float32], index: NDArray[np.intp]) -> FloatArray:
+    """Parabolic interpolation of a correlation peak along each axis (cells, within +-0.5)."""
+    out = np.zeros(3)
+    for axis in range(3):
+        lo, hi = index.copy(), index.copy()
+        lo[axis] = (index[axis] - 1) % corr.shape[axis]
+        hi[axis] = (index[axis] + 1) % corr.shape[axis]
+        a, b, c = float(corr[tuple(lo)]), float(corr[tuple(index)]), float(corr[tuple(hi)])
+        denom = a - 2.0 * b + c
+        if denom < 0.0:
+            out[axis] = float(np.clip(0.5 * (a - c) / denom, -0.5, 0.5))
+    return out
+
+
+def _angles(rotations: FloatArray, R: FloatArray) -> FloatArray:
+    """Angles between every rotation (H, 3, 3) and ``R``."""
+    cos = (np.einsum('ab,hab->h', R, rotations) - 1.0) / 2.0
+    out: FloatArray = np.arccos(np.clip(cos, -1.0, 1.0))
+    return out
+
+
+def translations(
+    scan: PreparedScan,
+    R: FloatArray,
+    pmap: PointMap,
+    n_peaks: int,
+    *,
+    start: FloatArray | None = None,
+    window: Window | None = None,
+) -> list[Hypothesis]:
+    """The best translations for rotation ``R`` (module docstring), as poses with scores."""
+    grid = pmap.grid
+    near = np.einsum('ij,ij->i', scan.points, scan.points) <= SEARCH_REACH**2
+    x = scan.points[near] @ R.T
+    n = scan.normals[near] @ R.T
+    if len(x) == 0:
+        return []
+    channel = pmap.channel_of(n)
+    lo_scan = x.min(axis=0)
+    ijk = np.floor((x - lo_scan) / grid.cell).astype(np.intp)
+    total: NDArray[np.complex64] | None = None
+    for c, spectrum in enumerate(grid.spectra):
+        occupied = np.zeros(grid.shape, dtype=np.float32)
+        mine = ijk[channel == c]
+        ok = np.all(mine < np.array(grid.shape), axis=1)
+        occupied[tuple(mine[ok].T)] = 1.0
+        term = spectrum * np.conj(sfft.rfftn(occupied, workers=1))
+        total = term if total is None else total + term
+    assert total is not None
+    corr = sfft.irfftn(total, grid.shape, workers=1)
+    shape = np.array(grid.shape)
+
+    def translation(flat: int) -> FloatArray:
+        s = np.array(np.unravel_index(flat, grid.shape), dtype=np.float64)
+        s += _subcell(corr, np.array(np.unravel_index(flat, grid.shape)))
+        s = np.where(s >= grid.map_cells, s - shape, s)  # wrapped: a negative shift
+        t: FloatArray = grid.lo + s * grid.cell - lo_scan
+        return t
+
+    values = corr.ravel()
+    pool = min(PEAK_POOL, values.size)
+    top = np.argpartition(values, values.size - pool)[values.size - pool :]
+    top = top[np.argsort(values[top])[::-1]]
+    out: list[Hypothesis] = []
+    for flat in top:
+        t = translation(int(flat))
+        if start is not None and window is not None:
+            if np.linalg.norm(t - start[:3, 3]) > window.distance + grid.cell:
+                continue
+        if all(np.linalg.norm(t - h.T[:3, 3]) > PEAK_SEPARATION_CELLS * grid.cell for h in out):
+            out.append(Hypothesis(make_transform(R, t), float(values[flat])))
+            if len(out) >= n_peaks:
+                break
+    return out
