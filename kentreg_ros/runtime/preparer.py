@@ -117,12 +117,15 @@ def _widen_pipe(fd: int) -> None:
         pass
 
 
+#: The directory this package is imported from.
+PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
+
+
 def _package_path() -> str:
     """PYTHONPATH for the worker: the directory this package is imported from first, so the
     worker runs the same code as its parent (a source tree, not another installed copy)."""
-    root = str(Path(__file__).resolve().parents[2])
     rest = os.environ.get('PYTHONPATH', '')
-    return root if not rest else f'{root}{os.pathsep}{rest}'
+    return PACKAGE_ROOT if not rest else f'{PACKAGE_ROOT}{os.pathsep}{rest}'
 
 
 @dataclass
@@ -194,6 +197,10 @@ class ProcessPreparer:
             pass_fds=fds,
             stdin=subprocess.DEVNULL,
             env={**os.environ, **ONE_THREAD_ENV, 'PYTHONPATH': _package_path()},
+            # ``-m`` puts the working directory first on sys.path, before PYTHONPATH: run it
+            # where the package is, or a kentreg_ros in the caller's directory would be the
+            # worker's (another tree's code, whose messages the parent's may not unpickle).
+            cwd=PACKAGE_ROOT,
         )
         req_r.close()
         rep_w.close()
