@@ -52,16 +52,17 @@ class LocalizationConfig(Section, prefix='localization.'):
         0.3,
         'A pose is localized only when at least this share of the scan lands on matching map '
         'surfaces (the balanced fit): below it the map explains too little of the scan to '
-        'vouch for a pose. Right poses fitted 0.42-0.96 on the BALM and Avia keyframes; wrong '
-        'places at most 0.55, and only with free-space violations.',
+        'vouch for a pose (right poses fitted 0.42-0.96 on the BALM and Avia keyframes).',
         range=(0.0, 1.0),
     )
     max_violation: float = setting(
-        0.25,
-        'A pose is refused when more than this share of the map points the scan should see '
-        'lie clearly in front of what it measured along the same ray (the scan saw through '
-        'them): right poses 0.02-0.03 (moving objects, thin structures), a scan placed in '
-        'another place 0.08-0.42.',
+        0.3,
+        "A pose is refused when the scan's rays pass through more than this share of the map "
+        'points they reach (by more than 5 % of the range): the scan saw empty space where '
+        'the map has a surface. At the reference poses 0.06 (BALM), 0.12 (Avia outdoors) and '
+        'up to 0.27 (a small room with fast hand-held turns: moving people, a smeared map); '
+        'wrong poses mostly 0.3-0.8. A pose that passes still needs no distinct rival within '
+        'search.ambiguity_ratio of its fit.',
         range=(0.0, 1.0),
     )
     min_visible: int = setting(

@@ -10,9 +10,9 @@ robust registration from the candidate) and judged on the points:
 - free space (:func:`free_space_violation`): map points the scan should see, lying clearly in
   front of what it measured along the same ray, at most ``localization.max_violation`` of
   those in view (a scan placed in the wrong place sees through the map's walls);
-- no distinct pose (points moved by more than twice the fit's distance gate) among the valid
-  ones fitting ``search.ambiguity_ratio`` as well: then the result is ``ambiguous`` and no pose
-  is given.
+- no distinct pose (points moved by more than twice the fit's distance gate) fitting
+  ``search.ambiguity_ratio`` as well, whether it passes the free-space test or not: then the
+  result is ``ambiguous`` and no pose is given.
 
 The result is ``localized`` only when a candidate passes all three; otherwise ``ambiguous`` or
 ``not_found``. A single scan is all this function sees; agreement over consecutive scans is
@@ -310,7 +310,7 @@ def free_space_violation(
     """Share of the map points a ray of the scan passed through, among those its rays reach.
 
     A map point (within the scan's reach) is *in view* of the scan ray nearest its direction
-    when the ray passes through its voxel (within one sampling spacing; a point between the
+    when the ray passes through its voxel (within half a sampling spacing; a point between the
     rays of a sparse scan is no evidence either way) and its return lies no nearer than
     the point by more than the margin (:data:`FREE_SPACE_RANGE_SHARE` of the range, or the
     fit's distance gate); it is *passed through* when the return lies beyond it by more than
@@ -341,7 +341,7 @@ def free_space_violation(
     spacing = max(scan.voxel_size, pmap.voxel_size)
     r_ret = r_scan[nearest]
     margin = np.maximum(FREE_SPACE_RANGE_SHARE * r_ret, FIT_DISTANCE_VOXELS * spacing)
-    on_ray = chord * r_map <= spacing  # the ray passes within a spacing of the point
+    on_ray = chord * r_map <= 0.5 * spacing  # the ray passes through the point's voxel
     in_view = on_ray & (r_ret >= r_map - margin)
     through = on_ray & (r_ret > r_map + margin)
     visible = int(np.count_nonzero(in_view))
@@ -369,22 +369,25 @@ def decide(
     gate = 2.0 * FIT_DISTANCE_VOXELS * max(scan.voxel_size, pmap.voxel_size, 1e-6)
     ranked = sorted(candidates, key=lambda c: -c.fit)
     best: Candidate | None = None
-    rivals: list[Candidate] = []
     for i, c in enumerate(ranked):
-        if c.fit < loc.min_fit or (best is not None and c.fit < ratio * best.fit):
+        if c.fit < loc.min_fit:
             break
-        if (
-            best is not None
-            and rms_displacement(scan.points, c.T_map_scan, best.T_map_scan) <= gate
-        ):
-            continue  # the same pose as the best
         ranked[i] = c = _with_free_space(scan, pmap, c, config)
-        if not c.valid:
-            continue
-        if best is None:
+        if c.valid:
             best = c
-        else:
-            rivals.append(c)
+            break
+    rivals: list[Candidate] = []
+    if best is not None:
+        # Any distinct pose fitting about as well, refused by the free-space test or not, makes
+        # the answer ambiguous: a better-fitting pose that sees through the map is no proof
+        # that the valid one is right.
+        rivals = [
+            c
+            for c in ranked
+            if c is not best
+            and c.fit >= ratio * best.fit
+            and rms_displacement(scan.points, c.T_map_scan, best.T_map_scan) > gate
+        ]
     ranked.sort(key=lambda c: (not c.valid, -c.fit))
     if best is None:
         top = ranked[0] if ranked else None

@@ -119,6 +119,10 @@ class PointMap:
     tree : NeighborIndex
         Index on ``points``.
     grid : SearchGrid
+    places : list of ModelClusters
+        With viewpoints: the Kent mixture of the normals within :data:`SEARCH_REACH` of places
+        along the recorded path (:func:`_places`): a scan's view matches the mixture of the
+        place it is in far better than a large site's whole mixture, which is diffuse.
     """
 
     points: FloatArray
@@ -130,6 +134,7 @@ class PointMap:
     clusters: ModelClusters
     tree: NeighborIndex
     grid: SearchGrid
+    places: list[ModelClusters]
 
     def __len__(self) -> int:
         return len(self.points)
@@ -203,7 +208,8 @@ class PointMap:
         grid = _search_grid(pts, channels, len(directions), cells, views)
         tree = NeighborIndex(pts).build()
         voxel = cfg.localization.map_voxel_size
-        return cls(pts, nrm, voxel, views, directions, channels, clusters, tree, grid)
+        places = [] if views is None else _places(pts, nrm, views, cfg)
+        return cls(pts, nrm, voxel, views, directions, channels, clusters, tree, grid, places)
 
     # -- the cache ---------------------------------------------------------------------------
 
@@ -248,6 +254,30 @@ class PointMap:
         n = len(self.directions)
         grid = _search_grid(self.points, self.channels, n, grid_cells, self.viewpoints)
         return replace(self, grid=grid)
+
+
+#: Places along the recorded path are this far apart at least (m): half the search reach, so
+#: a sensor anywhere near the path is within half a reach of one.
+PLACE_SPACING = 0.5 * SEARCH_REACH
+
+
+def _places(
+    points: FloatArray, normals: FloatArray, viewpoints: FloatArray, cfg: KentRegConfig
+) -> list[ModelClusters]:
+    """The normals' mixture around places along the path: viewpoints at least
+    :data:`PLACE_SPACING` apart (greedily, in path order), each with the map within
+    :data:`SEARCH_REACH` (places with too few normals to cluster are skipped)."""
+    chosen: list[FloatArray] = []
+    for v in viewpoints:
+        if all(np.linalg.norm(v - c) >= PLACE_SPACING for c in chosen):
+            chosen.append(v)
+    out: list[ModelClusters] = []
+    need = 4 * cfg.clustering.n_clusters * cfg.normals.k_neighbors
+    for c in chosen:
+        near = np.einsum('ij,ij->i', points - c, points - c) <= SEARCH_REACH**2
+        if np.count_nonzero(near) >= need:
+            out.append(cluster_normals(normals[near], cfg)[2])
+    return out
 
 
 def _facing(points: FloatArray, normals: FloatArray, viewpoints: FloatArray) -> FloatArray:

@@ -2,9 +2,10 @@
 for each the translations from a correlation of the normal channels' occupancy.
 
 Rotations: the twist hypotheses of :mod:`kentreg_ros.core.registration.search` between the
-scan's mixture and the map's (normals and their opposites), ranked by the mixtures' overlap,
-the distinct best refined by a few passes of the shared-rotation EM. A window (a start and how
-far it may be off) keeps the hypotheses within it.
+scan's mixture and the map's (normals and their opposites when the map has no viewpoints),
+and the mixtures of the places along its recorded path, ranked by the mixtures' overlap, the
+distinct best refined by a few passes of the shared-rotation EM against the mixture that
+proposed them. A window (a start and how far it may be off) keeps the hypotheses within it.
 
 Translations: for a rotation R, the scan's points (within :data:`~.pointmap.SEARCH_REACH` of
 its sensor) turned by R are binned per normal axis like the map's, and the correlation
@@ -28,6 +29,7 @@ from kentreg_ros.core.localization.pointmap import AXIAL_ROTATIONS_FACTOR, SEARC
 from kentreg_ros.core.registration.em import shared_rotation_em
 from kentreg_ros.core.registration.search import distinct_best, mixture_overlap, twist_hypotheses
 from kentreg_ros.core.scan import PreparedScan
+from kentreg_ros.core.scan.clusters import ModelClusters
 
 FloatArray = NDArray[np.float64]
 
@@ -67,21 +69,32 @@ def rotations(
     """Distinct rotation hypotheses ``R_map_scan``, best overlap first (within the window of
     ``start`` when both are given)."""
     scfg = config.search
-    hyp = twist_hypotheses(scan.clusters, pmap.clusters, scfg.twist_step_deg)
-    if start is not None and window is not None:
-        near = _angles(hyp, start[:3, :3]) <= np.radians(window.angle_deg)
-        hyp = np.concatenate([start[None, :3, :3], hyp[near]])
     cap = 1.0 / np.radians(scfg.twist_step_deg) ** 2
-    scores = mixture_overlap(hyp, scan.clusters, pmap.clusters, cap)
     count = config.localization.rotations * (1 if pmap.oriented else AXIAL_ROTATIONS_FACTOR)
-    chosen = distinct_best(hyp, scores, count, scfg.min_separation_deg)
+    pool: list[tuple[float, FloatArray, ModelClusters]] = []
+    for mixture in [pmap.clusters, *pmap.places]:
+        hyp = twist_hypotheses(scan.clusters, mixture, scfg.twist_step_deg)
+        if start is not None and window is not None:
+            near = _angles(hyp, start[:3, :3]) <= np.radians(window.angle_deg)
+            hyp = np.concatenate([start[None, :3, :3], hyp[near]])
+        scores = mixture_overlap(hyp, scan.clusters, mixture, cap)
+        for i in distinct_best(hyp, scores, count, scfg.min_separation_deg):
+            pool.append((float(scores[i]), hyp[i], mixture))
+    pool.sort(key=lambda h: -h[0])
     em_cfg = config.em
     out: list[FloatArray] = []
-    for i in chosen:
+    tried: list[FloatArray] = []
+    min_angle = np.radians(scfg.min_separation_deg)
+    for _, R0, mixture in pool:
+        if len(tried) >= count:
+            break
+        if any(rotation_angle(R0.T @ Q) < min_angle for Q in tried):
+            continue  # another mixture's hypothesis already covers it
+        tried.append(R0)
         em = shared_rotation_em(
             scan.clusters.bins,
-            pmap.clusters,
-            hyp[i],
+            mixture,
+            R0,
             outlier_weight=em_cfg.outlier_weight,
             use_beta=em_cfg.kent_beta,
             rotation=em_cfg.rotation,
@@ -94,8 +107,8 @@ def rotations(
         R = em.R
         if start is not None and window is not None:
             if rotation_angle(start[:3, :3].T @ R) > np.radians(window.angle_deg):
-                R = hyp[i]  # the EM left the window: keep the hypothesis itself
-        if all(rotation_angle(R.T @ Q) >= np.radians(scfg.min_separation_deg) for Q in out):
+                R = R0  # the EM left the window: keep the hypothesis itself
+        if all(rotation_angle(R.T @ Q) >= min_angle for Q in out):
             out.append(R)
     return out
 
