@@ -139,9 +139,10 @@ def test_outside_core_reaches_it_through_its_facade(path: Path) -> None:
     [
         ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros')),
         ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros')),
+        ('batch', ('kentreg_ros.cli', 'kentreg_ros.ros')),
     ],
 )
-def test_io_and_eval_never_import_the_command_lines_or_the_node(
+def test_io_eval_and_batch_never_import_the_command_lines_or_the_node(
     folder: str, forbidden: tuple[str, ...]
 ) -> None:
     for path in modules(PACKAGE / folder):
