@@ -17,8 +17,12 @@ Without the ``cluster`` extra the inputs run one after the other in this process
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import logging
+import os
+import signal
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -79,7 +83,7 @@ def run_on_cluster(
     KeyboardInterrupt
         Ctrl-C: the tasks are cancelled and a local cluster's workers stopped first.
     """
-    with _client(workers=workers, address=address, n_jobs=len(jobs)) as client:
+    with _client(workers=workers, address=address, n_jobs=len(jobs)) as (client, local_pids):
         from distributed import as_completed
 
         futures = {
@@ -98,6 +102,11 @@ def run_on_cluster(
                 on_entry(entry)
         except BaseException:
             client.cancel(list(futures), force=True)
+            # Dask cannot stop a running task: the local workers are killed (their inputs keep
+            # no marker and run again next time); a remote cluster's finish theirs.
+            for pid in local_pids:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGKILL)
             raise
 
 
@@ -108,15 +117,18 @@ def _task(job: BatchJob) -> InputEntry:
 
 
 @contextmanager
-def _client(*, workers: int | None, address: str | None, n_jobs: int) -> Iterator[Any]:
-    """A client of a running cluster (``address``) or of a local cluster started here."""
+def _client(
+    *, workers: int | None, address: str | None, n_jobs: int
+) -> Iterator[tuple[Any, list[int]]]:
+    """A client of a running cluster (``address``) or of a local cluster started here, and the
+    process ids of the local cluster's workers."""
     from distributed import Client, LocalCluster
 
     if address is not None:
         client = Client(address, timeout=CONNECT_TIMEOUT_S)
         try:
             client.forward_logging('kentreg_ros', level=logging.WARNING)
-            yield client
+            yield client, []
         finally:
             client.close()
         return
@@ -124,8 +136,13 @@ def _client(*, workers: int | None, address: str | None, n_jobs: int) -> Iterato
 
     n = max(1, min(workers or 1, n_jobs))
     # Dask's nanny would start the workers with MALLOC_TRIM_THRESHOLD_=65536, which slows the
-    # odometry by half (kentreg_ros.batch.job.prepare_worker): None leaves it unset.
-    with dask.config.set({'distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_': None}):
+    # odometry by half (kentreg_ros.batch.job.prepare_worker): None leaves it unset. The workers
+    # start with Ctrl-C ignored (a disposition a new process keeps): it reaches this process
+    # alone, which stops them.
+    with (
+        dask.config.set({'distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_': None}),
+        _ctrl_c_ignored(),
+    ):
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -138,8 +155,22 @@ def _client(*, workers: int | None, address: str | None, n_jobs: int) -> Iterato
         client = Client(cluster)
         try:
             client.forward_logging('kentreg_ros', level=logging.WARNING)
-            yield client
+            pids: dict[str, int] = client.run(os.getpid)
+            yield client, list(pids.values())
         finally:
             client.close()
     finally:
         cluster.close()
+
+
+@contextmanager
+def _ctrl_c_ignored() -> Iterator[None]:
+    """SIGINT ignored while the block runs (in the main thread; elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -152,9 +152,12 @@ def read_marker(folder: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) and 'entry' in data and 'settings' in data else None
 
 
-def finished_entry(job: BatchJob) -> InputEntry | None:
-    """The entry of ``job`` as an earlier run finished it with the same settings (status
-    ``skipped``), or None when it has to run."""
+def finished_entry(
+    job: BatchJob, *, status: InputStatus = InputStatus.SKIPPED
+) -> InputEntry | None:
+    """The entry of ``job`` as its marker records it (with ``status``: ``skipped`` for a run
+    before this one), when the marker is there with the same settings; None when it is not and
+    the input has to run."""
     marker = read_marker(job.out)
     if marker is None:
         return None
@@ -165,7 +168,7 @@ def finished_entry(job: BatchJob) -> InputEntry | None:
         entry = InputEntry.from_json(marker['entry'])
     except (KeyError, TypeError, ValueError):
         return None
-    return dataclasses.replace(entry, input=job.input, name=job.name, status=InputStatus.SKIPPED)
+    return dataclasses.replace(entry, input=job.input, name=job.name, status=status)
 
 
 def run_job(job: BatchJob) -> InputEntry:

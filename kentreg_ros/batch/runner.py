@@ -142,7 +142,12 @@ def run_batch(
             else:
                 engine.run_on_cluster(todo, finished, workers=workers, address=address)
         except KeyboardInterrupt:
-            write_summary(out, entries, command=command, complete=False)  # whole again
+            # The workers are stopped now; an input they finished before they were (its marker
+            # written) is done, though its entry never came back.
+            for i, job in enumerate(jobs):
+                if entries[i].status == InputStatus.PENDING:
+                    entries[i] = finished_entry(job, status=InputStatus.DONE) or entries[i]
+            write_summary(out, entries, command=command, complete=False)
             raise
         write_summary(out, entries, command=command, complete=True)
     return BatchResult(entries, True, time.perf_counter() - t0)
