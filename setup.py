@@ -43,7 +43,7 @@ setup(
         ],
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
         # kentreg_batch over several cores or machines: Dask's distributed scheduler (chosen
-        # over Ray for its start-up, memory and install size; benchmarks/README.md, "Batch")
+        # over Ray for its start-up, memory and install size; benchmarks/README.md, section 6)
         # and threadpoolctl, which holds each worker's BLAS to one thread.
         'cluster': ['distributed>=2024.1', 'threadpoolctl>=3.1'],
         'bench': ['open3d-cpu', 'small-gicp', 'kiss-icp', 'matplotlib>=3.7'],

@@ -9,7 +9,7 @@ inputs run on all of it. Each input is one task, :func:`~kentreg_ros.batch.job.r
 scheduler hands a task whose worker died (killed, out of memory, a crash in native code) to
 another worker, up to its ``allowed-failures`` (3); after that the input is ``failed``
 (``KilledWorker``). Why Dask and not Ray (start-up, memory, failures, measured here):
-``benchmarks/README.md``, section "Batch".
+``benchmarks/README.md``, section 6.
 
 Without the ``cluster`` extra the inputs run one after the other in this process
 (:func:`run_in_process`), which only one worker can be.

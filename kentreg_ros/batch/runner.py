@@ -34,11 +34,14 @@ class BatchResult:
         The batch ran to its end (not interrupted).
     wall_s : float
         Wall time of the batch, the cluster's start included.
+    n_run : int
+        Inputs run (the others were skipped).
     """
 
     entries: list[InputEntry]
     complete: bool
     wall_s: float
+    n_run: int
 
     @property
     def failed(self) -> list[InputEntry]:
@@ -150,4 +153,4 @@ def run_batch(
             write_summary(out, entries, command=command, complete=False)
             raise
         write_summary(out, entries, command=command, complete=True)
-    return BatchResult(entries, True, time.perf_counter() - t0)
+    return BatchResult(entries, True, time.perf_counter() - t0, len(todo))

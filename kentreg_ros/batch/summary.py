@@ -56,7 +56,8 @@ def summary_markdown(entries: Sequence[InputEntry], *, complete: bool = True) ->
     lines = [
         '# kentreg batch',
         '',
-        f'{len(entries)} inputs: {tally}' + ('' if complete else ' (the batch did not finish)'),
+        f'{len(entries)} input{"s" if len(entries) != 1 else ""}: {tally}'
+        + ('' if complete else ' (the batch did not finish)'),
         '',
         '| input | status | output | scans | ms/scan | failed steps | failed pairs | ATE [m] '
         '| error |',

@@ -157,9 +157,15 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
                 file=sys.stderr,
             )
             return common.EXIT_INTERRUPTED
-    where = 'in this process' if in_process else args.address or f'{workers} local workers'
+    n_local = min(workers, result.n_run)
+    where = (
+        'nothing to run' if not result.n_run
+        else 'in this process' if in_process
+        else args.address or f'{n_local} local worker{"s" if n_local > 1 else ""}'
+    )  # fmt: skip
     tally = ', '.join(f'{n} {status}' for status, n in counts(result.entries).items() if n)
-    print(f'{PROG}: {len(jobs)} inputs: {tally} in {result.wall_s:.1f} s ({where})')
+    inputs_text = f'{len(jobs)} input{"s" if len(jobs) != 1 else ""}'
+    print(f'{PROG}: {inputs_text}: {tally} in {result.wall_s:.1f} s ({where})')
     for entry in result.failed:
         print(f'  failed     {entry.input}: {entry.error}')
     print(f'  summary    {args.out / SUMMARY_JSON}, {args.out / SUMMARY_MD}')
