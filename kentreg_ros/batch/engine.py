@@ -23,6 +23,7 @@ import logging
 import os
 import signal
 import threading
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -86,8 +87,11 @@ def run_on_cluster(
     with _client(workers=workers, address=address, n_jobs=len(jobs)) as (client, local_pids):
         from distributed import as_completed
 
+        # Keys of this run only: a task of an earlier run may still be running on a cluster,
+        # and a new task under its key would be given that task's result.
+        run = uuid.uuid4().hex[:12]
         futures = {
-            client.submit(_task, job, key=f'kentreg-batch-{job.name}-{i}', pure=False): job
+            client.submit(_task, job, key=f'kentreg-batch-{run}-{i}-{job.name}', pure=False): job
             for i, job in enumerate(jobs)
         }
         try:

@@ -181,10 +181,10 @@ def run_job(job: BatchJob) -> InputEntry:
     ``kentreg_replay`` does) and raises ``KeyboardInterrupt``.
     """
     t0 = time.perf_counter()
-    load_kernels()
-    if job.out.is_dir():
-        shutil.rmtree(job.out)  # an interrupted or outdated run's files: none may remain
     try:
+        load_kernels()
+        if job.out.is_dir() and not job.out.is_symlink():
+            shutil.rmtree(job.out)  # an interrupted or outdated run's files: none may remain
         summary = replay(
             job.input,
             job.config,
