@@ -33,6 +33,7 @@ from kentreg_ros.batch.job import (
     BatchJob,
     InputEntry,
     InputStatus,
+    first_line,
     prepare_worker,
     run_job,
 )
@@ -100,7 +101,7 @@ def run_on_cluster(
                 try:
                     entry: InputEntry = future.result()
                 except Exception as exc:  # the worker died too often, or the task never ran
-                    error = f'{type(exc).__name__}: {str(exc).strip().splitlines()[0]}'
+                    error = f'{type(exc).__name__}: {first_line(exc)}'
                     logger.info('%s failed on the cluster: %s', job.input, error)
                     entry = InputEntry(job.input, job.name, InputStatus.FAILED, error=error)
                 on_entry(entry)

@@ -195,10 +195,10 @@ def run_job(job: BatchJob) -> InputEntry:
             command=job.command,
         )
     except (KentRegError, ValueError, OSError) as exc:
-        return _failed(job, _one_line(exc), t0)
+        return _failed(job, first_line(exc), t0)
     except Exception as exc:  # a bug met on this input: it fails, the other inputs go on
         logger.exception('%s: the replay raised', job.input)
-        return _failed(job, f'{type(exc).__name__}: {_one_line(exc)}', t0)
+        return _failed(job, f'{type(exc).__name__}: {first_line(exc)}', t0)
     if summary.run.interrupted:
         raise KeyboardInterrupt
     entry = _entry(job, summary, time.perf_counter() - t0)
@@ -232,7 +232,8 @@ def _failed(job: BatchJob, error: str, t0: float) -> InputEntry:
     return InputEntry(job.input, job.name, InputStatus.FAILED, error=error, wall_s=wall_s)
 
 
-def _one_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message, or its type's name when it has none."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
