@@ -2,8 +2,9 @@
 cluster.
 
 Every input is replayed by the replay's own code (:func:`kentreg_ros.eval.replay.replay`) into
-``DIR/<name>/``, which then holds exactly what ``kentreg_replay --out DIR/<name>`` writes, and
-a marker ``DIR/<name>/.done`` written after them. The inputs run as tasks of Dask's distributed
+``DIR/<name>/``, which then holds exactly the files ``kentreg_replay --out DIR/<name>`` writes
+(their ``metrics.json`` names the batch's command line), and a marker ``DIR/<name>/.done``
+written after them. The inputs run as tasks of Dask's distributed
 scheduler (the ``cluster`` extra): without ``--address`` on a local cluster of ``--workers``
 processes (default: one per core), with it on a running cluster, whose workers must see the
 inputs and ``DIR`` at the same paths. Without the extra, one worker runs in this process.
