@@ -75,7 +75,9 @@ def markdown(res: dict[str, Any]) -> str:
         *report.table(['workers', 'median wall (s)', 'batches (s)', 'median ms/scan',
                        'median cores busy'], rows), '',
         f'Two workers take {res["ratio_two_to_one"]:.2f} of one worker\'s time (bar: 0.667). '
-        f'Load average at the end: {res["machine"]["load_avg_at_end"]}.',
+        'Load average at the start and the end: '
+        + ' and '.join('/'.join(f'{x:.1f}' for x in res['machine'][f'load_avg_at_{when}'])
+                       for when in ('start', 'end')) + '.',
     ]) + '\n'  # fmt: skip
 
 

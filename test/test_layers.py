@@ -159,7 +159,7 @@ def test_benchmarks_never_import_a_command_line(path: Path) -> None:
 
 #: The house issue's bar on the benchmark harness: datasets, methods, pipelines, perturbations,
 #: one runner and one renderer, every benchmark a short spec on them; it stays small. 4500 until
-#: issue #41 asked for a new benchmark (batch.py, 83 lines) with the harness at 4499: raised by
+#: issue #41 asked for a new benchmark (batch.py, 85 lines) with the harness at 4499: raised by
 #: that spec alone, pending the lead's choice between this and cuts elsewhere.
 BENCHMARK_LINES = 4600
 
