@@ -42,6 +42,10 @@ setup(
             'types-PyYAML',
         ],
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
+        # kentreg_batch over several cores or machines: Dask's distributed scheduler (chosen
+        # over Ray for its start-up, memory and install size; benchmarks/README.md, section 6)
+        # and threadpoolctl, which holds each worker's BLAS to one thread.
+        'cluster': ['distributed>=2024.1', 'threadpoolctl>=3.1'],
         'bench': ['open3d-cpu', 'small-gicp', 'kiss-icp', 'matplotlib>=3.7'],
     },
     zip_safe=True,
@@ -55,6 +59,7 @@ setup(
             'kentreg_register = kentreg_ros.cli.register:main',
             'kentreg_convert = kentreg_ros.cli.convert:main',
             'kentreg_replay = kentreg_ros.cli.replay:main',
+            'kentreg_batch = kentreg_ros.cli.batch:main',
             'kentreg_node = kentreg_ros.ros.node:main',
             'kentreg_play = kentreg_ros.ros.play:main',
         ],

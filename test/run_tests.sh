@@ -3,7 +3,7 @@
 # the ROS 2 package with colcon (test/colcon_check.sh), then the whole pytest suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-python3 -m pip install --quiet --disable-pip-version-check -e '.[test,ros]'
+python3 -m pip install --quiet --disable-pip-version-check -e '.[test,ros,cluster]'
 # DDS stays on loopback, in a test-only domain (60..99; test/conftest.py picks one per pytest
 # session the same way, KENTREG_TEST_ROS_DOMAIN_ID fixes it).
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST

@@ -177,9 +177,10 @@ def test_the_runtime_imports_only_the_core_through_its_facade(path: Path) -> Non
     [
         ('io', ('kentreg_ros.eval', 'kentreg_ros.cli', 'kentreg_ros.ros', 'kentreg_ros.runtime')),
         ('eval', ('kentreg_ros.cli', 'kentreg_ros.ros', 'kentreg_ros.runtime')),
+        ('batch', ('kentreg_ros.cli', 'kentreg_ros.ros', 'kentreg_ros.runtime')),
     ],
 )
-def test_io_and_eval_never_import_the_command_lines_or_the_node(
+def test_io_eval_and_batch_never_import_the_command_lines_or_the_node(
     folder: str, forbidden: tuple[str, ...]
 ) -> None:
     for path in modules(PACKAGE / folder):

@@ -1,4 +1,4 @@
-"""``kentreg replay|register|convert ...``: one command for the command lines.
+"""``kentreg replay|batch|register|convert ...``: one command for the command lines.
 
 ``kentreg replay bags/balm_50`` runs exactly what ``kentreg_replay bags/balm_50`` runs (the same
 ``main``, with the rest of the arguments); the separate console scripts stay, since
@@ -19,6 +19,7 @@ PROG = 'kentreg'
 #: Subcommand -> (module whose ``main`` runs it, one line of help).
 COMMANDS = {
     'replay': ('kentreg_ros.cli.replay', 'offline odometry over a bag or a scan folder'),
+    'batch': ('kentreg_ros.cli.batch', 'the replay over many recordings, on many cores'),
     'register': ('kentreg_ros.cli.register', 'register two scan files'),
     'convert': ('kentreg_ros.cli.convert', 'scan files (+ poses) or a bag to a rosbag2 MCAP'),
 }

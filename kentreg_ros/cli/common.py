@@ -221,11 +221,16 @@ def logging_to_stderr(prog: str, level: int, *, info_level: bool = True) -> Iter
 
 @contextlib.contextmanager
 def progress_bar(
-    prog: str, total: int | None, *, enabled: bool = True, terminal_only: bool = False
+    prog: str,
+    total: int | None,
+    *,
+    enabled: bool = True,
+    terminal_only: bool = False,
+    unit: str = 'scan',
 ) -> Iterator[Any]:
-    """A tqdm bar on stderr (log records printed above it), or None when disabled or when tqdm
-    is not installed (then said once at INFO). ``terminal_only`` hides it when stderr is not a
-    terminal."""
+    """A tqdm bar on stderr counting ``unit`` (log records printed above it), or None when
+    disabled or when tqdm is not installed (then said once at INFO). ``terminal_only`` hides it
+    when stderr is not a terminal."""
     if not enabled:
         yield None
         return
@@ -240,7 +245,7 @@ def progress_bar(
         return
     bar = tqdm(
         total=total,
-        unit='scan',
+        unit=unit,
         desc=prog,
         file=sys.stderr,
         dynamic_ncols=True,

@@ -71,38 +71,29 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import logging
 import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from kentreg_ros import __version__
 from kentreg_ros.cli import common
-from kentreg_ros.core import KentRegConfig, Odometry
-from kentreg_ros.eval import GroundTruth, OdometryRun, evaluate_run, run_odometry, run_report
-from kentreg_ros.eval.report import (
-    Evaluation,
-    format_summary,
-    jsonable,
-    skipped_record,
-    skipped_text,
-    stride_text,
+from kentreg_ros.core import Odometry
+from kentreg_ros.eval.replay import (
+    MAP_MAX_POINTS,
+    MAP_VOXEL_SIZE,
+    ReplayOptions,
+    finish_replay,
+    open_replay,
+    run_replay,
 )
-from kentreg_ros.io.mapfile import MAP_SUFFIXES
-from kentreg_ros.io.params import NodeSettings
+from kentreg_ros.eval.report import format_summary
 from kentreg_ros.io.recordings import GROUND_TRUTH_TOPIC
-from kentreg_ros.io.sources import ScanSource
 
 logger = logging.getLogger('kentreg_ros.cli.replay')  # also when run as __main__
 
 PROG = 'kentreg_replay'
-#: Default voxel edge and size bound of the run's map: the node's (``map_voxel_size``,
-#: ``map_max_points``), so the replay's map and the node's ~/save_map are the same map.
-MAP_VOXEL_SIZE = NodeSettings().map_voxel_size
-MAP_MAX_POINTS = NodeSettings().map_max_points
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -133,6 +124,19 @@ def build_parser() -> argparse.ArgumentParser:
         help='ground-truth poses (TUM, KITTI, BALM alidarPose.csv, ETH pose_scanner_leica.csv); '
         f"default: the bag's {GROUND_TRUTH_TOPIC} topic, or a pose file beside the scans",
     )
+    add_replay_options(parser, map_file=True)
+    add('--no-progress', action='store_true', help='no progress bar')
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument('-v', '--verbose', action='store_true', help='log every step')
+    verbosity.add_argument('-q', '--quiet', action='store_true', help='log errors only')
+    add('--version', action='version', version=f'%(prog)s {__version__}')
+    return parser
+
+
+def add_replay_options(parser: argparse.ArgumentParser, *, map_file: bool = False) -> None:
+    """The replay's options that apply to any input (``--gt-topic`` to ``--no-plot``; with
+    ``map_file`` also ``--map FILE``), shared by ``kentreg_replay`` and ``kentreg_batch``."""
+    add = parser.add_argument
     add(
         '--gt-topic',
         default=GROUND_TRUTH_TOPIC,
@@ -166,14 +170,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="child frame of the output poses (default: the scans' sensor frame; the lidar "
         'pose is written as is, so give base_link only if the two frames coincide)',
     )
-    add(
-        '--map',
-        type=Path,
-        metavar='FILE',
-        help='also write the map of the run (the registered points of every accepted scan at '
-        'its pose, one point per --map-voxel voxel, odometry frame; what kentreg_node saves) '
-        'to FILE (.ply or .pcd); the MCAP carries it anyway',
-    )
+    if map_file:
+        add(
+            '--map',
+            type=Path,
+            metavar='FILE',
+            help='also write the map of the run (the registered points of every accepted scan at '
+            'its pose, one point per --map-voxel voxel, odometry frame; what kentreg_node saves) '
+            'to FILE (.ply or .pcd); the MCAP carries it anyway',
+        )
     add(
         '--map-voxel',
         type=common.positive_float,
@@ -188,33 +193,6 @@ def build_parser() -> argparse.ArgumentParser:
         help='leave the per-scan registered clouds out of odometry.mcap (a smaller file)',
     )
     add('--no-plot', action='store_true', help='do not write trajectory.png')
-    add('--no-progress', action='store_true', help='no progress bar')
-    verbosity = parser.add_mutually_exclusive_group()
-    verbosity.add_argument('-v', '--verbose', action='store_true', help='log every step')
-    verbosity.add_argument('-q', '--quiet', action='store_true', help='log errors only')
-    add('--version', action='version', version=f'%(prog)s {__version__}')
-    return parser
-
-
-def open_input(args: argparse.Namespace) -> tuple[ScanSource, GroundTruth | None]:
-    """The scan source and its ground truth (``--gt``, the bag's topic, a file beside scans)."""
-    from kentreg_ros.io.bags import is_bag
-    from kentreg_ros.io.recordings import open_recording
-
-    path = Path(args.input)
-    if not path.exists():
-        raise common.CliError(f'{path}: no such file or folder')
-    if args.gt is not None and not args.gt.is_file():
-        raise common.CliError(f'--gt {args.gt}: no such file')
-    if args.topic is not None and not is_bag(path):
-        raise common.CliError(f'--topic applies to bags; {path} is not a bag')
-    # Every per-point field is decoded: a per-point time field feeds the deskewing.
-    recording = open_recording(
-        path, topic=args.topic, poses=args.gt, poses_topic=args.gt_topic, fields=None
-    )
-    if recording.reference is None:
-        return recording.source, None
-    return recording.source, GroundTruth(recording.reference, recording.reference_origin)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -231,79 +209,29 @@ def _replay(argv: Sequence[str] | None) -> int:
 
 def _run(args: argparse.Namespace, command: list[str]) -> int:
     cfg = common.config_from_args(args)
-    source, gt = open_input(args)
-    if args.map is not None and args.map.suffix.lower() not in MAP_SUFFIXES:
-        raise common.CliError(
-            f'--map {args.map}: expected a file ending in {" or ".join(MAP_SUFFIXES)}'
-        )
-    if args.start >= len(source):
-        raise common.CliError(f'--start {args.start}: the input has only {len(source)} scans')
+    recording = open_replay(args.input, replay_options(args))
     out = args.out if args.out is not None else default_out_dir()
-    logger.info('Reading %s', source.description)
     odometry = Odometry(cfg)
-    total = len(range(args.start, len(source), args.stride)[: args.max_scans])
-    with common.progress_bar(PROG, total, enabled=not args.no_progress) as bar:
+    with common.progress_bar(PROG, recording.n_selected, enabled=not args.no_progress) as bar:
 
         def advance(_: object) -> None:
             bar.update(1)
             if odometry.n_failed:
                 bar.set_postfix(failed=odometry.n_failed, refresh=False)
 
-        run = run_odometry(
-            source,
-            odometry,
-            start=args.start,
-            max_scans=args.max_scans,
-            stride=args.stride,
-            on_step=advance if bar is not None else None,
-            map_voxel_size=args.map_voxel,
-            map_max_points=MAP_MAX_POINTS,
-        )
-    if not run.steps:
-        if run.error is None and run.skipped:
-            first = run.skipped[0]
-            raise common.CliError(
-                f'{args.input}: none of the {run.n_skipped} scans read could be decoded; the '
-                f'first: {skipped_text(skipped_record(first))}'
-            )
-        raise common.CliError(run.error or f'{args.input}: no scan was read')
-    evaluation, note = evaluate_run(run, gt)
-    report: dict[str, Any] = {
-        'kentreg_version': __version__,
-        'command': command,
-        'input': {
-            'path': str(args.input),
-            'description': source.description,
-            'start': args.start,
-            'stride': args.stride,
-            'n_scans': len(run.steps),
-            'n_nonfinite_dropped': int(getattr(source, 'n_dropped', 0)),
-            'frame_id': run.steps[0].frame_id,
-        },
-        'mode': cfg.mode,
-        'config': str(args.config) if args.config else 'defaults',
-        'overrides': list(args.overrides),
-        **run_report(run, evaluation, note),
-    }
-    title = f'kentreg ({cfg.mode}): {Path(args.input).name}'
-    if args.stride > 1:
-        title += f', {stride_text(args.stride)}'
-    write_outputs(
-        out,
+        run = run_replay(recording, odometry, on_step=advance if bar is not None else None)
+    summary = finish_replay(
+        recording,
         run,
         cfg,
-        evaluation,
-        report,
-        odom_frame=args.odom_frame,
-        child_frame=args.child_frame or run.steps[0].frame_id or 'base_link',
-        plot=not args.no_plot,
-        title=title,
-        map_path=args.map,
-        clouds=not args.no_clouds,
+        out,
+        config_label=str(args.config) if args.config else 'defaults',
+        overrides=args.overrides,
+        command=command,
     )
     if args.out is None:
         _link_latest(out)
-    print(format_summary(report, out, prog=PROG))
+    print(format_summary(summary.report, out, prog=PROG))
     if run.error is not None:
         print(
             f'{PROG}: error: {run.error} (results of the {len(run.steps)} scans read are in '
@@ -317,76 +245,23 @@ def _run(args: argparse.Namespace, command: list[str]) -> int:
     return common.EXIT_OK
 
 
-def write_outputs(
-    out: Path,
-    run: OdometryRun,
-    cfg: KentRegConfig,
-    evaluation: Evaluation | None,
-    report: dict[str, Any],
-    *,
-    odom_frame: str,
-    child_frame: str,
-    plot: bool,
-    title: str,
-    map_path: Path | None = None,
-    clouds: bool = True,
-) -> list[str]:
-    """Write every output file into ``out`` (and the map to ``map_path``); return the names
-    written into ``out``."""
-    from kentreg_ros.io.bagwriter import write_odometry_mcap
-    from kentreg_ros.io.params import dump_config
-    from kentreg_ros.io.poses import write_kitti, write_tum
-
-    out.mkdir(parents=True, exist_ok=True)
-    map_points = run.map.points if run.map is not None and len(run.map) else None
-    counts = write_odometry_mcap(
-        out / 'odometry.mcap',
-        run.steps,
-        odom_frame=odom_frame,
-        child_frame=child_frame,
-        map_points=map_points,
-        clouds=clouds,
+def replay_options(args: argparse.Namespace) -> ReplayOptions:
+    """The :class:`~kentreg_ros.eval.replay.ReplayOptions` of parsed replay options (those of
+    :func:`add_replay_options`; ``--gt`` and ``--map`` when the parser has them)."""
+    return ReplayOptions(
+        topic=args.topic,
+        gt=getattr(args, 'gt', None),
+        gt_topic=args.gt_topic,
+        start=args.start,
+        stride=args.stride,
+        max_scans=args.max_scans,
+        odom_frame=args.odom_frame,
+        child_frame=args.child_frame,
+        map_path=getattr(args, 'map', None),
+        map_voxel=args.map_voxel,
+        clouds=not args.no_clouds,
+        plot=not args.no_plot,
     )
-    report['odometry_mcap'] = {
-        'topics': counts,
-        'odom_frame': odom_frame,
-        'child_frame': child_frame,
-    }
-    write_tum(out / 'poses_tum.txt', run.stamps_ns, run.poses)
-    write_kitti(out / 'poses_kitti.txt', run.poses)
-    written = ['odometry.mcap', 'poses_tum.txt', 'poses_kitti.txt']
-    if evaluation is not None:
-        write_tum(out / 'ground_truth_tum.txt', evaluation.stamps_ns, evaluation.T_gt)
-        written.append('ground_truth_tum.txt')
-    if map_path is not None and map_points is not None:
-        from kentreg_ros.io.mapfile import write_map
-
-        map_path.parent.mkdir(parents=True, exist_ok=True)
-        write_map(map_path, map_points)
-        report['map'] = {
-            'path': str(map_path),
-            'points': len(map_points),
-            'voxel_size': run.map.voxel_size if run.map is not None else 0.0,
-        }
-    (out / 'config.yaml').write_text(dump_config(cfg))
-    written.append('config.yaml')
-    if plot and _plot(out / 'trajectory.png', run, evaluation, title):
-        written.append('trajectory.png')
-    report['files'] = written + ['metrics.json']
-    (out / 'metrics.json').write_text(json.dumps(jsonable(report), indent=2) + '\n')
-    written.append('metrics.json')
-    return written
-
-
-def _plot(path: Path, run: OdometryRun, evaluation: Evaluation | None, title: str) -> bool:
-    try:
-        from kentreg_ros.eval.plotting import plot_run
-
-        plot_run(path, run, evaluation, title=title)
-    except ImportError as exc:
-        logger.warning('No trajectory.png: %s (pip install matplotlib).', exc)
-        return False
-    return True
 
 
 def default_out_dir(root: Path = Path('results')) -> Path:
