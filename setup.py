@@ -59,6 +59,7 @@ setup(
             'kentreg_register = kentreg_ros.cli.register:main',
             'kentreg_convert = kentreg_ros.cli.convert:main',
             'kentreg_replay = kentreg_ros.cli.replay:main',
+            'kentreg_localize = kentreg_ros.cli.localize:main',
             'kentreg_batch = kentreg_ros.cli.batch:main',
             'kentreg_node = kentreg_ros.ros.node:main',
             'kentreg_play = kentreg_ros.ros.play:main',

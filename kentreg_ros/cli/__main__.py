@@ -1,4 +1,4 @@
-"""``kentreg replay|batch|register|convert ...``: one command for the command lines.
+"""``kentreg replay|batch|register|convert|localize ...``: one command for the command lines.
 
 ``kentreg replay bags/balm_50`` runs exactly what ``kentreg_replay bags/balm_50`` runs (the same
 ``main``, with the rest of the arguments); the separate console scripts stay, since
@@ -22,6 +22,7 @@ COMMANDS = {
     'batch': ('kentreg_ros.cli.batch', 'the replay over many recordings, on many cores'),
     'register': ('kentreg_ros.cli.register', 'register two scan files'),
     'convert': ('kentreg_ros.cli.convert', 'scan files (+ poses) or a bag to a rosbag2 MCAP'),
+    'localize': ('kentreg_ros.cli.localize', 'localize the scans of a recording in a saved map'),
 }
 
 
