@@ -9,6 +9,7 @@ iterate to each method's own convergence test (:data:`MAX_ITERATIONS` only guard
 measured as a handicap for point-to-point ICP and KISS-ICP on BALM's 20-29 deg pairs); CICP ends
 below a tenth of the voxel; NDT and CICP use the paper's settings (benchmarks/README.md).
 :func:`at_defaults` wraps a method for raw scans (kentreg: its own automatic preprocessing).
+:func:`fpfh_ransac` is the one global registration (Open3D's FPFH + RANSAC, no start).
 Libraries are imported inside the factories, so a missing one removes only its methods.
 """
 
@@ -381,3 +382,61 @@ def at_defaults(names: Sequence[str], voxel: float, threads: int) -> list[RawMet
     peers = {m.name: at_fixed_voxel(m, voxel) for m in built}
     return [kentreg_at_defaults() if n == 'kentreg' else peers[n] for n in names
             if n == 'kentreg' or n in peers]  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Global registration (no start)
+
+
+#: Open3D's global registration as its tutorial sets it, in voxel edges: normals within 2 (30
+#: neighbours at most), FPFH within 5 (100), RANSAC on mutual feature matches with inliers within
+#: 1.5 (edge-length check 0.9), at most 100,000 iterations at confidence 0.999; then
+#: point-to-plane ICP within 1 (the tutorial's 0.4 is on the full-resolution clouds).
+FPFH = {'normal_radius_voxels': 2.0, 'normal_max_nn': 30, 'feature_radius_voxels': 5.0,
+        'feature_max_nn': 100, 'ransac_distance_voxels': 1.5, 'edge_length': 0.9,
+        'ransac_iterations': 100_000, 'ransac_confidence': 0.999,
+        'icp_distance_voxels': 1.0}  # fmt: skip
+
+
+def fpfh_ransac(voxel: float, *, threads: int | None = 1, seed: int = 0) -> RawMethod:
+    """Open3D FPFH + RANSAC global registration, then point-to-plane ICP (:data:`FPFH`), on
+    clouds downsampled at ``voxel``: no start (``init`` is ignored). Its info: the RANSAC
+    ``fitness`` (0 when no hypothesis had an inlier: no answer) and the ICP's."""
+    import open3d as o3d
+
+    if threads is not None:
+        o3d.utility.set_max_threads(threads)
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    o3d.utility.random.seed(seed)
+    # Any: Open3D 0.20's stubs make compute_fpfh_feature's optional `indices` required.
+    reg: Any = o3d.pipelines.registration
+    search = o3d.geometry.KDTreeSearchParamHybrid
+    f = FPFH
+
+    def prepare(points: FloatArray) -> Any:
+        pcd = o3d.geometry.PointCloud()
+        pcd.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
+        down = pcd.voxel_down_sample(voxel)
+        down.estimate_normals(search(f['normal_radius_voxels'] * voxel, f['normal_max_nn']))
+        feature_search = search(f['feature_radius_voxels'] * voxel, f['feature_max_nn'])
+        return down, reg.compute_fpfh_feature(down, feature_search)
+
+    def run(source: Any, target: Any, init: FloatArray | None) -> tuple[FloatArray, dict]:
+        distance = f['ransac_distance_voxels'] * voxel
+        checkers = [reg.CorrespondenceCheckerBasedOnEdgeLength(f['edge_length']),
+                    reg.CorrespondenceCheckerBasedOnDistance(distance)]  # fmt: skip
+        criteria = reg.RANSACConvergenceCriteria(f['ransac_iterations'], f['ransac_confidence'])
+        found = reg.registration_ransac_based_on_feature_matching(
+            source[0], target[0], source[1], target[1], True, distance,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
+        )  # fmt: skip
+        refined = reg.registration_icp(
+            source[0], target[0], f['icp_distance_voxels'] * voxel, found.transformation,
+            reg.TransformationEstimationPointToPlane(),
+        )  # fmt: skip
+        T = np.array(refined.transformation, dtype=np.float64)
+        return T, {'fitness': float(found.fitness), 'icp_fitness': float(refined.fitness)}
+
+    params = {'library': 'open3d', 'open3d': o3d.__version__, 'voxel_m': voxel, 'seed': seed,
+              **FPFH}  # fmt: skip
+    return RawMethod('fpfh_ransac', prepare, run, lambda prep: voxel, params)
