@@ -266,10 +266,10 @@ class NodeSettings(Section):
     pipeline: PipelineMode = _param(
         PipelineMode.PROCESS,
         'How the odometry uses the cores: process prepares each scan (deskew, voxels, '
-        'normals, clusters) in a worker process while the node registers the scan before, '
-        'and moves the local map after the pose is out: the same poses as sequential, on two '
-        'cores (a 10 Hz 64-beam LiDAR needs both to keep up). sequential runs every stage in '
-        "the node's worker thread, on one core.",
+        'normals, clusters) in a worker process while the node registers the scan before: '
+        'the same poses as sequential, on two cores (it pays when scans come faster than one '
+        "core keeps up with). sequential runs every stage in the node's worker thread, on one "
+        'core.',
         read_only=True,
     )
     qos_reliability: QosReliability = _param(
