@@ -1,8 +1,9 @@
-"""Paste the generated tables into the READMEs, so they always equal the results.
+"""Paste the generated tables into the READMEs and docs/live.md, so they always equal the results.
 
 Every ``results/<name>.md`` replaces the text between ``<!-- BEGIN <name> -->`` and
 ``<!-- END <name> -->`` in benchmarks/README.md; the main README's ``headline`` table is built
-from the results JSON. Goals are prose in the READMEs, not code.
+from the results JSON, and docs/live.md's ``live`` block is the opening of ``results/live.md``.
+Goals are prose in the READMEs, not code.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 README = HERE / 'README.md'
 MAIN_README = HERE.parent / 'README.md'
+#: The live-measurement notebook: the ``live`` block (results/live.md's opening and table).
+LIVE_PAGE = HERE.parent / 'docs' / 'live.md'
 RESULTS = HERE / 'results'
 #: The headline's columns: the robustness peers at their defaults.
 HEADLINE = {'kentreg': 'kentreg (defaults)', 'gicp': 'GICP (small_gicp)',
@@ -142,9 +145,10 @@ def render(text: str, blocks: dict[str, str]) -> tuple[str, list[str]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--check', action='store_true', help='exit 1 if the README is stale')
+    parser.add_argument('--check', action='store_true', help='exit 1 if a page is stale')
     parser.add_argument('--readme', type=Path, default=README)
     parser.add_argument('--main-readme', type=Path, default=MAIN_README)
+    parser.add_argument('--live-page', type=Path, default=LIVE_PAGE)
     parser.add_argument('--results', type=Path, default=RESULTS)
     parser.add_argument('--only', nargs='+', metavar='NAME', help='render only these blocks')
     args = parser.parse_args(argv)
@@ -154,19 +158,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         *(json.loads(p.read_text()) if p.is_file() else None for p in loaded)
     )
     main_blocks = {} if headline is None else {'headline': headline}
+    live_blocks = {}
     if 'live' in blocks:  # live.md's opening paragraph and table, without its title
-        main_blocks['live'] = blocks['live'].split('\n## ')[0].split('\n', 2)[2]
+        live_blocks['live'] = blocks['live'].split('\n## ')[0].split('\n', 2)[2]
     if args.only:
         blocks = {k: v for k, v in blocks.items() if k in args.only}
         main_blocks = {k: v for k, v in main_blocks.items() if k in args.only}
-    stale = []
-    for readme, these in ((args.readme, blocks), (args.main_readme, main_blocks)):
+        live_blocks = {k: v for k, v in live_blocks.items() if k in args.only}
+    stale, lost = [], []
+    # A result file may have no block in benchmarks/README.md yet (a note); the headline and the
+    # live table must be in their pages (a page that lost its markers fails).
+    pages = (
+        (args.readme, blocks, False),
+        (args.main_readme, main_blocks, True),
+        (args.live_page, live_blocks, True),
+    )
+    for readme, these, required in pages:
         if not these:
             continue
         old = readme.read_text()
         new, missing = render(old, these)
         for name in missing:
-            print(f'note: no <!-- BEGIN {name} --> / <!-- END {name} --> markers in {readme}')
+            markers = f'<!-- BEGIN {name} --> / <!-- END {name} --> markers'
+            if required:
+                lost.append(f'{readme} has no {markers}')
+            else:
+                print(f'note: no {markers} in {readme}')
         if args.check:
             stale += [readme] if new != old else []
             continue
@@ -174,7 +191,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'rendered {", ".join(n for n in these if n not in missing)} into {readme}')
     for readme in stale:
         print(f'{readme} is out of date; run python3 benchmarks/render_readme.py')
-    return 1 if stale else 0
+    for message in lost:
+        print(f'error: {message}', file=sys.stderr)
+    return 1 if stale or lost else 0
 
 
 if __name__ == '__main__':

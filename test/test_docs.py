@@ -1,4 +1,11 @@
-"""The README's parameter tables are the rendering of the configuration and node parameters."""
+"""The documentation: the README a user reads and the pages of docs/, linked and current.
+
+The configuration reference's parameter tables are the rendering of the configuration and node
+parameters (:mod:`kentreg_ros.docs`); the README's headline table and docs/live.md's table are
+the rendering of the committed benchmark results (``benchmarks/render_readme.py``); every page
+of docs/ is linked from the README or docs/index.md, and every relative link resolves, anchors
+included.
+"""
 
 from __future__ import annotations
 
@@ -17,18 +24,25 @@ from kentreg_ros.io.params import PARAMETERS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 README = REPO_ROOT / 'README.md'
+DOCS = REPO_ROOT / 'docs'
+CONFIGURATION = REPO_ROOT / docs.PAGE
+#: The pages whose links are checked: the READMEs and every page of docs/.
+PAGES = sorted([README, REPO_ROOT / 'benchmarks' / 'README.md', REPO_ROOT / 'bags' / 'README.md'])
+PAGES += sorted(DOCS.glob('*.md'))
+#: A user's page: KISS-ICP's README is ~100 lines, the house issue's bar 200.
+README_MAX_LINES = 200
 
 
-def _readme_block() -> str:
-    text = README.read_text(encoding='utf-8')
+def _page_block(path: Path = CONFIGURATION) -> str:
+    text = path.read_text(encoding='utf-8')
     return text.split(docs.BEGIN + '\n', 1)[1].split(docs.END, 1)[0]
 
 
-def test_readme_parameter_tables_equal_the_rendering() -> None:
-    assert _readme_block() == docs.render_parameters() + '\n', (
-        'README.md is stale: run python3 -m kentreg_ros.docs --write README.md'
+def test_configuration_page_parameter_tables_equal_the_rendering() -> None:
+    assert _page_block() == docs.render_parameters() + '\n', (
+        f'{docs.PAGE} is stale: run python3 -m kentreg_ros.docs --write {docs.PAGE}'
     )
-    assert docs.main(['--check', str(README)]) == 0
+    assert docs.main(['--check', str(CONFIGURATION)]) == 0
 
 
 def test_research_table_has_one_row_per_config_field_with_default_and_range() -> None:
@@ -90,7 +104,7 @@ def test_missing_markers_are_an_error(tmp_path: Path, capsys: pytest.CaptureFixt
 
 
 def test_readmes_quote_the_committed_benchmark_results() -> None:
-    """Every generated block of README.md and benchmarks/README.md equals what
+    """Every generated block of README.md, docs/live.md and benchmarks/README.md equals what
     benchmarks/render_readme.py computes from benchmarks/results/ (numbers from one source)."""
     proc = subprocess.run(
         [sys.executable, str(REPO_ROOT / 'benchmarks' / 'render_readme.py'), '--check'],
@@ -100,6 +114,90 @@ def test_readmes_quote_the_committed_benchmark_results() -> None:
         check=False,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_readme_is_a_page_a_user_reads() -> None:
+    """The README keeps the two commands, the robot, the headline and the links; the rest is in
+    docs/."""
+    text = README.read_text(encoding='utf-8')
+    assert len(text.splitlines()) <= README_MAX_LINES
+    for command in (
+        "python3 -m pip install -e '.[io,fast]' && kentreg_replay bags/balm_50",
+        'bash test/run_tests.sh',
+        'python3 -m pytest -m "not integration"',
+    ):
+        assert command in text, command
+
+
+_FENCE = re.compile(r'^(```|~~~).*?^\1', re.M | re.S)
+_LINK = re.compile(r'\[[^\]]*\]\(([^()\s]+)\)')
+_HEADING = re.compile(r'^#{1,6}\s+(.+?)\s*#*$', re.M)
+
+
+def _prose(text: str) -> str:
+    """``text`` without its fenced code blocks (links and headings there are code)."""
+    return _FENCE.sub('', text)
+
+
+def _anchor(heading: str) -> str:
+    """GitHub's anchor of a heading: its text (links and code marks taken off) in lower case,
+    without punctuation, spaces as hyphens."""
+    text = re.sub(r'\[([^\]]*)\]\([^)]*\)', r'\1', heading).replace('`', '').replace('*', '')
+    return re.sub(r'[^\w\- ]', '', text.strip().lower()).replace(' ', '-')
+
+
+def anchors(path: Path) -> set[str]:
+    """Every anchor of the headings of ``path`` (repeats numbered as GitHub numbers them)."""
+    found: set[str] = set()
+    for heading in _HEADING.findall(_prose(path.read_text(encoding='utf-8'))):
+        base = _anchor(heading)
+        name, n = base, 0
+        while name in found:
+            n += 1
+            name = f'{base}-{n}'
+        found.add(name)
+    return found
+
+
+def relative_links(path: Path) -> list[str]:
+    """The relative link targets of ``path`` (not web addresses), outside code blocks."""
+    targets = _LINK.findall(_prose(path.read_text(encoding='utf-8')))
+    return [t for t in targets if not re.match(r'[a-z][a-z0-9+.-]*:', t)]
+
+
+def test_anchor_and_links_follow_githubs_rules(tmp_path: Path) -> None:
+    page = tmp_path / 'p.md'
+    page.write_text(
+        '# The local map (`odometry.model: local_map`)\n\n## Notes\n\n## Notes\n\n'
+        '```md\n# not a heading [x](nowhere.md)\n```\n'
+        'See [a](other.md#notes-1), [b](https://example.com) and [c](#notes).\n'
+    )
+    assert anchors(page) == {'the-local-map-odometrymodel-local_map', 'notes', 'notes-1'}
+    assert relative_links(page) == ['other.md#notes-1', '#notes']
+
+
+@pytest.mark.parametrize('page', PAGES, ids=lambda p: str(p.relative_to(REPO_ROOT)))
+def test_relative_links_resolve(page: Path) -> None:
+    """Every relative link names a file or folder of the repository, and an anchor of a
+    Markdown page names one of its headings."""
+    broken = []
+    for target in relative_links(page):
+        name, _, fragment = target.partition('#')
+        path = (page.parent / name).resolve() if name else page
+        if not path.exists():
+            broken.append(f'{target} (no such file)')
+        elif fragment and path.suffix == '.md' and fragment not in anchors(path):
+            broken.append(f'{target} (no such heading)')
+    assert broken == [], f'{page.relative_to(REPO_ROOT)}: {broken}'
+
+
+def test_every_docs_page_is_linked_from_the_readme_or_the_index() -> None:
+    index = DOCS / 'index.md'
+    linked = {(README.parent / t.partition('#')[0]).resolve() for t in relative_links(README)}
+    linked |= {(index.parent / t.partition('#')[0]).resolve() for t in relative_links(index)}
+    assert index.resolve() in linked
+    unlinked = sorted(p.name for p in DOCS.glob('*.md') if p.resolve() not in linked)
+    assert unlinked == [], f'pages of docs/ linked from neither README.md nor index.md: {unlinked}'
 
 
 #: What a path of the machine that ran a benchmark looks like (a checkout, the shared data, a

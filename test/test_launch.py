@@ -1,7 +1,7 @@
 """launch/kentreg.launch.py and the installed package: what a user of ``ros2 launch`` relies on.
 
 ``launch``/``launch_ros`` are not on PyPI. Without them the launch file is read as a syntax tree:
-it must declare the arguments and defaults the README documents, start an executable the
+it must declare the arguments and defaults docs/ros.md documents, start an executable the
 package really installs, and name only ROS packages that package.xml declares. Where
 launch_ros and an installed kentreg_ros exist (a sourced Jazzy install), it is loaded for real;
 under ``colcon test`` (test/colcon_check.sh) the install tree is checked through the ament index.
@@ -22,7 +22,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO_ROOT / 'launch' / 'kentreg.launch.py'
-README = REPO_ROOT / 'README.md'
+ROS_PAGE = REPO_ROOT / 'docs' / 'ros.md'
 
 
 def _installed_prefix() -> Path | None:
@@ -97,8 +97,8 @@ def _config_default_parts() -> tuple[str, list[str]]:
 
 
 def _documented_defaults() -> dict[str, str]:
-    """The README's launch arguments: ``{name: default}`` from "`name` (default ...)"."""
-    text = README.read_text(encoding='utf-8')
+    """The launch arguments of docs/ros.md: ``{name: default}`` from "`name` (default ...)"."""
+    text = ROS_PAGE.read_text(encoding='utf-8')
     paragraph = text.split('**Launch** (`launch/kentreg.launch.py`):', 1)[1].split('\n\n', 1)[0]
     found = re.findall(r'`(\w+)` \(default ([^)]*)\)', ' '.join(paragraph.split()))
     return {name: default for name, default in found}

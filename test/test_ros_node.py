@@ -369,7 +369,7 @@ def test_node_help_prints_its_usage_and_exits_0_without_starting_ros(
     assert exit_info.value.code == 0
     out, err = capsys.readouterr()
     assert out.startswith('usage: kentreg_node') and err == ''
-    for text in ('--ros-args', '-p name:=value', '--params-file FILE', 'README', '--version'):
+    for text in ('--ros-args', '-p name:=value', '--params-file FILE', 'docs/', '--version'):
         assert text in out, text
 
 

@@ -132,8 +132,8 @@ class KentRegNode(Node):
         if declared.unknown:
             self.get_logger().warning(
                 f'Ignoring parameter(s) {list(declared.unknown)}: not parameters of this node '
-                '(see the README parameter table; research settings such as em.* are set from '
-                'Python or the command lines).'
+                '(see the parameter table in docs/configuration.md; research settings such '
+                'as em.* are set from Python or the command lines).'
             )
 
         self._last_received = time.monotonic()

@@ -28,8 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
             '-r points:=/velodyne_points\n'
             '  ros2 run kentreg_ros kentreg_node --ros-args --params-file config/kentreg.yaml\n'
             '\n'
-            'Parameters: every one, with its type, default, range and reason, in the README\n'
-            '(section Configuration: the parameter tables); the file with every default:\n'
+            'Parameters: every one, with its type, default, range and reason, in\n'
+            'docs/configuration.md (the parameter tables); the file with every default:\n'
             '  python3 -m kentreg_ros.docs --parameter-file > kentreg.yaml\n'
             'At run time: ros2 param describe /kentreg_node <name>.'
         ),
