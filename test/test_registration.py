@@ -56,10 +56,15 @@ def _room_pair(
 def test_robust_recovers_known_motion_in_synthetic_room(
     seed: int, angle: float, dist: float, outliers: float
 ) -> None:
+    """From no start. The box room is nearly symmetric (its twins turned 90-180 deg fit within
+    a tenth once 30 % outliers blur the fit): then the result must say ``ambiguous`` and list
+    the twins, while the best fit is still the right pose."""
     source, target, T = _room_pair(seed, angle, dist, outliers)
     result = register(source, target, viewpoint=(0.0, 0.0, 0.2))
     e_r, e_t = pose_errors(result.T_target_source, T)
-    assert result.status in ('converged', 'max_iterations'), result.message
+    assert result.status in ('converged', 'max_iterations', 'ambiguous'), result.message
+    assert (result.status == 'ambiguous') == result.ambiguous
+    assert not result.ambiguous or len(result.alternatives) > 0
     assert e_r < 0.2 and e_t < 0.02, (e_r, e_t)
 
 
@@ -89,7 +94,7 @@ def test_timings_name_each_stage_once_summed_over_candidates() -> None:
     assert list(local.timings) == [*stages, 'total']
     searched = register(s, t, global_search=True)
     assert searched.hypotheses > 0
-    assert set(searched.timings) == {*stages, 'search', 'total'}
+    assert set(searched.timings) == {*stages, 'search', 'vouch', 'total'}  # no start: vouched
     for result in (local, searched):
         assert all(ms >= 0.0 for ms in result.timings.values())
         parts = sum(ms for stage, ms in result.timings.items() if stage != 'total')

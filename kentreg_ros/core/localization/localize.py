@@ -36,6 +36,7 @@ from kentreg_ros.core.localization.pointmap import PointMap
 from kentreg_ros.core.localization.search import Hypothesis, Window, rotations, translations
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import FIT_DISTANCE_VOXELS, rms_displacement
+from kentreg_ros.core.registration.verify import free_space_violation as see_through
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
 from kentreg_ros.core.scan.clusters import cluster_normals
 from kentreg_ros.core.scan.neighbors import NeighborIndex
@@ -44,15 +45,8 @@ logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-#: A ray passed through a map point when its return lies beyond the point by more than this
-#: share of the return's range or the fit's distance gate, whichever is larger: a surface at a
-#: grazing angle spreads over range along a spacing's width.
-FREE_SPACE_RANGE_SHARE = 0.05
 #: Candidates registered in full (with the joint refinement), best coarse fit first.
 FULLY_REGISTERED = 3
-#: Map points the free-space test looks at, at most (every n-th of those within reach): a share
-#: of 20,000 is known to within half a percent.
-FREE_SPACE_SAMPLE = 20_000
 #: Candidates whose starts lie within this many search cells and
 #: ``search.min_separation_deg`` of a better one are the same candidate.
 SAME_START_CELLS = 1.5
@@ -307,47 +301,10 @@ def _with_free_space(
 def free_space_violation(
     scan: PreparedScan, pmap: PointMap, T_map_scan: FloatArray
 ) -> tuple[float, int]:
-    """Share of the map points a ray of the scan passed through, among those its rays reach.
-
-    A map point (within the scan's reach) is *in view* of the scan ray nearest its direction
-    when the ray passes through its voxel (within half a sampling spacing; a point between the
-    rays of a sparse scan is no evidence either way) and its return lies no nearer than
-    the point by more than the margin (:data:`FREE_SPACE_RANGE_SHARE` of the range, or the
-    fit's distance gate); it is *passed through* when the return lies beyond it by more than
-    that margin: the scan saw empty space where the map has a surface. A scan in the wrong
-    place sees through the map's walls; in the right place only moving objects and thin
-    structures do.
-
-    Returns
-    -------
-    violation : float
-        Passed through / in view (1.0 when nothing is in view).
-    visible : int
-        Map points in view.
-    """
-    R, t = T_map_scan[:3, :3], T_map_scan[:3, 3]
-    r_scan = np.sqrt(np.einsum('ij,ij->i', scan.points, scan.points))
-    reach = float(r_scan.max())
-    d2 = np.einsum('ij,ij->i', pmap.points - t, pmap.points - t)
-    rows = np.flatnonzero(d2 <= reach * reach)
-    rows = rows[:: max(1, len(rows) // FREE_SPACE_SAMPLE)]  # a share needs no more
-    q = (pmap.points[rows] - t) @ R  # map points in the scan's frame
-    r_map = np.sqrt(np.einsum('ij,ij->i', q, q))
-    ok = r_map > 1e-6
-    q, r_map = q[ok], r_map[ok]
-    rays = scan.points / np.maximum(r_scan, 1e-9)[:, None]
-    chord, nearest = NeighborIndex(rays).query(q / r_map[:, None], k=1)
-    chord, nearest = np.asarray(chord).reshape(-1), np.asarray(nearest).reshape(-1)
+    """:func:`~kentreg_ros.core.registration.verify.free_space_violation` of a scan posed in
+    the map: the share of the map points its rays pass through, and how many they reach."""
     spacing = max(scan.voxel_size, pmap.voxel_size)
-    r_ret = r_scan[nearest]
-    margin = np.maximum(FREE_SPACE_RANGE_SHARE * r_ret, FIT_DISTANCE_VOXELS * spacing)
-    on_ray = chord * r_map <= 0.5 * spacing  # the ray passes through the point's voxel
-    in_view = on_ray & (r_ret >= r_map - margin)
-    through = on_ray & (r_ret > r_map + margin)
-    visible = int(np.count_nonzero(in_view))
-    if visible == 0:
-        return 1.0, 0
-    return float(np.count_nonzero(through)) / visible, visible
+    return see_through(scan.points, pmap.points, T_map_scan, spacing)
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,16 +15,18 @@ rotation averaging (the paper's eq. rot_avg), and ``t = mu_y - R mu_x``.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core.config import KentRegConfig, Mode, SearchMode
 from kentreg_ros.core.errors import InvalidInputError
-from kentreg_ros.core.geometry import check_transform
+from kentreg_ros.core.geometry import check_transform, make_transform
 from kentreg_ros.core.registration.paper import register_paper
-from kentreg_ros.core.registration.result import RegistrationResult, finish_result
+from kentreg_ros.core.registration.result import RegistrationResult, Status, finish_result
 from kentreg_ros.core.registration.robust import register_robust
+from kentreg_ros.core.registration.verify import free_space_violation
 from kentreg_ros.core.scan.prepared import PreparedScan, as_prepared
 from kentreg_ros.core.stopwatch import Stopwatch
 
@@ -102,7 +104,49 @@ def register(
                 cfg.search.mode == SearchMode.AUTO and init is None
             )
         evidence = register_robust(src, tgt, T_init, cfg, watch=watch, search=global_search)
-    watch.add('total', watch.elapsed_ms())
-    return finish_result(
+    result = finish_result(
         evidence, mode=cfg.mode, n_source=len(src), n_target=len(tgt), timings=watch.as_dict()
     )
+    if init is None and global_search and cfg.mode == Mode.ROBUST:
+        with watch('vouch'):
+            result = _vouched(result, src, tgt, cfg)
+    watch.add('total', watch.elapsed_ms())
+    return replace(result, timings=watch.as_dict())
+
+
+def _vouched(
+    result: RegistrationResult, src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig
+) -> RegistrationResult:
+    """A pose found without any start, judged on the points as a localization is: too little
+    of the source on matching surfaces (``localization.min_fit``) or its rays through the
+    target's surfaces (``localization.max_violation``) make it ``unverified`` (a missed
+    translation, another place); otherwise a distinct rival fitting about as well makes it
+    ``ambiguous`` (a twin), unless it is ``degenerate``, which already says which direction is
+    not held. Never ``converged`` then.
+    """
+    if result.status == Status.FAILED:
+        return result
+    loc = cfg.localization
+    T = result.T_target_source @ make_transform(np.eye(3), src.viewpoint)
+    spacing = max(src.voxel_size, tgt.voxel_size)
+    violation, reached = free_space_violation(src.points - src.viewpoint, tgt.points, T, spacing)
+    why = ''
+    if not result.fit >= loc.min_fit:
+        why = f'only {result.fit:.0%} of the source lands on matching surfaces'
+    elif reached >= loc.min_visible and violation > loc.max_violation:
+        why = f'the source sees through {violation:.0%} of the target points its rays reach'
+    if why:
+        message = (
+            f'Unverified: found without a start, but {why} (localization.min_fit='
+            f'{loc.min_fit}, max_violation={loc.max_violation}): a missed translation or '
+            'another place.'
+        )
+        return replace(result, status=Status.UNVERIFIED, converged=False, message=message)
+    if result.ambiguous and result.status != Status.DEGENERATE:
+        n = len(result.alternatives)
+        message = (
+            f'Ambiguous: found without a start, but {n} distinct pose(s) fit about as well '
+            f'(fit {result.fit:.2f}; see alternatives).'
+        )
+        return replace(result, status=Status.AMBIGUOUS, converged=False, message=message)
+    return result

@@ -32,6 +32,13 @@ class Status(StrEnum):
     MAX_ITERATIONS = 'max_iterations'
     #: Some direction is poorly constrained (the estimate is used, flagged).
     DEGENERATE = 'degenerate'
+    #: Found without a start, but a distinct pose fits about as well (``alternatives``): the
+    #: data cannot say which; the best-fitting one is given.
+    AMBIGUOUS = 'ambiguous'
+    #: Found without a start, but the points do not vouch for it: too little of the source
+    #: lands on matching surfaces, or its rays pass through the target's surfaces (a missed
+    #: translation, a place it is not in). The estimate is given, not to be trusted.
+    UNVERIFIED = 'unverified'
     #: No usable estimate: no overlap, or not finite.
     FAILED = 'failed'
 

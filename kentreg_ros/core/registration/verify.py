@@ -37,6 +37,13 @@ FIT_NORMAL_ANGLE_DEG = 20.0
 #: A target cluster enters the average when it holds at least this share of the matched source
 #: points' normals (smaller groups are a handful of points whose share is noise).
 FIT_MIN_CLUSTER_SHARE = 0.02
+#: A ray passed through a target point when its return lies beyond the point by more than this
+#: share of the return's range or the fit's distance gate, whichever is larger: a surface at a
+#: grazing angle spreads over range along a spacing's width.
+FREE_SPACE_RANGE_SHARE = 0.05
+#: Target points the free-space test looks at, at most (every n-th of those within reach): a
+#: share of 20,000 is known to within half a percent.
+FREE_SPACE_SAMPLE = 20_000
 
 
 @dataclass(frozen=True)
@@ -245,3 +252,65 @@ def choose_pose(
     ):
         chosen = preferred
     return Choice(chosen, best_fit, distinct, rivals)
+
+
+def free_space_violation(
+    source_points: FloatArray,
+    target_points: FloatArray,
+    T_target_source: FloatArray,
+    spacing: float,
+) -> tuple[float, int]:
+    """Share of the target points the source's rays pass through, among those its rays reach:
+    evidence on the points that a pose is wrong, which a fit on matches cannot give.
+
+    The source's rays run from its origin (its sensor) to its points. A target point within the
+    source's reach is *reached* by the ray nearest its direction when the ray passes through
+    its voxel (within half of ``spacing``; a point between the rays of a sparse scan is no
+    evidence either way) and its return lies no nearer than the point by more than the margin
+    (:data:`FREE_SPACE_RANGE_SHARE` of the range, or the fit's distance gate); it is *passed
+    through* when the return lies beyond it by more than that margin: the source saw empty
+    space where the target has a surface. A scan placed in the wrong place sees through the
+    target's walls; in the right place only moving objects, glass and thin structures do.
+
+    Parameters
+    ----------
+    source_points : ndarray, shape (N, 3)
+        In the source's sensor frame (its origin the sensor).
+    target_points : ndarray, shape (M, 3)
+    T_target_source : ndarray, shape (4, 4)
+    spacing : float
+        The sampling spacing (the coarser voxel edge of the two clouds).
+
+    Returns
+    -------
+    violation : float
+        Passed through / reached (1.0 when nothing is reached).
+    reached : int
+        Target points reached.
+    """
+    R, t = T_target_source[:3, :3], T_target_source[:3, 3]
+    r_src = np.sqrt(np.einsum('ij,ij->i', source_points, source_points))
+    if not len(r_src):
+        return 1.0, 0
+    reach = float(r_src.max())
+    d2 = np.einsum('ij,ij->i', target_points - t, target_points - t)
+    rows = np.flatnonzero(d2 <= reach * reach)
+    rows = rows[:: max(1, len(rows) // FREE_SPACE_SAMPLE)]  # a share needs no more
+    q = (target_points[rows] - t) @ R  # target points in the source's frame
+    r_tgt = np.sqrt(np.einsum('ij,ij->i', q, q))
+    ok = r_tgt > 1e-6
+    q, r_tgt = q[ok], r_tgt[ok]
+    if not len(q):
+        return 1.0, 0
+    rays = source_points / np.maximum(r_src, 1e-9)[:, None]
+    chord, nearest = NeighborIndex(rays).query(q / r_tgt[:, None], k=1)
+    chord, nearest = np.asarray(chord).reshape(-1), np.asarray(nearest).reshape(-1)
+    r_ret = r_src[nearest]
+    margin = np.maximum(FREE_SPACE_RANGE_SHARE * r_ret, FIT_DISTANCE_VOXELS * spacing)
+    on_ray = chord * r_tgt <= 0.5 * spacing  # the ray passes through the point's voxel
+    reached = on_ray & (r_ret >= r_tgt - margin)
+    through = on_ray & (r_ret > r_tgt + margin)
+    n = int(np.count_nonzero(reached))
+    if n == 0:
+        return 1.0, 0
+    return float(np.count_nonzero(through)) / n, n
