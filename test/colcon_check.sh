@@ -104,9 +104,9 @@ echo "colcon_check: install tree complete (marker, package.xml, config, launch, 
 if [[ "$ALL" == 1 ]]; then
   PYTEST_ARGS=()
 else
-  PYTEST_ARGS=(test/test_launch.py test/test_play.py test/test_docs.py test/test_ros_node.py
-    test/test_ros_dropin.py test/test_ros_frames.py test/test_parameters.py
-    test/test_ros_messages.py)
+  PYTEST_ARGS=(test/ros/test_launch.py test/ros/test_play.py test/test_docs.py
+    test/ros/test_ros_node.py test/ros/test_ros_dropin.py test/ros/test_ros_frames.py
+    test/io/test_parameters.py test/ros/test_ros_messages.py)
 fi
 if [[ -n "${COLCON_PYTEST_ARGS:-}" ]]; then
   read -r -a PYTEST_ARGS <<< "$COLCON_PYTEST_ARGS"

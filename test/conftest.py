@@ -10,6 +10,11 @@ from typing import Any
 import pytest
 import ros_env  # test/ is on sys.path (rootdir conftest, default 'prepend' import mode)
 
+# One BLAS thread for the tests and the processes they start (set before numpy is imported:
+# no plugin imports it earlier): the tests' matrices are tiny, and where the cores are busy
+# OpenBLAS's threads spend far longer waiting for each other than computing.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Real scans (BALM, small_gicp pair) kept beside the repository, not inside it.
 SHARED_DATA = Path(os.environ.get('KENTREG_SHARED_DATA', REPO_ROOT.parent / 'shared' / 'data'))

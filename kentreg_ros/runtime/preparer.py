@@ -29,7 +29,7 @@ hint the loop uses are known only once the previous scan is prepared (hint) or r
 Every reply carries the inputs it was made with; :meth:`ProcessPreparer.prepare` checks them
 against the loop's and prepares the scan in this process when they differ (after a reset, a
 new configuration or a dropped scan). The poses are therefore those of the sequential loop,
-bit for bit (``test/test_pipeline.py``).
+bit for bit (``test/runtime/test_pipeline.py``).
 
 Failures: an exception in the worker while preparing a scan (a bug; an unusable cloud is the
 ordinary ``rejected`` health) is raised from :meth:`ProcessPreparer.prepare`, so from the

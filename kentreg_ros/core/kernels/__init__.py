@@ -16,7 +16,7 @@ takes as BLAS matrix products, and the moments of the normal bins, ``add.reducea
 previous scan the poses agree to ~1e-14; with the local map such differences feed the map and
 its clustering, and over 50 scans the poses drifted apart by up to ~1 mm (BALM and the street
 frames, 2026-12-06; already so before the EM's sums were compiled), far below the odometry's
-error (``test/test_kernels.py``). One kernel has no numpy twin: the k-d tree
+error (``test/core/test_kernels.py``). One kernel has no numpy twin: the k-d tree
 (:func:`kdtree_build`, :func:`kdtree_knn`), which
 :class:`~kentreg_ros.core.scan.neighbors.NeighborIndex` uses when the kernels are compiled and
 replaces by small_gicp's or scipy's tree otherwise (exact kNN all three, the same distances).

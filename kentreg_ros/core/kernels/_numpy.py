@@ -1,5 +1,5 @@
 """The per-point loops in numpy: what runs without numba, and the reference the compiled
-kernels of :mod:`._jit` repeat operation by operation (``test/test_kernels.py``).
+kernels of :mod:`._jit` repeat operation by operation (``test/core/test_kernels.py``).
 
 Each function has the signature and the results of the kernel of the same name.
 """

@@ -106,6 +106,7 @@ def sample_run(sample_bag: Path, tmp_path_factory: pytest.TempPathFactory) -> di
     return {'code': code, 'stdout': stdout, 'stderr': stderr, 'out': out}
 
 
+@pytest.mark.integration
 def test_replay_sample_writes_every_output(sample_run: dict[str, object]) -> None:
     assert sample_run['code'] == 0, sample_run['stderr']
     out = sample_run['out']
@@ -130,6 +131,7 @@ def test_replay_sample_writes_every_output(sample_run: dict[str, object]) -> Non
         assert text in stdout
 
 
+@pytest.mark.integration
 def test_replay_sample_mcap_has_one_message_per_scan(
     sample_run: dict[str, object], sample_bag: Path
 ) -> None:
@@ -179,6 +181,7 @@ def test_replay_sample_mcap_has_one_message_per_scan(
     np.testing.assert_allclose(positions, T_tum[:, :2, 3], atol=1e-6)
 
 
+@pytest.mark.integration
 def test_replay_sample_metrics_match_independent_computation(
     sample_run: dict[str, object], shared_data: Path
 ) -> None:
@@ -312,6 +315,7 @@ def test_run_odometry_stops_at_a_scan_that_does_not_continue_the_trajectory() ->
     )
 
 
+@pytest.mark.integration
 def test_replay_paper_mode_config_runs_end_to_end(sample_bag: Path, tmp_path: Path) -> None:
     config = tmp_path / 'paper.yaml'
     config.write_text(dump_config(KentRegConfig.paper()))
@@ -451,6 +455,7 @@ def test_replay_bad_input_exits_2_with_one_line(
     assert not (tmp_path / 'out').exists()
 
 
+@pytest.mark.integration
 def test_replay_module_subprocess_bad_input(repo_root: Path, tmp_path: Path) -> None:
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
     proc = subprocess.run(
@@ -463,6 +468,7 @@ def test_replay_module_subprocess_bad_input(repo_root: Path, tmp_path: Path) -> 
     ]
 
 
+@pytest.mark.integration
 def test_installed_console_script_runs_sample(sample_bag: Path, tmp_path: Path) -> None:
     script = shutil.which('kentreg_replay')
     if script is None:
@@ -557,6 +563,7 @@ def test_replay_refuses_a_map_file_of_unknown_kind(sample_bag: Path, tmp_path: P
     assert code == 2 and '--map' in stderr and '.ply or .pcd' in stderr
 
 
+@pytest.mark.integration
 def test_replay_prints_only_its_own_lines(
     repo_root: Path, sample_bag: Path, tmp_path: Path
 ) -> None:

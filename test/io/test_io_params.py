@@ -16,7 +16,7 @@ from kentreg_ros.io.params import (
     parse_overrides,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_shipped_yaml_equals_the_defaults() -> None:

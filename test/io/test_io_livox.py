@@ -563,6 +563,7 @@ def test_the_live_hint_for_a_custom_msg_points_to_the_pointcloud2_output() -> No
         assert 'xfer_format to 0' in hint and 'kentreg_replay BAG --topic /livox/lidar' in hint
 
 
+@pytest.mark.integration
 def test_the_node_says_once_that_its_input_topic_carries_another_type(
     rclpy_context: Any,
 ) -> None:

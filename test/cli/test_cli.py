@@ -1,7 +1,7 @@
 """The command lines' shared parts (kentreg_ros.cli.common), ``kentreg`` and ``kentreg_register``.
 
 ``kentreg_replay`` and ``kentreg_convert`` have their own tests (test_replay.py,
-test_io_convert.py).
+test_convert.py).
 """
 
 from __future__ import annotations
@@ -176,6 +176,7 @@ def test_register_bad_input_exits_2_with_one_line(
     assert match in captured.err
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize('script', ['kentreg', 'kentreg_register', 'kentreg_convert'])
 def test_installed_console_scripts_fail_in_one_line(script: str, tmp_path: Path) -> None:
     path = shutil.which(script)
@@ -189,6 +190,7 @@ def test_installed_console_scripts_fail_in_one_line(script: str, tmp_path: Path)
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.integration
 def test_python_m_kentreg_ros_cli_runs_the_dispatcher(repo_root: Path, tmp_path: Path) -> None:
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
     proc = subprocess.run(
@@ -201,6 +203,7 @@ def test_python_m_kentreg_ros_cli_runs_the_dispatcher(repo_root: Path, tmp_path:
     ]
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize('script', ['kentreg_node', 'kentreg_play'])
 def test_ros_console_scripts_answer_help_at_once_with_status_0(
     script: str, repo_root: Path

@@ -19,6 +19,9 @@ import pytest
 from kentreg_ros.core import KentRegConfig, Odometry, PointTimes
 from kentreg_ros.runtime import MAX_OPEN_JOBS, PipelineError, ProcessPreparer
 
+#: Worker processes: the integration tier.
+pytestmark = pytest.mark.integration
+
 NS = 1_000_000_000
 
 
@@ -254,7 +257,7 @@ def test_the_worker_exits_when_its_parent_is_killed(tmp_path: Path) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
         """
     )
-    env = {**os.environ, 'PYTHONPATH': str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, 'PYTHONPATH': str(Path(__file__).resolve().parents[2])}
     out = subprocess.run(
         [sys.executable, '-c', script], capture_output=True, text=True, env=env, timeout=60
     )

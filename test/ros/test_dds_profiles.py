@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 NS = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize('path', ['config/fastdds_shm.xml', 'test/fastdds_localhost.xml'])

@@ -81,6 +81,7 @@ def world_and_start(repo_root: Path) -> tuple[np.ndarray, np.ndarray]:
     return world, poses[5]
 
 
+@pytest.mark.integration
 def test_deskewing_recovers_a_sweep_distorted_by_known_motion(
     world_and_start: tuple[np.ndarray, np.ndarray],
 ) -> None:
@@ -290,6 +291,7 @@ def test_implausible_times_skip_deskewing_with_one_warning(
     assert len(warnings) == 1 and 'point_time_unit' in warnings[0].getMessage()
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize('tamper', ['none', 'degenerate', 'too_fast'])
 def test_each_deskew_round_is_judged_on_its_own(
     world_and_start: tuple[np.ndarray, np.ndarray],

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 LAUNCH_FILE = REPO_ROOT / 'launch' / 'kentreg.launch.py'
 ROS_PAGE = REPO_ROOT / 'docs' / 'ros.md'
 
@@ -150,6 +150,7 @@ def test_launch_starts_an_installed_console_script_running_the_node() -> None:
     assert scripts[executable].load() is node.main
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(
     importlib.util.find_spec('launch_ros') is None,
     reason='launch_ros is not installed (not on PyPI; source a ROS 2 Jazzy install)',
@@ -163,6 +164,7 @@ def test_launch_file_loads_with_real_launch_ros() -> None:
     assert [a.name for a in description.get_launch_arguments()] == list(_declared_arguments())
 
 
+@pytest.mark.integration
 def test_installed_package_has_marker_manifest_config_launch_and_executable() -> None:
     prefix = _installed_prefix()
     if prefix is None:

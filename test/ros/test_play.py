@@ -35,6 +35,9 @@ from sensor_msgs.msg import PointCloud2  # noqa: E402
 
 from kentreg_ros.io import open_scan_source, pointcloud2_to_array  # noqa: E402
 
+#: kentreg_play over real rclpy and DDS: the integration tier.
+pytestmark = pytest.mark.integration
+
 TIMEOUT_S = 60.0
 
 

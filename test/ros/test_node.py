@@ -52,10 +52,13 @@ from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # no
 from kentreg_ros.io.recordings import read_ground_truth  # noqa: E402
 from kentreg_ros.io.sources import open_scan_source  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+#: Node subprocesses over DDS: the integration tier.
+pytestmark = pytest.mark.integration
+
+REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / 'bags' / 'balm_50'
 PARAMS = REPO / 'config' / 'kentreg.yaml'
-GATED_NODE = Path(__file__).resolve().parent / 'gated_node.py'
+GATED_NODE = Path(__file__).resolve().parents[1] / 'gated_node.py'
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
 _DOMAINS = itertools.count()
 #: The node's topics and services (fully qualified, as in the root namespace), each remapped

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 from optional import import_open3d
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 

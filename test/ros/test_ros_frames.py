@@ -29,6 +29,9 @@ from kentreg_ros.ros.messages import (  # noqa: E402
     transform_to_msg,
 )
 
+#: rclpy nodes (DDS participants) in this process: the integration tier.
+pytestmark = pytest.mark.integration
+
 
 class _TransformError(Exception):
     """Stands in for tf2_ros.TransformException."""

@@ -43,7 +43,10 @@ from kentreg_ros.io.sources import open_scan_source  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_from_msg, pose_to_msg  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+#: rclpy nodes (DDS participants) in this process: the integration tier.
+pytestmark = pytest.mark.integration
+
+REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / 'bags' / 'balm_50'
 RVIZ = REPO / 'rviz' / 'kentreg.rviz'
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)

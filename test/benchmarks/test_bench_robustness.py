@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
@@ -162,6 +162,7 @@ def _stand_in(name: str, answer: str) -> RawMethod:
     return RawMethod(name, lambda points: points, register, lambda prep: 0.5, {'answer': answer})
 
 
+@pytest.mark.integration
 def test_report_bookkeeping_end_to_end_with_stand_in_methods(
     room_sample: Sequence, tmp_path: Path
 ) -> None:

@@ -176,6 +176,7 @@ def test_rclpys_own_logger_takes_every_severity_from_the_handler_repeatedly(
             assert f'round {round_} at {name}' in err, err
 
 
+@pytest.mark.integration
 def test_importing_the_node_attaches_no_handler(repo_root: Path) -> None:
     env = {**os.environ, 'PYTHONPATH': os.pathsep.join([str(repo_root), *sys.path])}
     script = (

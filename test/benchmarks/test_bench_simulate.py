@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
@@ -157,6 +157,7 @@ def world() -> World:
     return build_world(BAG, 0.05)
 
 
+@pytest.mark.integration
 def test_odometry_on_simulated_scans_matches_the_exact_poses(world: World) -> None:
     scans, gt = simulate(world, 0.6, 0, Sensor())
     scans, T_true = scans[:4], gt.trajectory.T_world_sensor[:4]
@@ -172,6 +173,7 @@ def test_odometry_on_simulated_scans_matches_the_exact_poses(world: World) -> No
     assert stats['step_median_m'] == pytest.approx(0.6, rel=0.05)
 
 
+@pytest.mark.integration
 def test_deskewing_follows_a_sudden_change_of_velocity(
     world: World, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -190,6 +192,7 @@ def test_deskewing_follows_a_sudden_change_of_velocity(
     assert errors[odometry_module.MAX_DESKEW_ITERATIONS] < 0.05 < errors[1]
 
 
+@pytest.mark.integration
 def test_simulate_writes_a_folder_the_replay_reads(tmp_path: Path) -> None:
     out = tmp_path / 'sim'
     argv = ['--input', str(BAG), '--write', str(out), '--steps', '3.0', '--seed', '2']

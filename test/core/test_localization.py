@@ -30,7 +30,7 @@ from kentreg_ros.io.poses import write_tum
 from kentreg_ros.io.recordings import open_recording
 
 CONFIG = KentRegConfig()
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def seen_from(world: np.ndarray, T_world_scan: np.ndarray, bin_deg: float = 0.4) -> np.ndarray:

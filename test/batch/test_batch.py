@@ -83,6 +83,7 @@ def fleet(sample_bag: Path, tmp_path: Path) -> Path:
     return folder
 
 
+@pytest.mark.integration
 def test_six_inputs_on_a_local_cluster_five_done_one_failed_a_rerun_skips_five(
     cluster_extra: None, fleet: Path, sample_bag: Path, tmp_path: Path
 ) -> None:
@@ -134,6 +135,7 @@ def test_six_inputs_on_a_local_cluster_five_done_one_failed_a_rerun_skips_five(
     assert '1 failed, 5 skipped' in stdout
 
 
+@pytest.mark.integration
 def test_batch_joins_a_running_cluster_at_its_address(
     cluster_extra: None, sample_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -152,6 +154,7 @@ def test_batch_joins_a_running_cluster_at_its_address(
     assert cluster.scheduler_address in stdout
 
 
+@pytest.mark.integration
 def test_in_process_batch_redoes_an_interrupted_input_and_skips_a_finished_one(
     sample_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -315,6 +318,7 @@ def _worker_environment() -> dict[str, str | None]:
     return {name: os.environ.get(name) for name in names}
 
 
+@pytest.mark.integration
 def test_local_cluster_workers_run_one_thread_without_dasks_malloc_trim(
     cluster_extra: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -325,6 +329,9 @@ def test_local_cluster_workers_run_one_thread_without_dasks_malloc_trim(
     from kentreg_ros.batch import engine
 
     monkeypatch.delenv('MALLOC_TRIM_THRESHOLD_', raising=False)
+    # The workers must get one thread from the engine, not from the tests' environment.
+    monkeypatch.delenv('OMP_NUM_THREADS', raising=False)
+    monkeypatch.delenv('OPENBLAS_NUM_THREADS', raising=False)
     with engine._client(workers=1, address=None, n_jobs=1) as (client, pids):
         (env,) = client.run(_worker_environment).values()
     assert len(pids) == 1

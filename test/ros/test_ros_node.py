@@ -53,6 +53,9 @@ from kentreg_ros.ros import parameters as parameters_module  # noqa: E402
 from kentreg_ros.ros import worker as worker_module  # noqa: E402
 from kentreg_ros.ros.messages import pose_covariance_in_base  # noqa: E402
 
+#: rclpy nodes (DDS participants) in this process: the integration tier.
+pytestmark = pytest.mark.integration
+
 FACTORY = rclpy_factory(PointCloud2, PointField, Header, Time)
 ROOM = box_room(np.random.default_rng(0), 4000)
 TIMEOUT_S = 60.0

@@ -20,7 +20,7 @@ from kentreg_ros.io.params import (
     product_values,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / 'config' / 'kentreg.yaml'
 
 
