@@ -38,29 +38,10 @@ from kentreg_ros.core import (
     plain_value,
 )
 from kentreg_ros.io.errors import ParameterError
+from kentreg_ros.io.yamlfile import load_yaml, parse_overrides
 
 #: The node's name: the top key of the parameter file.
 NODE_NAME = 'kentreg_node'
-
-
-class NumberLoader(yaml.SafeLoader):
-    """PyYAML's safe loader reading numbers as a user writes them and as ROS reads them.
-
-    PyYAML follows YAML 1.1, where a float needs a decimal point: ``1e-3``, ``1E-3`` and ``1e3``
-    come back as strings, while rcl (which reads the node's parameter files) and YAML 1.2 read
-    them as numbers. This loader adds YAML 1.2's float forms (an exponent with or without a
-    point or sign), so the command lines and the node read a file alike.
-    """
-
-
-_FLOAT_12 = re.compile(r'^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$')
-for _first in '-+.0123456789':
-    NumberLoader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_12, [_first])
-
-
-def load_yaml(text: str) -> Any:
-    """``text`` parsed by :class:`NumberLoader`."""
-    return yaml.load(text, Loader=NumberLoader)  # noqa: S506 - a SafeLoader subclass
 
 
 def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
@@ -100,31 +81,6 @@ def parameters_from_yaml(path: str | Path, node_name: str = NODE_NAME) -> dict[s
             data = section['ros__parameters'] or {}
             break
     return flatten_keys(nest_keys(data))
-
-
-def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` items as ``{KEY: value}``, each value read as a YAML scalar.
-
-    ``em.max_iterations=30`` gives the integer 30, ``refine.normal_weight=false`` the boolean
-    False, ``mode=paper`` the string ``'paper'``; an empty value is the empty string and text
-    that is not valid YAML is taken as it is. The keys are checked by
-    :meth:`KentRegConfig.with_updates`, not here.
-
-    Raises
-    ------
-    ConfigError
-        An item without ``=`` or with an empty key.
-    """
-    updates: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition('=')
-        if not sep or not key.strip():
-            raise ConfigError(f'Expected KEY=VALUE, got {item!r}.')
-        try:
-            updates[key.strip()] = load_yaml(text) if text.strip() else ''
-        except yaml.YAMLError:
-            updates[key.strip()] = text
-    return updates
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,7 +276,6 @@ class NodeSettings(Section):
         'trajectory_tum.txt); ~ is expanded. Empty: $ROS_HOME/kentreg_maps (~/.ros/'
         'kentreg_maps).',
     )
-
     def check(self) -> None:
         values = self.base_to_lidar
         if isinstance(values, str | bytes) or not isinstance(values, Sequence):
