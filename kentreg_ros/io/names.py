@@ -27,6 +27,12 @@ MAP = f'{PREFIX}/map'
 DIAGNOSTICS = '/diagnostics'
 #: geometry_msgs/PoseWithCovarianceStamped (subscribed): what RViz's "2D Pose Estimate" sends.
 INITIAL_POSE = 'initialpose'
+#: Localization in a saved map (``map_file``), private to the node: its pose in ``map_frame``
+#: (geometry_msgs/PoseWithCovarianceStamped), its state (std_msgs/String, transient-local) and
+#: the search from no start (std_srvs/Trigger).
+LOCALIZATION_POSE = '~/pose'
+LOCALIZATION_STATE = '~/state'
+RELOCALIZE = '~/relocalize'
 #: tf2_msgs/TFMessage topics.
 TF = '/tf'
 TF_STATIC = '/tf_static'

@@ -276,6 +276,23 @@ class NodeSettings(Section):
         'trajectory_tum.txt); ~ is expanded. Empty: $ROS_HOME/kentreg_maps (~/.ros/'
         'kentreg_maps).',
     )
+    map_file: str = _param(
+        '',
+        'A saved map to localize in (PLY or PCD: what ~/save_map or kentreg_replay --map '
+        'writes): the node then publishes map_frame -> odom_frame, takes initialpose in '
+        'map_frame (its covariance bounds the search) and offers ~/relocalize '
+        '(docs/localization.md). The trajectory beside it (trajectory_tum.txt, poses_tum.txt) '
+        'orients its normals; it is prepared in the background at start-up and cached beside '
+        'it. A path that is no map file stops the node at start-up. Empty: odometry only.',
+        read_only=True,
+    )
+    map_frame: str = _param(
+        'map',
+        'Frame of the saved map (REP-105): parent of odom_frame on /tf, header.frame_id of '
+        '~/pose and of the initialpose the node takes when map_file is set.',
+        read_only=True,
+    )
+
     def check(self) -> None:
         values = self.base_to_lidar
         if isinstance(values, str | bytes) or not isinstance(values, Sequence):
@@ -293,6 +310,19 @@ class NodeSettings(Section):
         if self.odom_frame == self.base_frame:
             raise ConfigError(
                 f'`odom_frame` and `base_frame` are both {self.odom_frame!r}; they must differ.'
+            )
+        if not self.map_frame.strip():
+            raise ConfigError('Expected `map_frame` to be a non-empty frame name.')
+        if self.map_frame in (self.odom_frame, self.base_frame):
+            raise ConfigError(
+                f'`map_frame` is {self.map_frame!r}, the name of another of its frames; the '
+                'map, odometry and moving frames must differ.'
+            )
+        if self.map_file.strip() and self.invert_tf:
+            raise ConfigError(
+                '`invert_tf` with a `map_file`: the map -> odom transform would give odom_frame '
+                'a second parent in tf (it hangs below the moving frame); localize without '
+                'invert_tf, or leave map_file empty.'
             )
 
     def with_updates(self, values: Mapping[str, Any]) -> NodeSettings:

@@ -121,3 +121,48 @@ def odometry_status(
     values.update({f'window.{k}': str(v) for k, v in window.items()})
     status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
     return status
+
+
+@dataclass(frozen=True)
+class LocalizationSnapshot:
+    """What the localization thread last reported (:class:`~kentreg_ros.ros.localization.
+    LocalizationWorker`), read under its lock."""
+
+    map_file: str
+    #: 'loading', 'ready' or 'failed'.
+    map_state: str
+    map_message: str
+    state: str
+    last_message: str
+    last_fit: float
+    last_ms: float
+    counts: Mapping[str, int]
+
+
+def localization_status(name: str, snap: LocalizationSnapshot) -> DiagnosticStatus:
+    """The localization's status: OK while localized, WARN while the map loads or the node
+    searches, is lost or ambiguous, ERROR when the map could not be loaded."""
+    status = DiagnosticStatus()
+    status.name = f'{name}: localization'
+    status.hardware_id = snap.map_file
+    if snap.map_state == 'failed':
+        status.level, status.message = DiagnosticStatus.ERROR, snap.map_message
+    elif snap.map_state == 'loading':
+        status.level, status.message = DiagnosticStatus.WARN, snap.map_message
+    elif snap.state == 'localized':
+        status.level, status.message = DiagnosticStatus.OK, 'localized'
+    else:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'{snap.state}: {snap.last_message}' if snap.last_message else snap.state
+    values = {
+        'state': snap.state,
+        'map_file': snap.map_file,
+        'map': snap.map_state,
+        'map_message': snap.map_message,
+        'last_message': snap.last_message,
+        'last_fit': f'{snap.last_fit:.3f}',
+        'last_ms': f'{snap.last_ms:.1f}',
+    }
+    values.update({k: str(v) for k, v in snap.counts.items()})
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    return status

@@ -10,7 +10,9 @@
   seconds (dropped and counted); then ``base_to_lidar`` is used and, since nobody publishes
   one, broadcast as a static transform (``/tf_static``), so the tree is whole.
 - **/tf**: ``odom_frame -> moving frame``, or its inverse with ``invert_tf`` (for a robot whose
-  ``odom -> base`` belongs to another node: a frame has one parent in tf).
+  ``odom -> base`` belongs to another node: a frame has one parent in tf). With a ``map_file``,
+  also ``map_frame -> odom_frame`` (:meth:`Frames.broadcast_map`, REP-105), once the map has
+  placed the run.
 
 tf2_ros is not on PyPI (nor tf2_msgs, its message package): without it (a pip-only
 installation) nothing is broadcast, the mount is ``base_to_lidar``, and one log line says so.
@@ -179,6 +181,21 @@ class Frames:
         else:
             msg.header.frame_id, msg.child_frame_id = settings.odom_frame, child
             msg.transform = transform_to_msg(T_odom_moving)
+        self.broadcaster.sendTransform(msg)
+        return msg
+
+    def broadcast_map(
+        self, stamp_ns: int, T_map_odom: FloatArray, settings: NodeSettings
+    ) -> TransformStamped | None:
+        """Send ``map_frame -> odom_frame`` on /tf (REP-105: the localization's correction of
+        the odometry's drift); return the message sent (None when TF is off or tf2 is
+        missing)."""
+        if not settings.publish_tf or self.broadcaster is None:
+            return None
+        msg = TransformStamped()
+        msg.header.stamp = stamp_to_msg(stamp_ns)
+        msg.header.frame_id, msg.child_frame_id = settings.map_frame, settings.odom_frame
+        msg.transform = transform_to_msg(T_map_odom)
         self.broadcaster.sendTransform(msg)
         return msg
 

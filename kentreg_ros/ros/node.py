@@ -5,7 +5,7 @@ under one prefix, :mod:`kentreg_ros.io.names`, so none collides with a robot's `
 
 ============================ ===================================== ==============================
 ``points``                   sensor_msgs/PointCloud2 (subscribed)  sensor-data QoS by default
-``initialpose``              PoseWithCovarianceStamped (subscr.)   sets the current pose (RViz)
+``initialpose``              PoseWithCovarianceStamped (subscr.)   sets the pose (map: a search)
 ``kentreg/odometry``         nav_msgs/Odometry                     odom -> moving frame, twist
 ``kentreg/pose``             geometry_msgs/PoseStamped             the same pose
 ``kentreg/path``             nav_msgs/Path                         the last ``path_length`` poses
@@ -15,7 +15,15 @@ under one prefix, :mod:`kentreg_ros.io.names`, so none collides with a robot's `
 ``/tf``, ``/tf_static``      odom -> moving frame, base <- sensor  when tf2_ros is installed
 ``~/save_map``               std_srvs/Trigger (service)            writes map.ply + TUM poses
 ``~/reset``                  std_srvs/Trigger (service)            restart the trajectory
+``~/pose``                   PoseWithCovarianceStamped             map: the pose in ``map_frame``
+``~/state``                  std_msgs/String (latched)             map: searching, localized, ...
+``~/relocalize``             std_srvs/Trigger (service)            map: search from no start
 ============================ ===================================== ==============================
+
+With a ``map_file`` (localization mode, :mod:`kentreg_ros.ros.localization`) the node also places
+the odometry's scans in that saved map, in a thread of its own, and sends ``map_frame ->
+odom_frame`` on /tf (REP-105) once it has; ``initialpose`` then is the moving frame's pose in
+``map_frame``, and its covariance bounds the search.
 
 The moving frame is ``base_frame``, or the cloud's own frame when it is empty (the default);
 frames and TF are :mod:`kentreg_ros.ros.frames`, the outputs and the map of the run
@@ -51,6 +59,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -80,8 +89,9 @@ from kentreg_ros.io.params import NODE_NAME, NodeSettings, PipelineMode
 from kentreg_ros.io.pointcloud2 import pointcloud2_to_array
 from kentreg_ros.io.pointtimes import POINT_TIME_FIELDS, point_time_field
 from kentreg_ros.ros import parameters, services
-from kentreg_ros.ros.diagnostics import Counters, odometry_status
+from kentreg_ros.ros.diagnostics import Counters, localization_status, odometry_status
 from kentreg_ros.ros.frames import Frames
+from kentreg_ros.ros.localization import KeepingPreparer, LocalizationWorker, map_path
 from kentreg_ros.ros.logbridge import RclpyLogHandler
 from kentreg_ros.ros.outputs import (
     MAP_TICK_S,
@@ -124,6 +134,7 @@ class KentRegNode(Node):
         self._counters = Counters()
         try:
             declared = parameters.declare(self)
+            path = map_path(declared.node)  # a map_file that is no map stops the node now
         except StartupError:
             self._log_handler.detach()
             super().destroy_node()
@@ -145,9 +156,14 @@ class KentRegNode(Node):
         # subscriptions: it loads the compiled kernels (numba), which, loaded after them, left
         # the node to crash (SIGSEGV) when Ctrl-C came again while it shut down (test_node).
         preparer = create_preparer(process=declared.node.pipeline == PipelineMode.PROCESS)
+        # With a map, the localization places the scans as the odometry prepared them.
+        keeper = KeepingPreparer(preparer) if path is not None else None
+        if keeper is not None:
+            preparer = keeper
         odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY, preparer=preparer)
         try:
             self._create_endpoints(declared.node, tf)
+            self._localization = self._create_localization(path, declared.node, keeper)
         except StartupError:
             preparer.close()
             self._log_handler.detach()
@@ -162,9 +178,12 @@ class KentRegNode(Node):
             self._outputs,
             self.get_logger(),
             self.context.ok,
+            self._localization,
         )
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._log_handler.own_thread(self._worker.start())
+        if self._localization is not None:
+            self._log_handler.own_thread(self._localization.start())
         child = declared.node.base_frame or "the cloud's frame"
         self.get_logger().info(
             f'kentreg_node ready: model={self._config.odometry.model}, listening on '
@@ -200,12 +219,26 @@ class KentRegNode(Node):
         )
         self._srv_reset = self.create_service(Trigger, '~/reset', self._on_reset)
         self._srv_save = self.create_service(Trigger, '~/save_map', self._on_save_map)
+        self._srv_relocalize = self.create_service(Trigger, names.RELOCALIZE, self._on_relocalize)
         steady = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
         # Steady timers: diagnostics and the map keep coming when simulated time is paused.
         self._diag_timer = self.create_timer(
             settings.diagnostics_period, self._publish_diagnostics, clock=steady
         )
         self._map_timer = self.create_timer(MAP_TICK_S, self._publish_map_and_path, clock=steady)
+
+    def _create_localization(
+        self, path: Path | None, settings: NodeSettings, keeper: KeepingPreparer | None
+    ) -> LocalizationWorker | None:
+        """The localization in the map at ``path`` (None without one): its publishers now, its
+        thread (which loads the map) when the node starts."""
+        if path is None or keeper is None:
+            return None
+        with qos_override_errors():
+            return LocalizationWorker(
+                self, path, settings, self._config, self._frames, keeper, self.get_logger(),
+                self.context.ok,
+            )  # fmt: skip
 
     # ----------------------------------------------------------------------------------------
     # Parameters
@@ -276,6 +309,9 @@ class KentRegNode(Node):
 
     def _on_initial_pose(self, msg: PoseWithCovarianceStamped) -> None:
         settings = self._worker.settings
+        if self._localization is not None:
+            self._on_initial_pose_in_map(msg, self._localization, settings)
+            return
         T = services.initial_pose(msg, settings, self._frames)
         if isinstance(T, str):
             self.get_logger().warning(f'Ignored an initialpose message: {T}.')
@@ -285,6 +321,36 @@ class KentRegNode(Node):
             f'Initial pose set: the moving frame at {np.round(T[:3, 3], 3).tolist()} m in '
             f'{settings.odom_frame} from the next scan on.'
         )
+
+    def _on_initial_pose_in_map(
+        self, msg: PoseWithCovarianceStamped, localization: LocalizationWorker, settings: Any
+    ) -> None:
+        """Localization mode: ``initialpose`` is the moving frame in ``map_frame``, and its
+        covariance the window of the map search (:func:`~kentreg_ros.ros.services.
+        search_window`); the odometry is left alone."""
+        T = services.initial_pose(msg, settings, self._frames, fixed=settings.map_frame)
+        window = services.search_window(msg.pose.covariance)
+        if isinstance(T, str) or isinstance(window, str):
+            self.get_logger().warning(f'Ignored an initialpose message: {T or window}.')
+            return
+        localization.set_initial_pose(T, window)
+        self.get_logger().info(
+            f'Initial pose in {settings.map_frame}: the moving frame at '
+            f'{np.round(T[:3, 3], 2).tolist()} m; searching the map within '
+            f'{window.distance:.2f} m and {window.angle_deg:.0f} deg of it from the next scan on.'
+        )
+
+    def _on_relocalize(self, request: Any, response: Any) -> Any:
+        if self._localization is None:
+            response.success = False
+            response.message = 'No map_file: this node runs odometry only, with nothing to search.'
+        else:
+            response.success, response.message = self._localization.relocalize()
+        if response.success:  # rclpy's logger wants one severity per call site
+            self.get_logger().info(f'~/relocalize: {response.message}')
+        else:
+            self.get_logger().warning(f'~/relocalize: {response.message}')
+        return response
 
     def _publish_map_and_path(self) -> None:
         settings = self._worker.settings
@@ -314,6 +380,8 @@ class KentRegNode(Node):
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [status]
+        if self._localization is not None:
+            msg.status.append(localization_status(self.get_name(), self._localization.snapshot()))
         self._pub_diag.publish(msg)
 
     def check_input_type(self) -> list[str]:
@@ -351,6 +419,8 @@ class KentRegNode(Node):
         daemon, so it does not keep the process alive.
         """
         stopped = self._worker.stop(self.WORKER_STOP_TIMEOUT_S)
+        if self._localization is not None:
+            stopped &= self._localization.stop(self.WORKER_STOP_TIMEOUT_S)
         self._log_handler.detach()
         if not stopped:
             self.get_logger().error(
@@ -359,7 +429,7 @@ class KentRegNode(Node):
             )
             for sub in (self._sub, self._sub_pose):
                 self.destroy_subscription(sub)
-            for srv in (self._srv_reset, self._srv_save):
+            for srv in (self._srv_reset, self._srv_save, self._srv_relocalize):
                 self.destroy_service(srv)
             for timer in (self._diag_timer, self._map_timer):
                 self.destroy_timer(timer)

@@ -11,7 +11,9 @@ copies the map under its lock, then writes outside it: the worker goes on meanwh
 publishes) sets the pose of the moving frame: its pose in ``odom_frame`` directly, or in
 another frame through tf2 (``odom_frame <- that frame``); without tf2, a pose in another frame
 is refused with a warning. The covariance of the message is not used (the odometry's own grows
-from the scans).
+from the scans). With a ``map_file`` it means something else: the pose of the moving frame in
+``map_frame``, where the localization searches the map, within the window its covariance gives
+(:func:`search_window`); the odometry is left alone.
 """
 
 from __future__ import annotations
@@ -23,12 +25,21 @@ from typing import Any
 
 import numpy as np
 
+from kentreg_ros.core import InvalidInputError, Window
 from kentreg_ros.io.params import NodeSettings
 from kentreg_ros.io.runmap import SavedRun, save_run
 from kentreg_ros.ros.frames import Frames
-from kentreg_ros.ros.messages import pose_from_msg
+from kentreg_ros.ros.messages import covariance_from_msg, pose_from_msg
 
 FloatArray = np.ndarray
+#: Standard deviations of an initial pose's covariance the map search covers: 3 holds 99.7 %
+#: of a normal error along one axis.
+WINDOW_SIGMAS = 3.0
+#: The least window of an initial pose (m, deg): a click in RViz's 2D Pose Estimate is rarely
+#: better than a metre and ten degrees, and RViz sends no covariance of its own choice; a
+#: window below the odometry's drift over the search's few scans would refuse the right place.
+MIN_WINDOW_DISTANCE = 1.0
+MIN_WINDOW_ANGLE_DEG = 10.0
 
 
 def map_directory(settings: NodeSettings) -> Path:
@@ -68,8 +79,13 @@ def save_map(outputs: Any, settings: NodeSettings) -> tuple[bool, str, SavedRun 
     return True, message, saved
 
 
-def initial_pose(msg: Any, settings: NodeSettings, frames: Frames) -> FloatArray | str:
-    """``T_odom_moving`` of an ``initialpose`` message, or why it cannot be used."""
+def initial_pose(
+    msg: Any, settings: NodeSettings, frames: Frames, *, fixed: str | None = None
+) -> FloatArray | str:
+    """The pose of an ``initialpose`` message in the frame ``fixed`` (default ``odom_frame``:
+    ``T_odom_moving``; with a ``map_file`` the node asks for ``map_frame``), or why it cannot be
+    used."""
+    target = settings.odom_frame if fixed is None else fixed
     try:
         T = pose_from_msg(msg.pose.pose)
     except ValueError as exc:  # scipy: a zero or non-finite quaternion
@@ -77,12 +93,39 @@ def initial_pose(msg: Any, settings: NodeSettings, frames: Frames) -> FloatArray
     if not np.isfinite(T).all():
         return 'its position is not finite'
     frame = msg.header.frame_id.lstrip('/')
-    if frame in ('', settings.odom_frame):
+    if frame in ('', target):
         return T
-    T_odom_frame = frames.lookup(settings.odom_frame, frame)
-    if T_odom_frame is None:
+    T_target_frame = frames.lookup(target, frame)
+    if T_target_frame is None:
         return (
-            f'it is in frame {frame!r}, and tf2 has no {settings.odom_frame} <- {frame} '
-            f'(give it in {settings.odom_frame!r}, the fixed frame of rviz/kentreg.rviz)'
+            f'it is in frame {frame!r}, and tf2 has no {target} <- {frame} '
+            f'(give it in {target!r}, the fixed frame to set in RViz)'
         )
-    return T_odom_frame @ T
+    return T_target_frame @ T
+
+
+def search_window(covariance: Any) -> Window | str:
+    """The window an ``initialpose`` gives the map search: :data:`WINDOW_SIGMAS` standard
+    deviations of its position (the largest over x and y; z is the map's to find) and of its
+    rotation (the largest over the three axes), at least :data:`MIN_WINDOW_DISTANCE` m and
+    :data:`MIN_WINDOW_ANGLE_DEG`; or why the covariance cannot give one.
+
+    Parameters
+    ----------
+    covariance : sequence of float, 36 values
+        The message's row-major 6x6 covariance (x, y, z, rotation about X, Y, Z).
+    """
+    try:
+        C = covariance_from_msg(covariance)
+    except InvalidInputError as exc:
+        return str(exc)
+    if not np.isfinite(C).all():
+        return 'its covariance is not finite'
+    xy = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T))[-1])
+    rot = float(np.linalg.eigvalsh(0.5 * (C[3:, 3:] + C[3:, 3:].T))[-1])
+    distance = WINDOW_SIGMAS * np.sqrt(max(xy, 0.0))
+    angle = np.degrees(WINDOW_SIGMAS * np.sqrt(max(rot, 0.0)))
+    return Window(
+        distance=float(max(distance, MIN_WINDOW_DISTANCE)),
+        angle_deg=float(np.clip(angle, MIN_WINDOW_ANGLE_DEG, 180.0)),
+    )

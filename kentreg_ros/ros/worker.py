@@ -6,7 +6,10 @@ The subscription callback (:mod:`kentreg_ros.ros.node`) only decodes a cloud and
 odometry never lags the sensor, and every drop is counted. The scan is also given to the
 preparer at once (:class:`~kentreg_ros.runtime.ScanPreparer`: with ``pipeline: process`` a worker
 process prepares it while this thread registers the scan before). Parameter changes and resets
-reach the thread as pending values, applied between scans.
+reach the thread as pending values, applied between scans. With a ``map_file`` each step is
+handed on to the localization's own thread after its outputs, and ``map -> odom`` goes out with
+it (:class:`~kentreg_ros.ros.localization.LocalizationWorker`): this thread never waits for a
+search.
 
 A scan that does not continue the trajectory is the odometry's to tell
 (:class:`~kentreg_ros.core.ScanOrderError`): a repeated stamp is dropped and counted; an earlier
@@ -34,6 +37,7 @@ from kentreg_ros.core import KentRegConfig, Odometry, OutOfOrder, PointTimes, Sc
 from kentreg_ros.io.params import NodeSettings
 from kentreg_ros.ros.diagnostics import Counters, Snapshot
 from kentreg_ros.ros.frames import Frames, moving_frame
+from kentreg_ros.ros.localization import LocalizationWorker
 from kentreg_ros.ros.outputs import Outputs
 from kentreg_ros.runtime import ScanPreparer, close_after
 
@@ -85,6 +89,9 @@ class ScanWorker:
     running : callable
         Whether the node's ROS context is still up (an exception after it went down is the
         node ending, not an error).
+    localization : LocalizationWorker, optional
+        With a ``map_file``: takes each step after its outputs (and sends ``map -> odom``
+        with it) and hears of every restart of the trajectory.
     """
 
     def __init__(
@@ -97,8 +104,10 @@ class ScanWorker:
         outputs: Outputs,
         log: Any,
         running: Callable[[], bool],
+        localization: LocalizationWorker | None = None,
     ) -> None:
         self._counters, self._frames, self._outputs = counters, frames, outputs
+        self._localization = localization
         self._log, self._running = log, running
         self._lock = threading.Condition()
         self._queue: collections.deque[QueuedScan] = collections.deque()
@@ -259,6 +268,8 @@ class ScanWorker:
             self._counters.add('searched')
         child = moving_frame(scan.frame_id, settings)
         self._outputs.publish(step, T_moving_lidar, prev_stamp, settings, child)
+        if self._localization is not None:
+            self._localization.after_step(step, T_moving_lidar, self._outputs.anchor, settings)
         self._counters.add('published')
         latency_ms = (time.monotonic() - scan.received) * 1e3
         with self._lock:  # read by the diagnostics timer on the executor thread
@@ -325,6 +336,8 @@ class ScanWorker:
         self.odometry.reset()
         self._outputs.reset()
         self._frames.reset()
+        if self._localization is not None:
+            self._localization.trajectory_restarted()  # the odometry frame starts again
         self._last_stepped_ns = None
         with self._lock:
             self._frame_id = ''

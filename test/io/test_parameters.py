@@ -32,7 +32,9 @@ def test_shipped_parameter_file_is_the_generated_one() -> None:
 
 
 def test_the_product_surface_is_small_flat_and_under_any_node_name() -> None:
-    assert len(PARAMETERS) <= 30
+    # The odometry's 29 and the localization's two (map_file, map_frame): each one more is a
+    # choice an operator has to understand.
+    assert len(PARAMETERS) <= 31
     assert all('.' not in p.name for p in PARAMETERS)  # flat ROS names
     assert {'odom_frame', 'base_frame', 'publish_tf'} <= {p.name for p in PARAMETERS}
     text = SHIPPED.read_text()
@@ -90,6 +92,9 @@ def test_a_parameter_file_round_trips_research_fields(tmp_path: Path) -> None:
         ({'base_to_lidar': [0.0, 'a', 0, 0, 0, 0]}, r'`base_to_lidar\[1\]`'),
         ({'odom_frame': ' '}, 'non-empty frame name'),
         ({'base_frame': 'odom'}, 'must differ'),
+        ({'map_frame': 'odom'}, 'the map, odometry and moving frames must differ'),
+        ({'map_frame': ''}, '`map_frame` to be a non-empty frame name'),
+        ({'map_file': 'site.ply', 'invert_tf': True}, 'a second parent in tf'),
         ({'max_range': -1}, r'`preprocess.max_range` in \[0.0, 10000.0\]'),
         ({'min_range': 5, 'max_range': 2}, 'min_range < preprocess.max_range'),
         ({'model': 'map'}, "one of \\['previous_scan', 'local_map'\\]"),
@@ -109,6 +114,7 @@ def test_bad_values_are_refused_with_the_reason(values: dict, match: str) -> Non
         ({'base_to_lidar': [0.0, 'a', 0, 0, 0, 0]}, ('base_to_lidar',)),
         ({'em.tolerance': -1.0}, ('em.tolerance',)),
         ({'bogus': 1, 'max_range': 3.0}, ('bogus',)),
+        ({'map_frame': 'odom', 'max_range': 3.0}, ('map_frame',)),
     ],
 )
 def test_a_refused_parameter_is_named_with_the_reason(values: dict, names: tuple) -> None:
@@ -129,10 +135,11 @@ def test_node_settings_validate_on_construction_like_the_config() -> None:
 
 def test_parameters_fixed_at_start_up_are_declared_read_only() -> None:
     """The node reads these once (timer period, subscription QoS, the voxel and the bound of
-    the map of the run, which a change would have to throw away, and the pipeline, whose
-    worker process starts with the node)."""
+    the map of the run, which a change would have to throw away, the pipeline, whose
+    worker process starts with the node, and the saved map of the localization and its frame,
+    which the node loads and publishes from start-up)."""
     read_only = {p.name for p in PARAMETERS if p.read_only}
     assert read_only == {
         'diagnostics_period', 'qos_reliability', 'qos_depth', 'map_voxel_size', 'map_max_points',
-        'pipeline',
+        'pipeline', 'map_file', 'map_frame',
     }  # fmt: skip
