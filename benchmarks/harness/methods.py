@@ -48,7 +48,7 @@ PAPER_POINTS = 10_000
 BASE_METHODS: tuple[str, ...] = ('icp_pt2pt', 'icp_pt2pl', 'cicp', 'gicp', 'ndt', 'kiss_icp',
                                  'kentreg_paper', 'kentreg_robust')  # fmt: skip
 
-#: kentreg robust ablations: one switch of the README's "robust vs paper" table each.
+#: kentreg robust ablations: one switch of docs/method.md's "robust vs paper" table each.
 ABLATIONS: dict[str, dict[str, Any]] = {
     'kent_beta': {'em.kent_beta': True},  # the paper's beta term in the E-step kernels
     'averaged': {'em.rotation': 'averaged'},

@@ -5,7 +5,7 @@ core's operator settings (:data:`CORE_PARAMETERS`, each the flat name of a
 :class:`~kentreg_ros.core.config.KentRegConfig` field, which gives it its default, range and
 description) and the node's own (:class:`NodeSettings`). :data:`PARAMETERS` lists them all, in
 the order of the shipped file ``config/kentreg.yaml`` (``/**: ros__parameters:``, so any node
-name and namespace picks it up) and of the README's table.
+name and namespace picks it up) and of the table in docs/configuration.md.
 
 The research configuration (the paper's recipe, every ablation: ``mode``, ``em.*``,
 ``refine.*`` ...) is :class:`~kentreg_ros.core.config.KentRegConfig` itself, reached from
@@ -349,7 +349,7 @@ class NodeSettings(Section):
 
 @dataclass(frozen=True)
 class Parameter:
-    """One parameter as the node declares it and the README documents it.
+    """One parameter as the node declares it and docs/configuration.md documents it.
 
     ``field`` is the research field behind a core parameter ('' for the node's own)."""
 
@@ -517,7 +517,7 @@ def dump_parameter_file(
     }
     header = (
         '# kentreg parameters: read by kentreg_node (ros2 run / launch: --params-file) and by\n'
-        '# kentreg_replay --config. Every key is documented in README.md (parameter table).\n'
+        '# kentreg_replay --config. Every key is documented in docs/configuration.md.\n'
         '# Regenerate: python3 -m kentreg_ros.docs --parameter-file > config/kentreg.yaml\n'
     )
     body = yaml.safe_dump({'/**': {'ros__parameters': params}}, sort_keys=False)
