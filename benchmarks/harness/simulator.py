@@ -9,6 +9,8 @@ reference's orientation (slerp) turned by an optional yaw oscillation; (3) the s
 occlusion per direction bin with a tolerance for grazing surfaces, one point per beam bin drawn
 at random, Gaussian range noise), optionally over a sweep with every point timed. The poses
 are exact: they define the sequence. ``simulated.py --write`` writes one as a scan folder.
+:func:`corridor_world` is a world of its own: a featureless corridor whose axis no scan holds
+(``calibration.py``'s degenerate condition).
 """
 
 from __future__ import annotations
@@ -91,6 +93,29 @@ def build_world(path: Path, voxel: float) -> World:
     stamps = recording.reference.stamps_ns
     period = float(np.median(np.diff(stamps))) * 1e-9 if stamps is not None else 0.1
     return World(thin(np.concatenate(parts), voxel), T, period)
+
+
+def _plane(origin: FloatArray, u: FloatArray, v: FloatArray, size: tuple[float, float],
+           spacing: float) -> FloatArray:  # fmt: skip
+    """Points every ``spacing`` on the rectangle ``origin + a u + b v``, ``0 <= a, b < size``."""
+    a, b = np.meshgrid(np.arange(0.0, size[0], spacing), np.arange(0.0, size[1], spacing))
+    return origin + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+
+
+def corridor_world(length: float = 110.0, width: float = 2.4, height: float = 2.6,
+                   spacing: float = 0.04, period: float = 0.1) -> World:  # fmt: skip
+    """A straight corridor along x (floor, ceiling and two walls, no doors) and a path along
+    its middle 40 m, 1.3 m above the floor, wavering 0.25 m across it: its ends stay beyond the
+    sensor's range, so nothing holds a translation along x (a degenerate axis)."""
+    ex, ey, ez = np.eye(3)
+    floor = -1.3
+    corner = np.array([0.0, -width / 2, floor])
+    parts = [_plane(corner + z * ez, ex, ey, (length, width), spacing) for z in (0.0, height)]
+    parts += [_plane(corner + y * ey, ex, ez, (length, height), spacing) for y in (0.0, width)]
+    x = np.arange(length / 2 - 20.0, length / 2 + 20.0, 0.05)
+    T = np.tile(np.eye(4), (len(x), 1, 1))
+    T[:, 0, 3], T[:, 1, 3] = x, 0.25 * np.sin(2.0 * np.pi * x / 8.0)
+    return World(np.concatenate(parts), T, period)
 
 
 def trajectory(

@@ -63,6 +63,7 @@ from kentreg_ros.core.odometry import (
     prepare_swept,
     read_sweep,
     sweep_times,
+    twist_covariance,
 )
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
@@ -127,6 +128,7 @@ __all__ = [
     'register',
     'rotation_angle',
     'sweep_times',
+    'twist_covariance',
     'validate_value',
     'voxel_downsample',
     'Localizer',

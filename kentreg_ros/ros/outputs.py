@@ -56,7 +56,7 @@ from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverriding
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from kentreg_ros.core import OdometryStep, invert_transform, log_so3
+from kentreg_ros.core import OdometryStep, invert_transform, log_so3, twist_covariance
 from kentreg_ros.io import names
 from kentreg_ros.io.params import NodeSettings, QosReliability, RegisteredCloud
 from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory
@@ -306,9 +306,10 @@ class Outputs:
         linear.x, linear.y, linear.z = (float(x) for x in v)
         angular.x, angular.y, angular.z = (float(x) for x in w)
         if step.result is not None and step.ok:
-            J = np.zeros((6, 6))
-            J[:3, :3] = J[3:, 3:] = T_ml[:3, :3]
-            twist_cov = J @ np.asarray(step.result.covariance) @ J.T / dt**2
+            # The registration's target is the previous pose's frame (the last accepted one's
+            # for the local map), so its covariance is the motion's; a rotation of the sensor
+            # also moves a base mounted away from it.
+            twist_cov = twist_covariance(step.result.covariance, step.T_prev_curr, dt, T_ml)
         return twist_cov
 
     def publish_map(self, settings: NodeSettings, *, force: bool = False) -> bool:

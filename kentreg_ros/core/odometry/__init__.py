@@ -1,8 +1,9 @@
 """The odometry: the loop (:mod:`.loop`) over its stages, one module each: predict and chain
 (:mod:`.motion`), prepare (:mod:`.preparation`), register and verify (:mod:`.verify`), deskew
 (:mod:`.deskew`), the model (:mod:`.models`, the local map :mod:`.localmap`); its report
-(:mod:`.step`) and the chained covariance (:mod:`.covariance`)."""
+(:mod:`.step`) and the covariances of a chained pose and of a step's twist (:mod:`.covariance`)."""
 
+from kentreg_ros.core.odometry.covariance import twist_covariance
 from kentreg_ros.core.odometry.deskew import (
     ImplausibleTimesError,
     PointTimes,
@@ -50,4 +51,5 @@ __all__ = [
     'prepare_swept',
     'read_sweep',
     'sweep_times',
+    'twist_covariance',
 ]

@@ -1,11 +1,12 @@
-"""First-order covariance of a chained pose: the odometry's uncertainty along its path."""
+"""First-order covariances of the odometry: a chained pose (its uncertainty along the path) and a
+step's twist."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.geometry import hat, rotation_angle
+from kentreg_ros.core.geometry import hat, log_so3, rotation_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -66,3 +67,65 @@ def propagate_covariance(
     J_step[3:, 3:] = R
     cov = J_model @ cov_m @ J_model.T + J_step @ np.asarray(cov_step, np.float64) @ J_step.T
     return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
+def twist_covariance(
+    cov_step: ArrayLike,
+    T_prev_curr: ArrayLike,
+    dt: float,
+    T_frame_lidar: ArrayLike | None = None,
+) -> FloatArray:
+    """Covariance of the twist of one step, to first order.
+
+    The twist of the motion ``M = A T_prev_curr A^-1`` of the frame ``A = T_frame_lidar`` (a
+    robot's base carrying the sensor; the sensor itself by default) over ``dt`` seconds is
+    ``v = R_M^T t_M / dt`` (in the frame's current pose, a nav_msgs/Odometry twist's
+    ``child_frame_id``) and ``w = log(R_M) / dt``.
+
+    Parameters
+    ----------
+    cov_step : array_like, shape (6, 6)
+        Covariance of ``T_prev_curr`` for the left perturbation ``T_true = exp(delta) T`` in
+        the previous frame, (x, y, z, rot_x, rot_y, rot_z):
+        :attr:`~kentreg_ros.core.registration.result.RegistrationResult.covariance` of the
+        step's registration, whose target is the previous pose's frame.
+    T_prev_curr : array_like, shape (4, 4)
+        The sensor's motion: its current pose in its previous one.
+    dt : float
+        The time the motion took (s), > 0.
+    T_frame_lidar : array_like, shape (4, 4), optional
+        The sensor's pose in the frame whose twist is wanted (default identity).
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        Covariance of ``(v_x, v_y, v_z, w_x, w_y, w_z)`` in (m/s, rad/s).
+
+    Notes
+    -----
+    The step's perturbation moves the frame's motion by ``Ad_A delta``:
+    ``v_M = R_A v + [t_A]x R_A w`` and ``w_M = R_A w`` (a rotation of the sensor moves a frame
+    mounted ``t_A`` away). Then ``R_M^T t_M`` moves by ``R_M^T v_M`` exactly, and
+    ``log(R_M)`` by ``J_l^-1(log R_M) w_M``, the inverse left Jacobian of SO(3).
+    """
+    A = np.eye(4) if T_frame_lidar is None else np.asarray(T_frame_lidar, dtype=np.float64)
+    T = np.asarray(T_prev_curr, dtype=np.float64)
+    M = A @ T @ np.linalg.inv(A)
+    R_A, R_M = A[:3, :3], M[:3, :3]
+    J = np.zeros((6, 6))
+    J[:3, :3] = R_M.T @ R_A
+    J[:3, 3:] = R_M.T @ hat(A[:3, 3]) @ R_A
+    J[3:, 3:] = _inverse_left_jacobian(log_so3(R_M)) @ R_A
+    J /= dt
+    cov = J @ np.asarray(cov_step, dtype=np.float64) @ J.T
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
+def _inverse_left_jacobian(phi: FloatArray) -> FloatArray:
+    """``J_l^-1(phi)`` of SO(3): ``log(exp(w) exp(phi)) = phi + J_l^-1(phi) w + O(|w|^2)``."""
+    theta = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if theta < 1e-6:
+        return np.eye(3) - 0.5 * K + K @ K / 12.0
+    c = 1.0 / theta**2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))
+    return np.eye(3) - 0.5 * K + c * (K @ K)

@@ -72,7 +72,7 @@ MIN_TIMED_POINTS = 20
 #: Deskew once more with the registered motion when it moves the sweep's points by more than
 #: this many voxel edges from where the predicted motion put them: below half a voxel the
 #: difference is under the sampling resolution of the scan (a smaller change is still acted
-#: on when it would bias the registered pose by more than its covariance, see _resolvable).
+#: on when it would bias the registered pose by more than its resolution, see _resolvable).
 DESKEW_ITERATE_SPACINGS = 0.5
 #: Most deskew-and-register rounds per scan. A registration of a sweep deskewed with a twist
 #: off by d lands off by about d x (sweep / 2) and so re-estimates the twist off by about
@@ -424,11 +424,15 @@ def _resolvable(change: FloatArray, span_s: float, outcome: Outcome) -> bool:
     """Whether deskewing a sweep of ``span_s`` seconds with a twist differing by ``change``
     would move its registered pose by more than the registration resolves: the pose lands
     about half the sweep's motion difference away (``change x span / 2``), compared with the
-    covariance of the registration (Mahalanobis distance above 1)."""
+    resolution of the registration (Mahalanobis distance above 1): whether the fit's minimum
+    moves, not whether the move is within the pose's error."""
     if outcome.result is None:
         return False
     bias = 0.5 * span_s * np.concatenate([change[3:], change[:3]])  # (x, y, z, roll, ...)
-    cov = np.asarray(outcome.result.covariance, dtype=np.float64)
+    result = outcome.result
+    cov = np.asarray(
+        result.covariance if result.resolution is None else result.resolution, dtype=np.float64
+    )
     try:
         return bool(bias @ np.linalg.solve(cov, bias) > 1.0)
     except np.linalg.LinAlgError:

@@ -20,6 +20,7 @@ from kentreg_ros.core import kernels
 from kentreg_ros.core.geometry import exp_so3, hat, make_transform, project_to_so3
 from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.registration.translation import geman_mcclure_weights, robust_scale
+from kentreg_ros.core.registration.uncertainty import Residuals
 from kentreg_ros.core.scan.neighbors import NeighborIndex
 
 FloatArray = NDArray[np.float64]
@@ -59,6 +60,10 @@ class RefineResult:
         Fraction of source points with a gated correspondence at the end.
     kappa_normal : float
         Concentration used for the normal weights at the end.
+    residuals : Residuals or None
+        The point-to-plane rows of the iteration ``hessian`` comes from, for
+        :func:`~kentreg_ros.core.registration.uncertainty.pose_covariance` (None: no
+        iteration had enough correspondences).
     """
 
     T: FloatArray
@@ -68,6 +73,7 @@ class RefineResult:
     converged: bool
     inlier_fraction: float
     kappa_normal: float
+    residuals: Residuals | None = None
 
 
 def inverse_3x3_symmetric(M: FloatArray) -> FloatArray:
@@ -150,6 +156,7 @@ def refine_joint(
     prev_delta: FloatArray | None = None
     step_scale = 1.0
     step_metric = _displacement_metric(source)
+    last: _Rows | None = None
     it = 0
     for it in range(1, max_iterations + 1):
         x = source @ R.T + t
@@ -165,6 +172,7 @@ def refine_joint(
         H, g, sigma2 = _normal_equations(
             method, x, idx, ok, target, target_normals, source_normals, R, r_plane, w
         )
+        last = (x, idx, ok, r_plane, w)
         delta = -_solve_spd(H, g)
         # Step control (see Notes): halve on reversal, lengthen while creeping.
         if prev_delta is not None:
@@ -191,7 +199,21 @@ def refine_joint(
         converged=converged,
         inlier_fraction=inlier,
         kappa_normal=kappa_n,
+        residuals=None if last is None else _residuals(last, target_normals, noise_floor),
     )
+
+
+#: One iteration's rows: the moved source points, their neighbours, the matched rows, the
+#: point-to-plane residuals and the weights.
+_Rows = tuple[FloatArray, NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]
+
+
+def _residuals(rows: _Rows, target_normals: FloatArray, noise_floor: float) -> Residuals:
+    """The matched rows of one iteration as :class:`Residuals`, with the kernel's scale
+    (computed again from the residuals: the same value)."""
+    x, idx, ok, r, w = rows
+    x_ok, n_ok = np.take(x, ok, axis=0), np.take(target_normals, idx[ok], axis=0)
+    return Residuals(x_ok, n_ok, r, w, robust_scale(r, noise_floor))
 
 
 def _normal_weighted(

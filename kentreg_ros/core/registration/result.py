@@ -66,17 +66,22 @@ class RegistrationResult:
     inlier_fraction : float
         Fraction of source points kept as inliers by the last stage.
     covariance : ndarray, shape (6, 6)
-        Covariance of the estimate in the order (x, y, z, roll, pitch, yaw) of
-        nav_msgs/Odometry, from the information matrix of the final fit.
+        Covariance of the estimate's error in the order (x, y, z, roll, pitch, yaw) of
+        nav_msgs/Odometry, for the left perturbation ``T_true = exp(delta) T_target_source``
+        in the target frame: ``delta = (t_true - dR t, log(dR))`` with
+        ``dR = R_true R^T``. Robust mode: the final fit's robust-cost curvature and the
+        scatter of its residuals, counted per surface patch and calibrated on simulated
+        sequences with exact poses, inflated along the directions the degeneracy test leaves
+        unresolved (:mod:`~kentreg_ros.core.registration.uncertainty`; docs/covariance.md).
     degenerate : bool
         True when some direction of motion is not constrained by the scene.
     degenerate_directions : ndarray, shape (D, 3)
         Translation directions (target frame) that are poorly constrained.
     timings : dict of str to float
         Milliseconds per stage: ``prepare_source`` and ``prepare_target`` (about 0 for a
-        scan given prepared), ``rotation``, ``translation``, ``refine``, ``fit`` (robust
-        mode), ``search`` (when the start-free search ran) and ``total``; a stage run more
-        than once (for several candidate poses) reports the sum.
+        scan given prepared), ``rotation``, ``translation``, ``refine``, ``covariance`` and
+        ``fit`` (robust mode), ``search`` (when the start-free search ran) and ``total``; a
+        stage run more than once (for several candidate poses) reports the sum.
     stages : dict
         ``T_target_source`` after each stage (rotation, translation, refine).
     mode : Mode
@@ -95,6 +100,11 @@ class RegistrationResult:
         symmetric scenes (rooms, corridors) have such twins.
     alternatives : tuple of (ndarray (4, 4), float)
         The distinct other poses the search refined, with their fits.
+    resolution : ndarray, shape (6, 6) or None
+        How finely the fit locates its minimum: the first-order least-squares covariance
+        ``sigma^2 H^-1`` of the final iteration (independent residuals of one variance, the
+        IRLS information), in the order of ``covariance``; several times smaller than the
+        pose's error, which ``covariance`` gives. None: as ``covariance``.
     """
 
     T_target_source: FloatArray
@@ -118,6 +128,7 @@ class RegistrationResult:
     hypotheses: int = 0
     ambiguous: bool = False
     alternatives: tuple[tuple[FloatArray, float], ...] = ()
+    resolution: FloatArray | None = None
 
     @property
     def ok(self) -> bool:
@@ -167,7 +178,7 @@ class PoseEvidence:
         The rotation information has a near-null direction.
     stages : dict of str to ndarray (4, 4)
         ``T_target_source`` after each stage.
-    fit, hypotheses, ambiguous, alternatives
+    fit, hypotheses, ambiguous, alternatives, resolution
         As in :class:`RegistrationResult` (robust mode; the defaults in paper mode).
     """
 
@@ -186,6 +197,7 @@ class PoseEvidence:
     hypotheses: int = 0
     ambiguous: bool = False
     alternatives: tuple[tuple[FloatArray, float], ...] = ()
+    resolution: FloatArray | None = None
 
     @property
     def degenerate(self) -> bool:
@@ -255,4 +267,5 @@ def finish_result(
         hypotheses=ev.hypotheses,
         ambiguous=ev.ambiguous,
         alternatives=ev.alternatives,
+        resolution=ev.resolution,
     )

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kentreg_ros.core.config import KentRegConfig
-from kentreg_ros.core.geometry import make_transform, rotation_angle
+from kentreg_ros.core.geometry import make_transform, rotation_angle, row_norms
 from kentreg_ros.core.registration.correspondence import NearestNeighborCache
 from kentreg_ros.core.registration.em import EMResult, shared_rotation_em
 from kentreg_ros.core.registration.refine import RefineResult, refine_joint
@@ -29,6 +29,7 @@ from kentreg_ros.core.registration.translation import (
     plane_offset_translation,
     point_to_plane_translation,
 )
+from kentreg_ros.core.registration.uncertainty import inflate_degenerate, pose_covariance
 from kentreg_ros.core.registration.verify import (
     Candidate,
     Fit,
@@ -82,6 +83,7 @@ class _Local:
     converged: bool
     inlier: float
     covariance: FloatArray
+    resolution: FloatArray
     H_trans: FloatArray
     source: PreparedScan
     neighbors: NearestNeighborCache
@@ -92,6 +94,7 @@ class _Local:
 class _Gates:
     """Scales of one registration, from the sampling spacing (see the constants above)."""
 
+    spacing: float
     max_gate: float
     min_gate: float
     noise_floor: float
@@ -109,7 +112,7 @@ def _gates(src: PreparedScan, tgt: PreparedScan, cfg: KentRegConfig) -> _Gates:
     min_gate = GATE_FLOOR_SPACINGS * spacing
     max_gate = max(cfg.refine.max_correspondence_distance, min_gate)
     noise_floor = NOISE_FLOOR_SPACINGS * spacing
-    return _Gates(max_gate, min_gate, noise_floor, FitGates.for_spacing(spacing))
+    return _Gates(spacing, max_gate, min_gate, noise_floor, FitGates.for_spacing(spacing))
 
 
 #: EM passes for ranking a search hypothesis: the annealing from ``em.kappa_cap_start`` = 20 by
@@ -235,19 +238,28 @@ def _translation_stage(
     )
 
 
-def _refined_covariance(ref: RefineResult) -> tuple[FloatArray, FloatArray]:
-    """Covariance (x, y, z, roll, pitch, yaw) and translation normal matrix of a refinement."""
+def _refined_covariance(
+    ref: RefineResult, spacing: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Covariance (x, y, z, roll, pitch, yaw) of a refinement
+    (:func:`~kentreg_ros.core.registration.uncertainty.pose_covariance`), its resolution
+    (the first-order least-squares covariance ``sigma^2 H^-1`` of the last iteration, which
+    assumes independent residuals of one variance) and its translation normal matrix."""
     # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
     perm = [3, 4, 5, 0, 1, 2]
     info = ref.hessian[np.ix_(perm, perm)]
-    return max(ref.sigma2, 1e-12) * information_to_covariance(info), info[:3, :3]
+    resolution = max(ref.sigma2, 1e-12) * information_to_covariance(info)
+    if ref.residuals is None:
+        return resolution, resolution, info[:3, :3]
+    return pose_covariance(ref.residuals, spacing), resolution, info[:3, :3]
 
 
 def _stage_covariance(
     em: EMResult, trans: _Translation, src: PreparedScan
 ) -> tuple[FloatArray, FloatArray]:
     """Covariance and translation normal matrix without a refinement: the EM's rotation block,
-    the translation stage's (or the points' spread over their number, for the centroids)."""
+    the translation stage's (or the points' spread over their number, for the centroids), to
+    first order (an ablation's: the calibrated model is the refinement's)."""
     covariance = np.zeros((6, 6))
     covariance[3:, 3:] = information_to_covariance(em.hessian)
     if trans.hessian is not None:
@@ -356,9 +368,12 @@ def _placed(
             iterations += ref.iterations
             converged = ref.converged
             inlier = ref.inlier_fraction
-            covariance, H_trans = _refined_covariance(ref)
         else:
             covariance, H_trans = _stage_covariance(em, trans, src)
+            resolution = covariance
+    if refined:
+        with watch('covariance'):
+            covariance, resolution, H_trans = _refined_covariance(ref, gates.spacing)
     with watch('fit'):
         fit = balanced_fit(
             T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
@@ -372,6 +387,7 @@ def _placed(
         converged=converged,
         inlier=inlier,
         covariance=covariance,
+        resolution=resolution,
         H_trans=H_trans,
         source=src,
         neighbors=neighbors,
@@ -454,6 +470,29 @@ def _unresolved(
     return np.array(kept).reshape(-1, 3)
 
 
+def _inflated(
+    best: _Local, directions: FloatArray, rot_degenerate: bool, gates: _Gates
+) -> FloatArray:
+    """``best``'s covariance inflated where the data cannot tell the pose apart from one moved
+    by :attr:`_Gates.distinct`: by that distance along each unresolved translation direction,
+    and, when the rotation is degenerate, about the EM's weakest axis by the angle that moves
+    the source's points that far at their RMS range
+    (:func:`~kentreg_ros.core.registration.uncertainty.inflate_degenerate`)."""
+    axis, sigma_rotation = None, 0.0
+    if rot_degenerate:
+        _, evecs = np.linalg.eigh(0.5 * (best.em.hessian + best.em.hessian.T))
+        axis = best.em.R @ evecs[:, 0]  # the EM's right perturbation, into the target frame
+        radius = float(np.sqrt(np.mean(row_norms(best.source.points) ** 2)))
+        sigma_rotation = gates.distinct / max(radius, gates.distinct)
+    return inflate_degenerate(
+        best.covariance,
+        directions,
+        gates.distinct,
+        rotation_axis=axis,
+        sigma_rotation=sigma_rotation,
+    )
+
+
 def position_sample(scan: PreparedScan, cap: int) -> PreparedScan:
     """``scan`` with its points and normals reduced to :func:`stratified_sample` of its normal
     clusters (at most ``cap`` per cluster) for the position stages; its clusters, which the
@@ -497,6 +536,7 @@ def register_robust(
     deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
     if len(deg_dirs) and np.isfinite(best.fit.score):
         deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
+    rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
     return PoseEvidence(
         T_target_source=best.T,
         converged=best.converged,
@@ -505,12 +545,13 @@ def register_robust(
         beta=best.em.beta,
         log_likelihood=tuple(best.em.log_likelihood),
         inlier_fraction=best.inlier,
-        covariance=best.covariance,
+        covariance=_inflated(best, deg_dirs, rot_degenerate, gates),
         degenerate_directions=deg_dirs,
-        rotation_degenerate=rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio),
+        rotation_degenerate=rot_degenerate,
         stages=best.stages,
         fit=best.fit.score,
         hypotheses=n_hypotheses,
         ambiguous=bool(choice.rivals),
         alternatives=tuple((c.T, c.fit) for c in choice.distinct),
+        resolution=best.resolution,
     )
