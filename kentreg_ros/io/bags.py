@@ -33,7 +33,7 @@ from kentreg_ros.core import InvalidPointCloudError, KentRegError
 from kentreg_ros.io.errors import BagError, describe_error
 from kentreg_ros.io.livox import custom_msg_to_array, definition_problem, is_custom_msg
 from kentreg_ros.io.pointcloud2 import (
-    _default_typestore,
+    default_typestore,
     pointcloud2_to_array,
     stamp_to_ns,
 )
@@ -127,7 +127,7 @@ class _Bag:
     def _reader(self) -> Any:
         from rosbags.highlevel import AnyReader
 
-        return AnyReader([self.target], default_typestore=_default_typestore())
+        return AnyReader([self.target], default_typestore=default_typestore())
 
     def _mcap_file(self) -> Path | None:
         if self.target.is_file():
@@ -227,7 +227,7 @@ class _McapSalvage:
             except Exception:
                 logger.warning('%s: cannot parse the schema of %s.', self.path, schema.name)
         if not types:
-            return _default_typestore()
+            return default_typestore()
         store = get_typestore(Stores.EMPTY)
         store.register(types)
         return store

@@ -23,8 +23,8 @@ from kentreg_ros.io import names
 from kentreg_ros.io.bags import ODOMETRY, PATH, POSESTAMPED
 from kentreg_ros.io.errors import BagError, describe_error
 from kentreg_ros.io.pointcloud2 import (
-    _default_typestore,
     array_to_pointcloud2,
+    default_typestore,
     ns_to_sec_nanosec,
     rosbags_factory,
 )
@@ -80,7 +80,7 @@ class BagWriter:
         self.compress = compress
         self.overwrite = overwrite
         self.custom_data = dict(custom_data or {})
-        self.typestore = typestore if typestore is not None else _default_typestore()
+        self.typestore = typestore if typestore is not None else default_typestore()
         self._factory = rosbags_factory(self.typestore)
         self._writer: Any = None
         self._connections: dict[str, Any] = {}

@@ -15,15 +15,13 @@ Fields named ``''`` or ``'_'`` are padding (as PCL writes them) and are skipped.
 
 from __future__ import annotations
 
-import array
-import functools
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike, DTypeLike, NDArray
+from numpy.typing import DTypeLike, NDArray
 
 from kentreg_ros.core import InvalidPointCloudError
 
@@ -289,6 +287,26 @@ def _field_values(
     return view[keep.reshape(height, width)].astype(native, copy=False)
 
 
+def _check_extent(size: int, height: int, width: int, row_step: int, point_step: int) -> None:
+    """Refuse a message whose data is not ``row_step * height`` bytes or whose rows cannot hold
+    ``width`` points.
+
+    Raises
+    ------
+    InvalidPointCloudError
+    """
+    if height < 0 or width < 0 or size != row_step * height:
+        raise InvalidPointCloudError(
+            f'PointCloud2 data has {size} bytes; expected row_step * height = '
+            f'{row_step} * {height} = {row_step * height}.'
+        )
+    if height * width > 0 and row_step < width * point_step:
+        raise InvalidPointCloudError(
+            f'PointCloud2 row_step {row_step} is smaller than width * point_step = '
+            f'{width} * {point_step} = {width * point_step}.'
+        )
+
+
 def pointcloud2_to_array(
     msg: PointCloud2Like,
     *,
@@ -336,17 +354,8 @@ def pointcloud2_to_array(
     extra_names = _extra_names(layout, fields)
 
     buf = _as_uint8(msg.data)
-    if height < 0 or width < 0 or buf.size != row_step * height:
-        raise InvalidPointCloudError(
-            f'PointCloud2 data has {buf.size} bytes; expected row_step * height = '
-            f'{row_step} * {height} = {row_step * height}.'
-        )
+    _check_extent(buf.size, height, width, row_step, point_step)
     n = height * width
-    if n > 0 and row_step < width * point_step:
-        raise InvalidPointCloudError(
-            f'PointCloud2 row_step {row_step} is smaller than width * point_step = '
-            f'{width} * {point_step} = {width * point_step}.'
-        )
     stamp_ns = stamp_to_ns(msg.header.stamp)
     frame_id = str(msg.header.frame_id)
     if n == 0:
@@ -391,191 +400,31 @@ def pointcloud2_to_array(
     return CloudArrays(points, extras, n_dropped, stamp_ns, frame_id)
 
 
-@dataclass(frozen=True)
-class MessageFactory:
-    """Constructors of the messages :func:`array_to_pointcloud2` builds, for one ROS binding.
+# The encoding half lives in io/pointcloud2_encode; this module is the one place both are
+# imported from (it needs the datatype tables above, hence at the end).
+from kentreg_ros.io.pointcloud2_encode import (  # noqa: E402
+    MessageFactory,
+    array_to_pointcloud2,
+    cloud_dtype,
+    default_typestore,
+    rclpy_factory,
+    rosbags_factory,
+)
 
-    Every callable takes keyword arguments named like the message fields; ``point_cloud2``
-    receives ``data`` as a contiguous uint8 ndarray and stores it as its binding needs.
-    Use :func:`rosbags_factory` (rosbags, the default) or :func:`rclpy_factory` (a node).
-    """
-
-    point_cloud2: Callable[..., Any]
-    point_field: Callable[..., Any]
-    header: Callable[..., Any]
-    time: Callable[..., Any]
-
-
-@functools.lru_cache(maxsize=4)
-def _default_typestore() -> Any:
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
-def rosbags_factory(typestore: Any = None) -> MessageFactory:
-    """Factory building rosbags messages (for bags), from ``typestore`` or ROS 2 Jazzy's."""
-    store = _default_typestore() if typestore is None else typestore
-    types = store.types
-    return MessageFactory(
-        point_cloud2=types['sensor_msgs/msg/PointCloud2'],
-        point_field=types['sensor_msgs/msg/PointField'],
-        header=types['std_msgs/msg/Header'],
-        time=types['builtin_interfaces/msg/Time'],
-    )
-
-
-def rclpy_factory(
-    point_cloud2: type, point_field: type, header: type, time: type
-) -> MessageFactory:
-    """Factory building rclpy messages from the classes a node imports.
-
-    Example: ``rclpy_factory(sensor_msgs.msg.PointCloud2, sensor_msgs.msg.PointField,
-    std_msgs.msg.Header, builtin_interfaces.msg.Time)``. ``data`` is handed over as an
-    ``array.array('B')``, the one type rclpy's setter takes without a per-byte check.
-    """
-
-    def make_cloud(*, data: NDArray[np.uint8], **kwargs: Any) -> Any:
-        msg = point_cloud2(**kwargs)
-        payload = array.array('B')
-        payload.frombytes(data.tobytes())
-        msg.data = payload
-        return msg
-
-    return MessageFactory(make_cloud, point_field, header, time)
-
-
-def _pointfield_datatype(dtype: np.dtype[Any], name: str) -> int:
-    code = _DTYPE_TO_DATATYPE.get((dtype.kind, dtype.itemsize))
-    if code is None:
-        raise InvalidPointCloudError(
-            f'Field {name!r} has dtype {dtype}, which PointField cannot hold; cast it to one of '
-            'int8, uint8, int16, uint16, int32, uint32, float32, float64.'
-        )
-    return code
-
-
-def cloud_dtype(
-    xyz_dtype: DTypeLike = np.float32,
-    extra: Mapping[str, NDArray[Any]] | None = None,
-    *,
-    big_endian: bool = False,
-) -> np.dtype[Any]:
-    """Packed structured dtype ``x, y, z, <extra fields...>`` as :func:`array_to_pointcloud2`
-    lays points out (no padding).
-    """
-    order: Literal['<', '>'] = '>' if big_endian else '<'
-    base = np.dtype(xyz_dtype)
-    _pointfield_datatype(base, 'x')
-    descr: list[tuple[Any, ...]] = [(c, base.newbyteorder(order)) for c in 'xyz']
-    for name, values in (extra or {}).items():
-        if name in ('x', 'y', 'z') or name in PADDING_FIELDS:
-            raise InvalidPointCloudError(f'Extra field name {name!r} is reserved.')
-        dt = np.dtype(np.uint8) if values.dtype == np.bool_ else values.dtype
-        _pointfield_datatype(dt, name)
-        sub = values.shape[1:] if values.ndim > 1 else ()
-        item = dt.newbyteorder(order)
-        descr.append((name, item, sub) if sub else (name, item))
-    return np.dtype(descr)
-
-
-def array_to_pointcloud2(
-    points: ArrayLike,
-    *,
-    extra: Mapping[str, ArrayLike] | None = None,
-    frame_id: str = 'lidar',
-    stamp_ns: int = 0,
-    xyz_dtype: DTypeLike = np.float32,
-    big_endian: bool = False,
-    factory: MessageFactory | None = None,
-) -> Any:
-    """Build a PointCloud2 message from points and optional per-point fields.
-
-    Parameters
-    ----------
-    points : array_like, shape (N, 3) or (H, W, 3)
-        Coordinates; a 3-D array gives an organised cloud of height H. NaN/inf are kept (the
-        message is then ``is_dense=False``).
-    extra : dict of str to array_like, each shape (N,), (N, k), (H, W) or (H, W, k), optional
-        Per-point fields in their own dtype (int8 ... float64; bool is stored as uint8); a
-        trailing dimension k becomes a field with ``count=k``.
-    frame_id : str
-        Header frame.
-    stamp_ns : int
-        Header stamp in nanoseconds.
-    xyz_dtype : dtype
-        Type of x, y, z: float32 (default, what RViz and PCL expect) or any PointField type.
-    big_endian : bool
-        Write big-endian data (for tests of readers; ROS machines are little-endian).
-    factory : MessageFactory, optional
-        Message classes to build; default :func:`rosbags_factory` (needs rosbags).
-
-    Returns
-    -------
-    PointCloud2
-        Fields packed in the order x, y, z, extras (``point_step`` = sum of field sizes).
-
-    Raises
-    ------
-    InvalidPointCloudError
-        Wrong shapes, or a dtype PointField cannot hold.
-    """
-    pts = np.asarray(points)
-    if pts.ndim not in (2, 3) or pts.shape[-1] != 3:
-        raise InvalidPointCloudError(
-            f'Expected `points` to have shape (N, 3) or (H, W, 3), got {pts.shape}.'
-        )
-    if pts.dtype.kind not in 'iuf':
-        raise InvalidPointCloudError(f'Expected numeric `points`, got dtype {pts.dtype}.')
-    grid = pts.shape[:-1] if pts.ndim == 3 else (1, pts.shape[0])
-    height, width = int(grid[0]), int(grid[1])
-    n = height * width
-    extras: dict[str, NDArray[Any]] = {}
-    for name, values in (extra or {}).items():
-        arr = np.asarray(values)
-        lead = pts.shape[:-1]
-        if arr.shape[: len(lead)] != lead or arr.ndim > len(lead) + 1:
-            raise InvalidPointCloudError(
-                f'Expected extra field {name!r} to have shape {lead} or {lead + ("k",)}, '
-                f'got {arr.shape}.'
-            )
-        extras[name] = arr.reshape((n,) + arr.shape[len(lead) :])
-    dtype = cloud_dtype(xyz_dtype, extras, big_endian=big_endian)
-    packed = np.empty(n, dtype)
-    flat = pts.reshape(n, 3)
-    for axis, c in enumerate('xyz'):
-        packed[c] = flat[:, axis]
-    for name, values in extras.items():
-        packed[name] = values
-    is_dense = True
-    if np.dtype(xyz_dtype).kind == 'f' and n:
-        is_dense = bool(
-            np.isfinite(packed['x']).all()
-            and np.isfinite(packed['y']).all()
-            and np.isfinite(packed['z']).all()
-        )
-    fac = factory if factory is not None else rosbags_factory()
-    fields_msg = []
-    for name in dtype.names or ():
-        fdt, offset = dtype.fields[name][:2]  # type: ignore[index]
-        base, count = (fdt.base, int(np.prod(fdt.shape))) if fdt.shape else (fdt, 1)
-        fields_msg.append(
-            fac.point_field(
-                name=name,
-                offset=int(offset),
-                datatype=_pointfield_datatype(base, name),
-                count=count,
-            )
-        )
-    sec, nanosec = ns_to_sec_nanosec(stamp_ns)
-    return fac.point_cloud2(
-        header=fac.header(stamp=fac.time(sec=sec, nanosec=nanosec), frame_id=frame_id),
-        height=height,
-        width=width,
-        fields=fields_msg,
-        is_bigendian=bool(big_endian),
-        point_step=dtype.itemsize,
-        row_step=dtype.itemsize * width,
-        data=packed.view(np.uint8).reshape(-1),
-        is_dense=is_dense,
-    )
+__all__ = [
+    'DATATYPES',
+    'PADDING_FIELDS',
+    'POINT_TIME_FIELDS',
+    'CloudArrays',
+    'MessageFactory',
+    'array_to_pointcloud2',
+    'cloud_dtype',
+    'default_typestore',
+    'ns_to_sec_nanosec',
+    'point_time_field',
+    'pointcloud2_to_array',
+    'rclpy_factory',
+    'rosbags_factory',
+    'shift_point_times',
+    'stamp_to_ns',
+]

@@ -237,6 +237,28 @@ def _m_step(
     return R_new, problem, mass
 
 
+def _pass_kernels(
+    kappa_m: FloatArray, beta_m: FloatArray, cap: float, use_beta: bool
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The kernels of one pass: the model's ``kappa`` capped at ``cap``, ``beta`` scaled with
+    it (or zero), and their log normalisers."""
+    k = len(kappa_m)
+    kappa = np.minimum(kappa_m, cap)
+    beta = beta_m * (kappa / np.maximum(kappa_m, 1e-300)) if use_beta else np.zeros(k)
+    log_c = np.asarray(kent_log_normalizer(kappa, beta), dtype=np.float64).reshape(k)
+    return kappa, beta, log_c
+
+
+def _settled(history: list[float], small_step: bool, tolerance: float) -> bool:
+    """At the final cap: the rotation moved less than ``tolerance``, or the likelihood stalled
+    (bins near a cluster boundary can switch clusters back and forth, the likelihood then
+    stalls while the rotation jitters by less than the data resolve)."""
+    if len(history) < 2:
+        return False
+    rel = abs(history[-1] - history[-2]) / max(abs(history[-1]), 1e-12)
+    return small_step or rel < tolerance
+
+
 def shared_rotation_em(
     observed: NormalBins,
     model: ModelClusters,
@@ -304,9 +326,7 @@ def shared_rotation_em(
     kappa = np.minimum(kappa_m, cap)
     beta = np.zeros(k)
     for it in range(1, max_iterations + 1):
-        kappa = np.minimum(kappa_m, cap)
-        beta = beta_m * (kappa / np.maximum(kappa_m, 1e-300)) if use_beta else np.zeros(k)
-        log_c = np.asarray(kent_log_normalizer(kappa, beta), dtype=np.float64).reshape(k)
+        kappa, beta, log_c = _pass_kernels(kappa_m, beta_m, cap, use_beta)
         z = x @ R.T
         assign = np.argmax(z @ model.centers.T, axis=1)
         Cs, loglik, tn, t_unit = _shared_e_step(
@@ -319,13 +339,9 @@ def shared_rotation_em(
         small_step = _rotation_tolerance_reached(R, R_new, tolerance)
         R = R_new
         at_final_cap = cap >= kappa_cap_end or cap >= float(kappa_m.max())
-        if at_final_cap and len(history) > 1:
-            # Observed bins near a cluster boundary can switch clusters back and forth; the
-            # likelihood then stalls while the rotation jitters by less than the data resolve.
-            rel = abs(history[-1] - history[-2]) / max(abs(history[-1]), 1e-12)
-            if small_step or rel < tolerance:
-                converged = True
-                break
+        if at_final_cap and _settled(history, small_step, tolerance):
+            converged = True
+            break
         cap = min(cap * kappa_cap_growth, kappa_cap_end)
     return EMResult(
         R=R,
