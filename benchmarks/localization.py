@@ -282,7 +282,7 @@ def markdown(doc: dict[str, Any]) -> str:
     ]
     for s in doc['sites']:
         m, o = s['map'], s['other_place']
-        step = f', every {s["step"]}th of them' if s['step'] > 1 else ''
+        step = f' (one in {s["step"]} of the odd scans)' if s['step'] > 1 else ''
         lines += [
             '',
             f'**{s["name"]}**: map of {m["scans"]} scans ({m["points"]} points; kentreg '
