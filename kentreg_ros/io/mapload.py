@@ -83,9 +83,14 @@ def load_point_map(
     newest = max(path.stat().st_mtime, traj.stat().st_mtime if traj is not None else 0.0)
     if use_cache and cache.is_file() and cache.stat().st_mtime >= newest:
         try:
-            return PointMap.load(cache, config=cfg)
+            cached = PointMap.load(cache, config=cfg)
         except (InvalidPointCloudError, OSError, KeyError, ValueError) as exc:
             logger.info('Map cache %s not used (%s); preparing the map again.', cache, exc)
+        else:
+            if cached.oriented == (traj is not None):
+                return cached
+            logger.info('Map cache %s made %s a trajectory; preparing the map again.', cache,
+                        'with' if cached.oriented else 'without')  # fmt: skip
     points = np.asarray(read_scan(path, fields=()).points, dtype=np.float64)
     points = points[np.isfinite(points).all(axis=1)]
     viewpoints = None

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 if str(REPO_ROOT) not in sys.path:
@@ -52,6 +53,7 @@ def test_a_reference_noise_added_to_the_covariance_lowers_the_nees() -> None:
     assert abs(summary['nees_with_reference']['median'] - calibration.CHI2_6_MEDIAN) < 1.0
 
 
+@pytest.mark.integration
 def test_the_corridor_is_flagged_along_its_axis_and_rendered() -> None:
     world = simulator.corridor_world()
     scans, gt = simulator.simulate(world, 0.3, 0, simulator.Sensor())

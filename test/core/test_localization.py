@@ -150,7 +150,7 @@ def test_the_map_file_is_prepared_once_and_cached_beside_it(tmp_path: Path) -> N
     np.testing.assert_array_equal(again.points, first.points)
     np.testing.assert_array_equal(again.normals, first.normals)
     (tmp_path / 'trajectory_tum.txt').unlink()
-    axial = load_point_map(tmp_path / 'map.ply', config=CONFIG, use_cache=False)
+    axial = load_point_map(tmp_path / 'map.ply', config=CONFIG)  # the cache had a trajectory
     assert not axial.oriented
 
 
