@@ -82,12 +82,11 @@ class _Local:
     iterations: int
     converged: bool
     inlier: float
-    covariance: FloatArray
-    resolution: FloatArray
     H_trans: FloatArray
     source: PreparedScan
     neighbors: NearestNeighborCache
-    refined: bool = False
+    refinement: RefineResult | None = None
+    stage_covariance: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -238,20 +237,25 @@ def _translation_stage(
     )
 
 
-def _refined_covariance(
-    ref: RefineResult, spacing: float
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Covariance (x, y, z, roll, pitch, yaw) of a refinement
-    (:func:`~kentreg_ros.core.registration.uncertainty.pose_covariance`), its resolution
-    (the first-order least-squares covariance ``sigma^2 H^-1`` of the last iteration, which
-    assumes independent residuals of one variance) and its translation normal matrix."""
-    # (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
-    perm = [3, 4, 5, 0, 1, 2]
-    info = ref.hessian[np.ix_(perm, perm)]
+#: (omega, v) -> (v, omega), i.e. (x, y, z, roll, pitch, yaw).
+_TO_XYZ = [3, 4, 5, 0, 1, 2]
+
+
+def _covariance(local: _Local, spacing: float) -> tuple[FloatArray, FloatArray]:
+    """Covariance (x, y, z, roll, pitch, yaw) of a pose and its resolution: for a refinement,
+    :func:`~kentreg_ros.core.registration.uncertainty.pose_covariance` and the first-order
+    least-squares covariance ``sigma^2 H^-1`` of the last iteration (independent residuals of
+    one variance); without one, the stages' (both the same). Only the chosen pose's is
+    computed."""
+    ref = local.refinement
+    if ref is None:
+        assert local.stage_covariance is not None  # a pose is refined or has the stages'
+        return local.stage_covariance, local.stage_covariance
+    info = ref.hessian[np.ix_(_TO_XYZ, _TO_XYZ)]
     resolution = max(ref.sigma2, 1e-12) * information_to_covariance(info)
     if ref.residuals is None:
-        return resolution, resolution, info[:3, :3]
-    return pose_covariance(ref.residuals, spacing), resolution, info[:3, :3]
+        return resolution, resolution
+    return pose_covariance(ref.residuals, spacing), resolution
 
 
 def _stage_covariance(
@@ -368,12 +372,11 @@ def _placed(
             iterations += ref.iterations
             converged = ref.converged
             inlier = ref.inlier_fraction
+            H_trans = ref.hessian[np.ix_(_TO_XYZ, _TO_XYZ)][:3, :3]
+            stage_covariance = None
         else:
-            covariance, H_trans = _stage_covariance(em, trans, src)
-            resolution = covariance
-    if refined:
-        with watch('covariance'):
-            covariance, resolution, H_trans = _refined_covariance(ref, gates.spacing)
+            ref = None
+            stage_covariance, H_trans = _stage_covariance(em, trans, src)
     with watch('fit'):
         fit = balanced_fit(
             T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit, neighbors=neighbors
@@ -386,12 +389,11 @@ def _placed(
         iterations=iterations,
         converged=converged,
         inlier=inlier,
-        covariance=covariance,
-        resolution=resolution,
         H_trans=H_trans,
         source=src,
         neighbors=neighbors,
-        refined=refined,
+        refinement=ref,
+        stage_covariance=stage_covariance,
     )
 
 
@@ -471,9 +473,13 @@ def _unresolved(
 
 
 def _inflated(
-    best: _Local, directions: FloatArray, rot_degenerate: bool, gates: _Gates
+    best: _Local,
+    covariance: FloatArray,
+    directions: FloatArray,
+    rot_degenerate: bool,
+    gates: _Gates,
 ) -> FloatArray:
-    """``best``'s covariance inflated where the data cannot tell the pose apart from one moved
+    """``best``'s ``covariance`` inflated where the data cannot tell the pose apart from one moved
     by :attr:`_Gates.distinct`: by that distance along each unresolved translation direction,
     and, when the rotation is degenerate, about the EM's weakest axis by the angle that moves
     the source's points that far at their RMS range
@@ -485,7 +491,7 @@ def _inflated(
         radius = float(np.sqrt(np.mean(row_norms(best.source.points) ** 2)))
         sigma_rotation = gates.distinct / max(radius, gates.distinct)
     return inflate_degenerate(
-        best.covariance,
+        covariance,
         directions,
         gates.distinct,
         rotation_axis=axis,
@@ -537,6 +543,9 @@ def register_robust(
     if len(deg_dirs) and np.isfinite(best.fit.score):
         deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
     rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
+    with watch('covariance'):
+        covariance, resolution = _covariance(best, gates.spacing)
+        covariance = _inflated(best, covariance, deg_dirs, rot_degenerate, gates)
     return PoseEvidence(
         T_target_source=best.T,
         converged=best.converged,
@@ -545,7 +554,7 @@ def register_robust(
         beta=best.em.beta,
         log_likelihood=tuple(best.em.log_likelihood),
         inlier_fraction=best.inlier,
-        covariance=_inflated(best, deg_dirs, rot_degenerate, gates),
+        covariance=covariance,
         degenerate_directions=deg_dirs,
         rotation_degenerate=rot_degenerate,
         stages=best.stages,
@@ -553,5 +562,5 @@ def register_robust(
         hypotheses=n_hypotheses,
         ambiguous=bool(choice.rivals),
         alternatives=tuple((c.T, c.fit) for c in choice.distinct),
-        resolution=best.resolution,
+        resolution=resolution,
     )

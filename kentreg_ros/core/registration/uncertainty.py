@@ -234,7 +234,10 @@ def _cell_sums(points: FloatArray, edge: float, values: FloatArray) -> FloatArra
         keys = np.unique(keys, return_inverse=True)[1].reshape(-1)
         size = float(keys.max()) + 1.0
     n_cells = int(size)
-    sums = np.stack([np.bincount(keys, weights=v, minlength=n_cells) for v in values])
+    k = len(values)
+    # One pass for every column: row i of column j counts in bin (key_i * k + j).
+    bins = (keys[None, :] * k + np.arange(k)[:, None]).ravel()
+    sums = np.bincount(bins, weights=values.ravel(), minlength=n_cells * k).reshape(-1, k).T
     occupied = np.bincount(keys, minlength=n_cells) > 0
     out: FloatArray = np.asarray(sums[:, occupied], dtype=np.float64)
     return out
