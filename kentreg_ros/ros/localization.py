@@ -48,7 +48,6 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from numpy.typing import ArrayLike
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -58,10 +57,10 @@ from kentreg_ros.core import (
     Localizer,
     OdometryStep,
     PointMap,
-    PointTimes,
     Preparation,
     PreparedScan,
     PrepareInputs,
+    Preparer,
     RawScan,
     TrackingState,
     TrackStep,
@@ -84,7 +83,6 @@ from kentreg_ros.ros.messages import (
 )
 from kentreg_ros.ros.outputs import qos_overridable
 from kentreg_ros.ros.parameters import StartupError
-from kentreg_ros.runtime import ScanPreparer
 
 __all__ = ['KeepingPreparer', 'LocalizationWorker', 'MapState', 'map_path']
 
@@ -144,11 +142,12 @@ def pose_covariance_in_map(cov: FloatArray, T_map_scan: FloatArray) -> FloatArra
 
 
 class KeepingPreparer:
-    """A :class:`~kentreg_ros.runtime.ScanPreparer` that keeps the last scan it prepared, so that
-    the localization places the odometry's own preparation (a scan is prepared once, for
-    both). Everything else is ``inner``'s."""
+    """A :class:`~kentreg_ros.core.Preparer` that keeps the last scan it prepared, so that the
+    localization places the odometry's own preparation (a scan is prepared once, for both).
+    ``inner`` prepares; what the node hands a preparer working ahead it hands ``inner``
+    itself."""
 
-    def __init__(self, inner: ScanPreparer) -> None:
+    def __init__(self, inner: Preparer) -> None:
         self.inner = inner
         self._last: tuple[int, Preparation] | None = None  # (stamp_ns, preparation)
 
@@ -159,21 +158,6 @@ class KeepingPreparer:
 
     def expect(self, inputs: PrepareInputs) -> None:
         self.inner.expect(inputs)
-
-    def prefetch(
-        self,
-        points: ArrayLike,
-        stamp_ns: int,
-        *,
-        point_times: ArrayLike | PointTimes | None = None,
-    ) -> None:
-        self.inner.prefetch(points, stamp_ns, point_times=point_times)
-
-    def discard(self, points: ArrayLike) -> None:
-        self.inner.discard(points)
-
-    def close(self) -> None:
-        self.inner.close()
 
     def prepared(self, stamp_ns: int) -> PreparedScan | None:
         """The scan stamped ``stamp_ns`` as the last preparation made it (None when the last

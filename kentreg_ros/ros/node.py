@@ -82,7 +82,7 @@ from kentreg_ros.cli.common import (
     CliError,
     interrupt_through_rclpy,
 )
-from kentreg_ros.core import Odometry
+from kentreg_ros.core import InThreadPreparer, Odometry, Preparer
 from kentreg_ros.io import names
 from kentreg_ros.io.livox import is_custom_msg, live_custom_msg_hint
 from kentreg_ros.io.params import NODE_NAME, NodeSettings, PipelineMode
@@ -103,7 +103,7 @@ from kentreg_ros.ros.outputs import (
 from kentreg_ros.ros.parameters import ParameterError, StartupError
 from kentreg_ros.ros.usage import build_parser
 from kentreg_ros.ros.worker import ODOMETRY_HISTORY, THROTTLE_S, QueuedScan, ScanWorker
-from kentreg_ros.runtime import create_preparer
+from kentreg_ros.runtime import ProcessPreparer
 
 __all__ = ['KentRegNode', 'StartupError', 'main']
 
@@ -155,23 +155,28 @@ class KentRegNode(Node):
         # The odometry (and where it prepares the scans) before the publishers and
         # subscriptions: it loads the compiled kernels (numba), which, loaded after them, left
         # the node to crash (SIGSEGV) when Ctrl-C came again while it shut down (test_node).
-        preparer = create_preparer(process=declared.node.pipeline == PipelineMode.PROCESS)
+        # pipeline: process prepares the scans ahead in a worker process; sequential, in the
+        # odometry's thread when it steps (nothing to hand over, take back or stop).
+        process = declared.node.pipeline == PipelineMode.PROCESS
+        ahead = ProcessPreparer() if process else None
+        preparer: Preparer = ahead if ahead is not None else InThreadPreparer()
         # With a map, the localization places the scans as the odometry prepared them.
         keeper = KeepingPreparer(preparer) if path is not None else None
-        if keeper is not None:
-            preparer = keeper
-        odometry = Odometry(self._config, max_history=ODOMETRY_HISTORY, preparer=preparer)
+        odometry = Odometry(
+            self._config, max_history=ODOMETRY_HISTORY, preparer=keeper or preparer
+        )
         try:
             self._create_endpoints(declared.node, tf)
             self._localization = self._create_localization(path, declared.node, keeper)
         except StartupError:
-            preparer.close()
+            if ahead is not None:
+                ahead.close()
             self._log_handler.detach()
             super().destroy_node()
             raise
         self._worker = ScanWorker(
             odometry,
-            preparer,
+            ahead,
             declared.node,
             self._counters,
             self._frames,

@@ -3,13 +3,14 @@ publishes what it found.
 
 The subscription callback (:mod:`kentreg_ros.ros.node`) only decodes a cloud and hands it to
 :meth:`ScanWorker.put`; when the queue is full the oldest scan is dropped ("latest wins"), so the
-odometry never lags the sensor, and every drop is counted. The scan is also given to the
-preparer at once (:class:`~kentreg_ros.runtime.ScanPreparer`: with ``pipeline: process`` a worker
-process prepares it while this thread registers the scan before). Parameter changes and resets
-reach the thread as pending values, applied between scans. With a ``map_file`` each step is
-handed on to the localization's own thread after its outputs, and ``map -> odom`` goes out with
-it (:class:`~kentreg_ros.ros.localization.LocalizationWorker`): this thread never waits for a
-search.
+odometry never lags the sensor, and every drop is counted. With ``pipeline: process`` the scan is
+also given at once to the preparer that works ahead (:class:`~kentreg_ros.runtime.ScanPreparer`:
+a worker process prepares it while this thread registers the scan before); with ``pipeline:
+sequential`` there is none, and the odometry prepares each scan in this thread. Parameter
+changes and resets reach the thread as pending values, applied between scans. With a
+``map_file`` each step is handed on to the localization's own thread after its outputs, and
+``map -> odom`` goes out with it (:class:`~kentreg_ros.ros.localization.LocalizationWorker`):
+this thread never waits for a search.
 
 A scan that does not continue the trajectory is the odometry's to tell
 (:class:`~kentreg_ros.core.ScanOrderError`): a repeated stamp is dropped and counted; an earlier
@@ -75,9 +76,10 @@ class ScanWorker:
     ----------
     odometry : Odometry
         The odometry this thread steps (with at least :data:`ODOMETRY_HISTORY` poses kept).
-    preparer : ScanPreparer
-        Where the odometry prepares its scans (this thread, or a worker process): each scan is
-        handed to it on arrival, and it is closed when this worker stops.
+    ahead : ScanPreparer or None
+        The preparer the odometry was given when it prepares the scans ahead in a worker
+        process: each scan is handed to it on arrival, and it is closed when this worker
+        stops. None when the odometry prepares each scan in this thread.
     settings : NodeSettings
         The node's settings at start-up; :meth:`change` replaces them.
     counters : Counters
@@ -97,7 +99,7 @@ class ScanWorker:
     def __init__(
         self,
         odometry: Odometry,
-        preparer: ScanPreparer,
+        ahead: ScanPreparer | None,
         settings: NodeSettings,
         counters: Counters,
         frames: Frames,
@@ -118,7 +120,7 @@ class ScanWorker:
         #: The model the odometry registers against (changed by this thread, under the lock,
         #: when it adopts a pending configuration).
         self._model_in_use = odometry.config.odometry.model
-        self.odometry, self.preparer = odometry, preparer
+        self.odometry, self.ahead = odometry, ahead
         # Only this thread reads or writes these (the diagnostics read the last four under the
         # lock).
         self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped
@@ -146,12 +148,13 @@ class ScanWorker:
 
     def put(self, scan: QueuedScan) -> None:
         """Queue a scan (the oldest dropped when the queue is full) and hand it to the
-        preparer."""
-        self.preparer.prefetch(scan.points, scan.stamp_ns, point_times=scan.point_times)
+        preparer that works ahead, if any."""
+        if self.ahead is not None:
+            self.ahead.prefetch(scan.points, scan.stamp_ns, point_times=scan.point_times)
         with self._lock:
             if len(self._queue) >= self._settings.queue_size:
                 self._counters.add('dropped_queue')  # the oldest: latest wins
-                self.preparer.discard(self._queue.popleft().points)
+                self._take_back(self._queue.popleft())
             self._queue.append(scan)
             self._lock.notify()
 
@@ -170,8 +173,13 @@ class ScanWorker:
             ) != (old.odom_frame, old.base_frame):
                 self._pending_reset = True  # the published frame changed
             while len(self._queue) > settings.queue_size:
-                self.preparer.discard(self._queue.popleft().points)
+                self._take_back(self._queue.popleft())
                 self._counters.add('dropped_queue')
+
+    def _take_back(self, scan: QueuedScan) -> None:
+        """A scan that will not be stepped: the preparer working ahead forgets it."""
+        if self.ahead is not None:
+            self.ahead.discard(scan.points)
 
     def request_reset(self) -> None:
         """Restart the trajectory at the next scan."""
@@ -196,13 +204,15 @@ class ScanWorker:
             )
 
     def stop(self, timeout: float) -> bool:
-        """Stop the thread (it finishes the scan in hand) and then the preparer; True when the
-        thread stopped within ``timeout`` s (else the preparer stops right after it)."""
+        """Stop the thread (it finishes the scan in hand) and then the preparer working ahead;
+        True when the thread stopped within ``timeout`` s (else the preparer stops right after
+        it)."""
         with self._lock:
             self._stop = True
             self._lock.notify_all()
         self._thread.join(timeout=timeout)
-        close_after(self.preparer, self._thread)
+        if self.ahead is not None:
+            close_after(self.ahead, self._thread)
         return not self._thread.is_alive()
 
     def is_alive(self) -> bool:
@@ -283,7 +293,7 @@ class ScanWorker:
         trajectory for an earlier stamp or another frame (True)."""
         if exc.kind is OutOfOrder.REPEATED_STAMP:
             self._counters.add('dropped_duplicate_stamp')
-            self.preparer.discard(scan.points)
+            self._take_back(scan)
             self._log.warning(
                 'Dropped a scan with the same stamp as the previous one.',
                 throttle_duration_sec=THROTTLE_S,

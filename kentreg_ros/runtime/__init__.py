@@ -2,17 +2,12 @@
 
 The core (:mod:`kentreg_ros.core`) is numpy/scipy registration and odometry; this package holds
 what runs it on more than one core: the worker process, its messages and the hand-over of
-scans through ``/dev/shm`` (:mod:`.preparer`, :mod:`.worker`, :mod:`.messages`), and the choice
-a caller such as the node makes between that and the odometry's own thread (:mod:`.pipeline`).
+scans through ``/dev/shm`` (:mod:`.preparer`, :mod:`.worker`, :mod:`.messages`), and what a
+caller such as the node needs of a preparer that works ahead (:mod:`.pipeline`).
 It imports the core, never the node.
 """
 
-from kentreg_ros.runtime.pipeline import (
-    ScanPreparer,
-    SequentialPreparer,
-    close_after,
-    create_preparer,
-)
+from kentreg_ros.runtime.pipeline import ScanPreparer, close_after
 from kentreg_ros.runtime.preparer import (
     MAX_OPEN_JOBS,
     PipelineError,
@@ -26,7 +21,5 @@ __all__ = [
     'PipelineStats',
     'ProcessPreparer',
     'ScanPreparer',
-    'SequentialPreparer',
     'close_after',
-    'create_preparer',
 ]

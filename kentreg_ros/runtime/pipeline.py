@@ -1,11 +1,14 @@
-"""How a caller that receives scans one at a time (the node) has them prepared: in the odometry's
-thread (``pipeline: sequential``) or ahead in a worker process (``pipeline: process``).
+"""What a caller that receives scans one at a time (the node) needs of a preparer that works
+ahead of the steps (``pipeline: process``): :class:`ScanPreparer`, and :func:`close_after`.
 
-Either is a :class:`ScanPreparer`: a :class:`~kentreg_ros.core.Preparer` the caller gives the
-odometry, which also takes each scan as it arrives (:meth:`ScanPreparer.prefetch`), takes back
-one the caller dropped (:meth:`ScanPreparer.discard`) and stops with the caller
-(:meth:`ScanPreparer.close`; :func:`close_after` once the caller's worker thread is done). The
-poses are the same either way.
+With ``pipeline: sequential`` the caller gives the odometry no preparer (it prepares each scan
+in its own thread, :class:`~kentreg_ros.core.InThreadPreparer`) and has nothing to hand scans
+to on arrival, to take back or to stop. With ``pipeline: process`` it gives the odometry a
+:class:`~kentreg_ros.runtime.ProcessPreparer`, a :class:`ScanPreparer`: it also takes each scan
+as it arrives (:meth:`ScanPreparer.prefetch`), takes back one the caller dropped
+(:meth:`ScanPreparer.discard`) and stops with the caller (:meth:`ScanPreparer.close`;
+:func:`close_after` once the caller's worker thread is done). The poses are the same either
+way.
 """
 
 from __future__ import annotations
@@ -15,15 +18,7 @@ from typing import Protocol
 
 from numpy.typing import ArrayLike
 
-from kentreg_ros.core import (
-    InThreadPreparer,
-    PointTimes,
-    Preparation,
-    PrepareInputs,
-    Preparer,
-    RawScan,
-)
-from kentreg_ros.runtime.preparer import ProcessPreparer
+from kentreg_ros.core import PointTimes, Preparer
 
 
 class ScanPreparer(Preparer, Protocol):
@@ -43,40 +38,6 @@ class ScanPreparer(Preparer, Protocol):
 
     def close(self) -> None:
         """Stop (idempotent)."""
-
-
-class SequentialPreparer:
-    """Each scan prepared in the odometry's thread when its step asks for it; the scans handed
-    over on arrival are not looked at before."""
-
-    def __init__(self) -> None:
-        self._here = InThreadPreparer()
-
-    def prepare(self, scan: RawScan, inputs: PrepareInputs) -> Preparation:
-        return self._here.prepare(scan, inputs)
-
-    def expect(self, inputs: PrepareInputs) -> None:
-        """Nothing: this preparer does not work ahead."""
-
-    def prefetch(
-        self,
-        points: ArrayLike,
-        stamp_ns: int,
-        *,
-        point_times: ArrayLike | PointTimes | None = None,
-    ) -> None:
-        """Nothing: the scan is prepared when it is stepped."""
-
-    def discard(self, points: ArrayLike) -> None:
-        """Nothing to take back."""
-
-    def close(self) -> None:
-        """Nothing to stop."""
-
-
-def create_preparer(*, process: bool) -> ScanPreparer:
-    """A :class:`ProcessPreparer` (its worker started now) or a :class:`SequentialPreparer`."""
-    return ProcessPreparer() if process else SequentialPreparer()
 
 
 def close_after(preparer: ScanPreparer, worker: threading.Thread) -> None:

@@ -276,22 +276,22 @@ def test_the_localization_covariance_becomes_a_pose_covariance_in_the_map() -> N
 
 def test_the_keeping_preparer_hands_over_the_scan_the_last_step_prepared() -> None:
     class Inner:
-        closed = False
+        expected: Any = None
 
         def prepare(self, scan: RawScan, inputs: PrepareInputs) -> Preparation:
             return Preparation(None, scan.points, '')  # type: ignore[arg-type]
 
-        def close(self) -> None:
-            self.closed = True
+        def expect(self, inputs: PrepareInputs) -> None:
+            self.expected = inputs
 
     inner = Inner()
-    keeper = KeepingPreparer(inner)  # type: ignore[arg-type]
+    keeper = KeepingPreparer(inner)
     assert keeper.prepared(5) is None
     marker: Any = object()
     keeper.prepare(RawScan(marker, None, 5), None)  # type: ignore[arg-type]
     assert keeper.prepared(5) is marker and keeper.prepared(6) is None
-    keeper.close()
-    assert inner.closed
+    keeper.expect(marker)
+    assert inner.expected is marker
 
 
 # ------------------------------------------------------------------------------------------

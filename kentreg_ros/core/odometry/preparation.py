@@ -162,8 +162,9 @@ class Preparer(Protocol):
 class InThreadPreparer:
     """The prepare stage in the caller's thread, when the step asks for it (the default)."""
 
-    def prepare(self, scan: RawScan, inputs: PrepareInputs) -> Preparation:
-        return prepare(scan, inputs)
+    #: The stage itself: in the caller's thread there is nothing to hand over or take back,
+    #: so nothing to wrap around :func:`prepare`.
+    prepare = staticmethod(prepare)
 
     def expect(self, inputs: PrepareInputs) -> None:
         """Nothing: this preparer does not work ahead."""
