@@ -150,9 +150,21 @@ def ns_to_sec_nanosec(stamp_ns: int) -> tuple[int, int]:
     return divmod(stamp_ns, 1_000_000_000)
 
 
-def _parse_fields(
-    fields: Sequence[PointFieldLike], point_step: int, big_endian: bool
-) -> dict[str, _Field]:
+def _layout(
+    fields: Sequence[PointFieldLike],
+    point_step: int,
+    big_endian: bool,
+    wanted: Sequence[str] | None,
+) -> tuple[dict[str, _Field], list[str]]:
+    """The fields of a message by name (padding skipped) and the extra fields to decode (all
+    but x, y, z when ``wanted`` is None), after checking every field's datatype and extent
+    within ``point_step``, that x, y, z are there with one value each, and that every wanted
+    field is.
+
+    Raises
+    ------
+    InvalidPointCloudError
+    """
     order: Literal['<', '>'] = '>' if big_endian else '<'
     layout: dict[str, _Field] = {}
     for f in fields:
@@ -178,22 +190,6 @@ def _parse_fields(
                 f'({_DATATYPE_NAMES[datatype]} x{count} at offset {offset}) ends at byte {end}.'
             )
         layout[name] = _Field(name, offset, dtype, count)
-    return layout
-
-
-def _as_uint8(data: Any) -> NDArray[np.uint8]:
-    if isinstance(data, np.ndarray):
-        return np.ascontiguousarray(data).reshape(-1).view(np.uint8)
-    try:
-        return np.frombuffer(memoryview(data), dtype=np.uint8)
-    except TypeError:
-        # A plain list of ints (old rclpy versions, hand-made messages).
-        return np.asarray(data, dtype=np.uint8).reshape(-1)
-
-
-def _extra_names(layout: Mapping[str, Any], fields: Sequence[str] | None) -> list[str]:
-    """The extra fields to decode (all but x, y, z when ``fields`` is None), after checking
-    that x, y, z are there with one value each and that every requested field is."""
     missing = [c for c in 'xyz' if c not in layout]
     if missing:
         raise InvalidPointCloudError(
@@ -204,15 +200,45 @@ def _extra_names(layout: Mapping[str, Any], fields: Sequence[str] | None) -> lis
             raise InvalidPointCloudError(
                 f'PointField {c!r} has count {layout[c].count}; expected 1.'
             )
-    if fields is None:
-        return [n for n in layout if n not in ('x', 'y', 'z')]
-    names = [str(n) for n in fields if n not in ('x', 'y', 'z')]
+    if wanted is None:
+        return layout, [n for n in layout if n not in ('x', 'y', 'z')]
+    names = [str(n) for n in wanted if n not in ('x', 'y', 'z')]
     absent = [n for n in names if n not in layout]
     if absent:
         raise InvalidPointCloudError(
             f'PointCloud2 has no field {absent[0]!r}; its fields are {sorted(layout)}.'
         )
-    return names
+    return layout, names
+
+
+def _data(data: Any, height: int, width: int, row_step: int, point_step: int) -> NDArray[np.uint8]:
+    """The message's ``data`` as bytes (a view where it can be), after checking that it is
+    ``row_step * height`` bytes and that its rows hold ``width`` points.
+
+    Raises
+    ------
+    InvalidPointCloudError
+    """
+    if isinstance(data, np.ndarray):
+        buf = np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+    else:
+        try:
+            buf = np.frombuffer(memoryview(data), dtype=np.uint8)
+        except TypeError:
+            # A plain list of ints (old rclpy versions, hand-made messages).
+            buf = np.asarray(data, dtype=np.uint8).reshape(-1)
+    size = buf.size
+    if height < 0 or width < 0 or size != row_step * height:
+        raise InvalidPointCloudError(
+            f'PointCloud2 data has {size} bytes; expected row_step * height = '
+            f'{row_step} * {height} = {row_step * height}.'
+        )
+    if height * width > 0 and row_step < width * point_step:
+        raise InvalidPointCloudError(
+            f'PointCloud2 row_step {row_step} is smaller than width * point_step = '
+            f'{width} * {point_step} = {width * point_step}.'
+        )
+    return buf
 
 
 def _xyz(
@@ -287,26 +313,6 @@ def _field_values(
     return view[keep.reshape(height, width)].astype(native, copy=False)
 
 
-def _check_extent(size: int, height: int, width: int, row_step: int, point_step: int) -> None:
-    """Refuse a message whose data is not ``row_step * height`` bytes or whose rows cannot hold
-    ``width`` points.
-
-    Raises
-    ------
-    InvalidPointCloudError
-    """
-    if height < 0 or width < 0 or size != row_step * height:
-        raise InvalidPointCloudError(
-            f'PointCloud2 data has {size} bytes; expected row_step * height = '
-            f'{row_step} * {height} = {row_step * height}.'
-        )
-    if height * width > 0 and row_step < width * point_step:
-        raise InvalidPointCloudError(
-            f'PointCloud2 row_step {row_step} is smaller than width * point_step = '
-            f'{width} * {point_step} = {width * point_step}.'
-        )
-
-
 def pointcloud2_to_array(
     msg: PointCloud2Like,
     *,
@@ -350,11 +356,8 @@ def pointcloud2_to_array(
         raise ValueError(f'Expected `dtype` float64 or float32, got {out_dtype}.')
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
-    layout = _parse_fields(msg.fields, point_step, bool(msg.is_bigendian))
-    extra_names = _extra_names(layout, fields)
-
-    buf = _as_uint8(msg.data)
-    _check_extent(buf.size, height, width, row_step, point_step)
+    layout, extra_names = _layout(msg.fields, point_step, bool(msg.is_bigendian), fields)
+    buf = _data(msg.data, height, width, row_step, point_step)
     n = height * width
     stamp_ns = stamp_to_ns(msg.header.stamp)
     frame_id = str(msg.header.frame_id)
