@@ -43,6 +43,27 @@ def test_errors_drawn_from_their_covariance_read_as_calibrated() -> None:
     assert np.allclose(summary['coverage']['1sigma'], 0.683, atol=0.03)
 
 
+def test_the_translation_across_a_tilted_flagged_axis_is_judged_on_its_own() -> None:
+    """Errors drawn from S, a flagged direction a little off x with a large variance along it:
+    across it the 2-DOF NEES is chi-square's (median 1.39), and a lateral error ten times its
+    sigma reads as one, though the y axis's own sigma borrows from the flagged variance."""
+    rng = np.random.default_rng(2)
+    u = np.array([1.0, 0.01, 0.0]) / np.hypot(1.0, 0.01)
+    S = np.diag([1e-6] * 3 + [1e-8] * 3)
+    S[:3, :3] += 0.4**2 * np.outer(u, u)
+    records = _records(rng, 2000)
+    for r in records:
+        r['S'], r['degenerate'] = S, u[None]
+        r['d'] = rng.multivariate_normal(np.zeros(6), S)
+    deg = calibration.summarize(records)['degenerate']
+    assert abs(deg['across_nees_median'] - 1.386) < 0.15
+    assert abs(deg['across_under_p95'] - 0.95) < 0.02
+    for r in records:
+        r['d'] = r['d'] + np.array([0.0, 0.01, 0.0, 0.0, 0.0, 0.0])  # 10 mm across, sigma 1 mm
+    deg = calibration.summarize(records)['degenerate']
+    assert deg['across_under_p95'] < 0.01
+
+
 def test_a_reference_noise_added_to_the_covariance_lowers_the_nees() -> None:
     records = _records(np.random.default_rng(1), 500)
     for r in records:

@@ -156,6 +156,38 @@ def test_cells_count_the_rows_of_one_patch_once() -> None:
     assert np.all(ratio > 0.4 * per_cell) and np.all(ratio < 2.0 * per_cell), ratio
 
 
+def _corridor_rows(rng: np.random.Generator, n: int, wall_offset: float) -> Residuals:
+    """Rows on the walls (y = +-1.2 m, normals inwards), floor and ceiling (z = -+1.3 m) of a
+    30 m corridor along x: white residuals of 2 mm, and ``wall_offset`` on both walls (the
+    source's corridor that much narrower than the target's: what a fit shows of an error each
+    wall's points share, the rest of which moved the pose across the corridor)."""
+    face = rng.integers(0, 4, n)
+    normals = np.zeros((n, 3))
+    normals[face == 0, 1], normals[face == 1, 1] = -1.0, 1.0
+    normals[face == 2, 2], normals[face == 3, 2] = 1.0, -1.0
+    points = np.column_stack(
+        [rng.uniform(-15.0, 15.0, n), rng.uniform(-1.2, 1.2, n), rng.uniform(-1.3, 1.3, n)]
+    )
+    points[face < 2, 1] = -1.2 * normals[face < 2, 1]
+    points[face >= 2, 2] = -1.3 * normals[face >= 2, 2]
+    r = rng.normal(0.0, 0.002, n) + np.where(face < 2, wall_offset, 0.0)
+    return Residuals(points, normals, r, np.ones(n), 10.0)
+
+
+def test_planes_count_an_error_their_rows_share_once() -> None:
+    """An offset all of one wall's rows share is invisible in the scatter between its cells and
+    plain in the walls' sums: with the planes as clusters too, the lateral sigma is of the
+    order of that offset (without, about a tenth of it: one wall is ~170 cells of 8 spacings),
+    and the white rows of the box keep the cells' covariance."""
+    offset = 0.001
+    rows = _corridor_rows(np.random.default_rng(4), 8000, offset)
+    sigma_y = np.sqrt(pose_covariance(rows, 0.09)[1, 1])
+    assert 0.5 * offset < sigma_y < 3.0 * offset, sigma_y
+    white = _rows(np.random.default_rng(5), 20000, 0.01, scale=10.0)
+    ratio = np.diag(pose_covariance(white, 0.06)) / np.diag(pose_covariance(white, 0.0))
+    assert np.all(ratio < 2.0), ratio  # 2 m faces, cells of 0.5 m: 16 per face
+
+
 def test_covariance_turns_with_the_frame_of_the_rows() -> None:
     """The same rows in a frame turned by Q: the covariance turns with it (translation and
     rotation about the frame's axes)."""
