@@ -15,7 +15,9 @@ robust registration from the candidate) and judged on the points:
   result is ``ambiguous`` and no pose is given.
 
 The result is ``localized`` only when a candidate passes all three; otherwise ``ambiguous`` or
-``not_found``. A single scan is all this function sees; agreement over consecutive scans is
+``not_found``. A scan with a narrow view is localized only after the box twins of its answer
+(:mod:`~kentreg_ros.core.localization.twins`) have been searched and judged with the other
+candidates. A single scan is all this function sees; agreement over consecutive scans is
 :class:`~kentreg_ros.core.localization.tracker.Localizer`'s.
 """
 
@@ -34,6 +36,7 @@ from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
 from kentreg_ros.core.geometry import check_transform, rotation_angle
 from kentreg_ros.core.localization.pointmap import PointMap
 from kentreg_ros.core.localization.search import Hypothesis, Window, rotations, translations
+from kentreg_ros.core.localization.twins import is_narrow, twin_starts
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import FIT_DISTANCE_VOXELS, rms_displacement
 from kentreg_ros.core.registration.verify import free_space_violation as see_through
@@ -104,7 +107,8 @@ class LocalizationResult:
         Every pose judged, best fit first (valid ones first).
     message : str
     timings : dict
-        Milliseconds: ``prepare``, ``search``, ``register``, ``total``.
+        Milliseconds: ``prepare``, ``search``, ``register``, ``twins`` (when searched),
+        ``total``.
     """
 
     status: LocalizationStatus
@@ -164,6 +168,7 @@ def localize(
     prepared = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, config=cfg)
     timings['prepare'] = _ms(t_start)
     t0 = time.perf_counter()
+    window_search = start is None or window is not None
     if start is not None and window is None:
         starts = [Hypothesis(start, float('inf'))]
     else:
@@ -173,6 +178,16 @@ def localize(
     candidates = _register_candidates(prepared, pmap, starts, cfg)
     timings['register'] = _ms(t0)
     result = decide(candidates, prepared, pmap, cfg)
+    if result.status is LocalizationStatus.LOCALIZED and window_search and is_narrow(prepared):
+        t0 = time.perf_counter()
+        assert result.T_map_scan is not None
+        covered = [h.T[:3, :3] for h in starts]
+        twins = twin_starts(
+            prepared, pmap, result.T_map_scan[:3, :3], covered, cfg, start=start, window=window
+        )
+        candidates += [judge(prepared, pmap, h, cfg) for h in twins]
+        result = decide(candidates, prepared, pmap, cfg)
+        timings['twins'] = _ms(t0)
     timings['total'] = _ms(t_start)
     return LocalizationResult(
         result.status, result.T_map_scan, result.covariance, result.candidates,
