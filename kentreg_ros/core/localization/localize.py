@@ -181,9 +181,8 @@ def localize(
     if result.status is LocalizationStatus.LOCALIZED and window_search and is_narrow(prepared):
         t0 = time.perf_counter()
         assert result.T_map_scan is not None
-        covered = [h.T[:3, :3] for h in starts]
         twins = twin_starts(
-            prepared, pmap, result.T_map_scan[:3, :3], covered, cfg, start=start, window=window
+            prepared, pmap, result.T_map_scan[:3, :3], cfg, start=start, window=window
         )
         candidates += [judge(prepared, pmap, h, cfg) for h in twins]
         result = decide(candidates, prepared, pmap, cfg)
