@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import logging
 import sys
 import time
@@ -245,7 +246,32 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
         'sites': [run_site(name, args) for name in args.sites],
     }  # fmt: skip
     report.finish_machine(doc['machine'])
+    if args.keep_from is not None:
+        keep_methods(doc, json.loads(args.keep_from.read_text()), str(args.keep_from))
     return doc
+
+
+def keep_methods(doc: dict[str, Any], old: dict[str, Any], source: str) -> None:
+    """Fill the methods ``doc`` did not run from ``old`` (the same sites, starts and seed: a
+    peer's rows need no rerun after a change to kentreg), and record where they came from."""
+    if (old['seed'], old['step']) != (doc['seed'], doc['step']):
+        raise SystemExit(f'{source}: another seed or step; its rows are not these scans.')
+    by_name = {site['name']: site for site in old['sites']}
+    kept: set[str] = set()
+    for site in doc['sites']:
+        was = by_name.get(site['name'])
+        if was is None or was['held_out'] != site['held_out']:
+            raise SystemExit(f'{source}: no rows for the held-out scans of {site["name"]}.')
+        blocks = [(site['other_place'], was['other_place'])] + [
+            (block, was['starts'][label]) for label, block in site['starts'].items()
+        ]
+        for new, prior in blocks:
+            for method, entry in prior['methods'].items():
+                if method not in new['methods']:
+                    new['methods'][method] = entry
+                    kept.add(method)
+    commit = old['machine'].get('git') or old['machine'].get('git_commit')
+    doc['kept'] = {'methods': sorted(kept), 'commit': commit, 'date': old['date']}
 
 
 def _cell(e: dict[str, Any] | None, other: bool = False) -> list[str]:
@@ -304,6 +330,13 @@ def markdown(doc: dict[str, Any]) -> str:
             )
     commit = doc['machine'].get('git') or doc['machine'].get('git_commit')
     lines += ['', f'`benchmarks/localization.py` at {commit}, {doc["date"]}.']
+    if doc.get('kept'):
+        kept = doc['kept']
+        lines[-1] += (
+            f' The rows of {", ".join(LABELS.get(m, m) for m in kept["methods"])} are kept from '
+            f'the run at {kept["commit"]}, {kept["date"]} (`--keep-from`: the same scans and '
+            f'starts, not run again).'
+        )
     return '\n'.join(lines) + '\n'
 
 
@@ -320,6 +353,9 @@ OPTIONS: list[report.Option] = [
     ('--angles', {'type': float, 'nargs': '*', 'default': list(ANGLES_DEG), 'metavar': 'DEG'}),
     ('--peer-voxel', {'type': float, 'default': 0.5, 'metavar': 'M',
                       'help': "the peers' voxel edge (default 0.5)"}),
+    ('--keep-from', {'type': Path, 'metavar': 'JSON',
+                     'help': 'take the methods not run from an earlier localization.json of '
+                             'the same scans (e.g. the peers after a change to kentreg)'}),
 ]  # fmt: skip
 
 

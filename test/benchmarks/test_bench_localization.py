@@ -10,6 +10,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from optional import import_open3d
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -26,6 +27,7 @@ from benchmarks.localization import (  # noqa: E402
     Outcome,
     _starts,
     _summary,
+    keep_methods,
     markdown,
 )
 from kentreg_ros.core import make_transform  # noqa: E402
@@ -84,6 +86,41 @@ def test_the_table_renders_from_the_results_alone() -> None:
     assert '| none | 100 % (1/1), 0 | 900 / 900 |' in text
     assert '| kitti_raw_hdl64 (1 scans): localized | 0/1 | 800 / 800 |' in text
     assert 'kentreg from no start: localized 1; kitti_raw_hdl64: not_found 1.' in text
+
+
+def _site_doc(methods: dict[str, float], commit: str) -> dict:
+    """A one-site results file whose methods each localized scan 1 in ``ms``."""
+    entries = {
+        m: _summary([(1, Outcome(np.eye(4), 'localized', ms), np.eye(4))])
+        for m, ms in methods.items()
+    }
+    site = {
+        'name': 'balm_50', 'reference': '/ground_truth', 'step': 1, 'held_out': [1],
+        'map': {'scans': 25, 'points': 1000, 'kentreg_points': 500},
+        'other_place': {'name': 'kitti_raw_hdl64', 'n': 1, 'methods': dict(entries)},
+        'starts': {NO_START: {'methods': dict(entries)}},
+    }  # fmt: skip
+    return {
+        'bars': {'rotation_deg': 2.0, 'translation_m': 0.5}, 'seed': 39, 'step': 2,
+        'window_factor': 1.5, 'peer_voxel_m': 0.5, 'machine': {'git': commit}, 'date': commit,
+        'sites': [site],
+    }  # fmt: skip
+
+
+def test_kept_rows_fill_only_the_methods_not_run_and_say_where_they_came_from() -> None:
+    new = _site_doc({'kentreg': 100.0}, 'new1234')
+    old = _site_doc({'kentreg': 900.0, 'gicp': 30.0}, 'old5678')
+    keep_methods(new, old, 'old.json')
+    got = new['sites'][0]['starts'][NO_START]['methods']
+    assert got['kentreg']['ms_p50'] == 100.0, 'the rows run now win'
+    assert got['gicp']['ms_p50'] == 30.0
+    assert new['sites'][0]['other_place']['methods']['gicp']['ms_p50'] == 30.0
+    assert new['kept'] == {'methods': ['gicp'], 'commit': 'old5678', 'date': 'old5678'}
+    assert 'GICP are kept from the run at old5678' in markdown(new)
+    other = _site_doc({'gicp': 30.0}, 'old5678')
+    other['sites'][0]['held_out'] = [3]
+    with pytest.raises(SystemExit, match='held-out scans of balm_50'):
+        keep_methods(_site_doc({'kentreg': 1.0}, 'x'), other, 'old.json')
 
 
 def test_fpfh_ransac_places_a_room_without_a_start() -> None:
