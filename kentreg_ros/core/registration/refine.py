@@ -153,9 +153,7 @@ def refine_joint(
     inlier = 0.0
     kappa_n = kappa_range[0]
     converged = False
-    prev_delta: FloatArray | None = None
-    step_scale = 1.0
-    step_metric = _displacement_metric(source)
+    steps = _StepControl(_displacement_metric(source), max_step_scale)
     last: _Rows | None = None
     it = 0
     for it in range(1, max_iterations + 1):
@@ -173,15 +171,7 @@ def refine_joint(
             method, x, idx, ok, target, target_normals, source_normals, R, r_plane, w
         )
         last = (x, idx, ok, r_plane, w)
-        delta = -_solve_spd(H, g)
-        # Step control (see Notes): halve on reversal, lengthen while creeping.
-        if prev_delta is not None:
-            at_floor = gate <= min_distance
-            step_scale = _step_scale(
-                delta, prev_delta, step_scale, step_metric, at_floor, max_step_scale
-            )
-        prev_delta = delta
-        delta = step_scale * delta
+        delta = steps.scaled(-_solve_spd(H, g), at_floor=gate <= min_distance)
         dR = exp_so3(delta[:3])
         R = project_to_so3(dR @ R)
         t = dR @ t + delta[3:]
@@ -235,6 +225,26 @@ def _displacement_metric(source: FloatArray) -> FloatArray:
     centred = source - source.mean(axis=0)
     radius = float(np.sqrt(np.einsum('ij,ij->', centred, centred) / max(len(source), 1)))
     return np.array([radius] * 3 + [1.0] * 3)
+
+
+class _StepControl:
+    """The refinement's step length: each Gauss-Newton step scaled by :func:`_step_scale`'s
+    rule against the step before it (halved on a reversal, lengthened while creeping)."""
+
+    def __init__(self, metric: FloatArray, max_scale: float) -> None:
+        self.metric, self.max_scale = metric, max_scale
+        self.scale = 1.0
+        self.previous: FloatArray | None = None
+
+    def scaled(self, delta: FloatArray, *, at_floor: bool) -> FloatArray:
+        """``delta`` times the scale it earns against the previous (unscaled) step."""
+        if self.previous is not None:
+            self.scale = _step_scale(
+                delta, self.previous, self.scale, self.metric, at_floor, self.max_scale
+            )
+        self.previous = delta
+        out: FloatArray = self.scale * delta
+        return out
 
 
 def _step_scale(
