@@ -16,10 +16,10 @@ the reference poses (its trajectory is at them).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable
+from contextlib import closing
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -31,7 +31,6 @@ from kentreg_ros.core import (
     InThreadPreparer,
     InvalidPointCloudError,
     KentRegConfig,
-    KentRegError,
     LocalizationStatus,
     Localizer,
     Odometry,
@@ -45,14 +44,14 @@ from kentreg_ros.core import (
 from kentreg_ros.eval.groundtruth import GroundTruth, associate
 from kentreg_ros.eval.metrics import pair_errors
 from kentreg_ros.eval.run import (
-    MAX_SKIPPED_NAMED,
     OdometryRun,
-    ScanLike,
     ScanSequence,
+    read_selected,
     run_odometry,
+    selected_indices,
 )
 from kentreg_ros.io.poses import Trajectory
-from kentreg_ros.io.sources import ScanSource, SkippedScan
+from kentreg_ros.io.sources import SkippedScan
 
 logger = logging.getLogger(__name__)
 
@@ -175,52 +174,6 @@ class LocalizationRun:
         return out
 
 
-def selected(n_total: int, start: int, max_scans: int | None, stride: int) -> range:
-    """The input indices a run takes: ``start, start + stride, ...``, at most ``max_scans``.
-
-    Raises
-    ------
-    ValueError
-        ``start`` beyond the input or ``stride`` below 1.
-    """
-    if stride < 1:
-        raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
-    if start >= n_total:
-        raise ValueError(f'start {start}: the input has only {n_total} scans')
-    indices = range(start, n_total, stride)
-    return indices[:max_scans] if max_scans is not None else indices
-
-
-def _read(
-    source: ScanSequence, indices: range, run: LocalizationRun
-) -> Iterator[tuple[int, ScanLike]]:
-    """The selected scans with their input indices; an undecodable one is counted in ``run``,
-    a read error of the container ends the iteration with ``run.error`` set."""
-    reader: Iterator[ScanLike | SkippedScan] = (
-        source.entries() if isinstance(source, ScanSource) else iter(source)
-    )
-    scans = itertools.islice(reader, indices.start, indices.stop, indices.step)
-    try:
-        for index in indices:
-            try:
-                scan = next(scans)
-            except StopIteration:
-                return
-            except KentRegError as exc:
-                text = str(exc).strip()
-                run.error = text.splitlines()[0] if text else type(exc).__name__
-                return
-            if isinstance(scan, SkippedScan):
-                run.n_skipped += 1
-                if len(run.skipped) < MAX_SKIPPED_NAMED:
-                    run.skipped.append(scan)
-                continue
-            yield index, scan
-    finally:
-        if isinstance(reader, Generator):
-            reader.close()
-
-
 def localize_each(
     source: ScanSequence,
     pmap: PointMap,
@@ -243,7 +196,7 @@ def localize_each(
     pmap : PointMap
     config : KentRegConfig, optional
     start, max_scans, stride :
-        Which scans (:func:`selected`).
+        Which scans (:func:`~kentreg_ros.eval.run.selected_indices`).
     on_scan : callable, optional
         Called with each scan's outcome (a progress bar).
 
@@ -253,27 +206,28 @@ def localize_each(
     """
     cfg = config or KentRegConfig()
     run = LocalizationRun(RunMode.GLOBAL_EACH)
-    indices = selected(len(source), start, max_scans, stride)
+    indices = selected_indices(len(source), start, max_scans, stride)
     try:
-        for index, scan in _read(source, indices, run):
-            t0 = time.perf_counter()
-            points = np.asarray(scan.points, dtype=np.float64)
-            try:
-                result = localize(points, pmap, config=cfg)
-            except InvalidPointCloudError as exc:
-                ms = (time.perf_counter() - t0) * 1e3
-                status, fit, message = LocalizationStatus.NOT_FOUND, float('nan'), str(exc)
-                entry = LocalizedScan(index, scan.stamp_ns, status, None, fit, message, ms)
-            else:
-                best = result.best
-                entry = LocalizedScan(
-                    index, scan.stamp_ns, result.status, result.T_map_scan,
-                    best.fit if best is not None else float('nan'), result.message,
-                    result.timings.get('total', (time.perf_counter() - t0) * 1e3),
-                )  # fmt: skip
-            run.scans.append(entry)
-            if on_scan is not None:
-                on_scan(entry)
+        with closing(read_selected(source, indices, run)) as scans:
+            for index, scan, _ in scans:
+                t0 = time.perf_counter()
+                points = np.asarray(scan.points, dtype=np.float64)
+                try:
+                    result = localize(points, pmap, config=cfg)
+                except InvalidPointCloudError as exc:
+                    ms = (time.perf_counter() - t0) * 1e3
+                    status, fit, message = LocalizationStatus.NOT_FOUND, float('nan'), str(exc)
+                    entry = LocalizedScan(index, scan.stamp_ns, status, None, fit, message, ms)
+                else:
+                    best = result.best
+                    entry = LocalizedScan(
+                        index, scan.stamp_ns, result.status, result.T_map_scan,
+                        best.fit if best is not None else float('nan'), result.message,
+                        result.timings.get('total', (time.perf_counter() - t0) * 1e3),
+                    )  # fmt: skip
+                run.scans.append(entry)
+                if on_scan is not None:
+                    on_scan(entry)
     except KeyboardInterrupt:
         run.interrupted = True
     return run

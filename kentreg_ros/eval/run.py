@@ -14,6 +14,7 @@ import itertools
 import logging
 import time
 from collections.abc import Callable, Generator, Iterator
+from contextlib import closing
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -168,42 +169,64 @@ def run_odometry(
     ValueError
         ``start`` beyond the input, or ``stride`` not a positive integer.
     """
-    indices = _indices(len(source), start, max_scans, stride)
+    indices = selected_indices(len(source), start, max_scans, stride)
     run = OdometryRun()
     if map_voxel_size > 0.0:
         run.map = RunMap(map_voxel_size, max_points=map_max_points)
+    t_run = time.perf_counter()
+    with closing(read_selected(source, indices, run)) as scans:
+        try:
+            for index, scan, read_ms in scans:
+                run.read_ms.append(read_ms)
+                if not _step(odometry, scan, index, run, on_step):
+                    break  # the odometry refused the scan: the run's error says why
+        except KeyboardInterrupt:
+            run.interrupted = True
+    run.elapsed_s = time.perf_counter() - t_run
+    return run
+
+
+class ReadLog(Protocol):
+    """Where :func:`read_selected` counts what it could not give (an :class:`OdometryRun`, or
+    a localization run)."""
+
+    error: str | None
+    n_skipped: int
+    skipped: list[SkippedScan]
+
+
+def read_selected(
+    source: ScanSequence, indices: range, log: ReadLog
+) -> Generator[tuple[int, ScanLike, float], None, None]:
+    """The scans at ``indices`` (:func:`selected_indices`) with their input index and the
+    milliseconds their reading took. An undecodable scan is skipped and counted in ``log``; a
+    read error of the container ends the iteration with the first line of its message in
+    ``log.error``. Closing the generator closes the source's reader."""
     reader: Iterator[ScanLike | SkippedScan] = (
         source.entries() if isinstance(source, ScanSource) else iter(source)
     )
     scans = itertools.islice(reader, indices.start, indices.stop, indices.step)
-    t_run = time.perf_counter()
     try:
         for index in indices:
             t0 = time.perf_counter()
             try:
                 scan = next(scans)
             except StopIteration:
-                break
+                return
             except KentRegError as exc:
                 text = str(exc).strip()
-                run.error = text.splitlines()[0] if text else type(exc).__name__
-                break
+                log.error = text.splitlines()[0] if text else type(exc).__name__
+                return
             if isinstance(scan, SkippedScan):
-                run.n_skipped += 1
-                if len(run.skipped) < MAX_SKIPPED_NAMED:
-                    run.skipped.append(scan)
+                log.n_skipped += 1
+                if len(log.skipped) < MAX_SKIPPED_NAMED:
+                    log.skipped.append(scan)
                 logger.info('Scan %d skipped: %s', index, scan.reason)
                 continue
-            run.read_ms.append((time.perf_counter() - t0) * 1e3)
-            if not _step(odometry, scan, index, run, on_step):
-                break  # the odometry refused the scan: the run's error says why
-    except KeyboardInterrupt:
-        run.interrupted = True
+            yield index, scan, (time.perf_counter() - t0) * 1e3
     finally:
         if isinstance(reader, Generator):
             reader.close()
-    run.elapsed_s = time.perf_counter() - t_run
-    return run
 
 
 def _step(
@@ -238,8 +261,14 @@ def _step(
     return True
 
 
-def _indices(n_total: int, start: int, max_scans: int | None, stride: int) -> range:
-    """The input indices a run takes (see :func:`run_odometry`)."""
+def selected_indices(n_total: int, start: int, max_scans: int | None, stride: int) -> range:
+    """The input indices a run takes: ``start, start + stride, ...``, at most ``max_scans``.
+
+    Raises
+    ------
+    ValueError
+        ``start`` beyond the input, or ``stride`` not a positive integer.
+    """
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise ValueError(f'stride: expected a positive integer (>= 1), got {stride!r}')
     if start >= n_total:
