@@ -97,7 +97,7 @@ def real(name: str) -> Sequence:
     if name == 'balm':
         folder = datasets.SHARED_DATA / 'balm'
         seq = datasets.load_balm() if folder.is_dir() else datasets.DATASETS['balm_50']()
-        note = 'BALM 2.0, LiDAR-inertial bundle-adjusted reference'
+        note = 'BALM 2.0, LiDAR-inertial reference (the BA input)'
     else:
         path = datasets.SHARED_DATA / 'livox_avia' / name / 'velodyne'
         seq = datasets.load_recording(path, name=name)

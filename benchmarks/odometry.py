@@ -3,6 +3,9 @@
 The pipelines get the same scans in memory (kentreg with the replay's configuration, or
 ``--config`` / ``--set``), ``--rounds`` rotated rounds after a two-scan warm-up, evaluated with
 the replay's metrics; ``--strides``: once more on every N-th scan (README section 3).
+``--consistent-voxels``: the ATE also against a map-consistent reference (the recording's
+reference refined so every scan fits the map of all the others, built at the first voxel size;
+the second measures that reference's own precision; ``benchmarks/harness/consistent.py``).
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 
 from benchmarks.harness import datasets, methods, perturb, pipelines, report, runner  # noqa: E402
+from benchmarks.harness.consistent import map_consistent_poses  # noqa: E402
 from kentreg_ros.core import prepare_scan  # noqa: E402
-from kentreg_ros.eval import metrics  # noqa: E402
+from kentreg_ros.eval import alignment, metrics  # noqa: E402
 from kentreg_ros.io.params import effective_config  # noqa: E402
 
 METHODS = pipelines.ODOMETRY
@@ -62,6 +66,31 @@ def _drift(m: dict[str, Any]) -> str:
     return '-' if d is None else f'{d["translation_pct"]:.2f}, {d["rotation_deg_per_m"]:.4f}'
 
 
+def _ate(m: dict[str, Any]) -> str:
+    ate = m.get('ate')
+    return '-' if ate is None else f'{ate["rmse"]:.4f}'
+
+
+def _ate_cons(m: dict[str, Any]) -> str:
+    value = m.get('ate_consistent_m')
+    return '-' if value is None else f'{value:.4f}'
+
+
+def _consistent_caption(cons: dict[str, Any]) -> str:
+    moved = cons['moved_m_per_round'][0]
+    text = (
+        f'Map-consistent reference: the reference refined until every scan fits the map of all '
+        f'the others (small_gicp GICP at {cons["voxels_m"][0]:g} m voxels, leave-one-out, '
+        f'{len(moved)} rounds, the last moving a pose by at most {1e3 * moved[-1][1]:.2f} mm; '
+        f'`benchmarks/harness/consistent.py`). It lies {1e3 * cons["ate_to_reference_m"]:.1f} '
+        f'mm (ATE) from the reference'
+    )
+    if cons.get('precision_ate_m') is not None:
+        text += (f'; built at {cons["voxels_m"][1]:g} m instead it moves '
+                 f'{1e3 * cons["precision_ate_m"]:.1f} mm (ATE): its precision')  # fmt: skip
+    return text + '.'
+
+
 def markdown(doc: dict[str, Any]) -> str:
     """Markdown tables of the report (the same numbers as the JSON, rounded)."""
     rows, frames = doc['methods'], runner.SEGMENT_FRAMES
@@ -85,13 +114,21 @@ def markdown(doc: dict[str, Any]) -> str:
              if 'metrics' in e],
         ),
     ]  # fmt: skip
+    cons = doc.get('consistent_reference')
+    if cons:
+        head = 'method | ATE rmse [m], reference | ATE rmse [m], map-consistent reference'
+        body = [[n, _ate(e['metrics']), _ate_cons(e['metrics'])]
+                for n, e in rows.items() if 'metrics' in e]  # fmt: skip
+        lines += ['', _consistent_caption(cons), '', *report.table(head, body)]
     more = ('rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f', 'speed.ms_per_scan.mean:.1f')
+    more = (*more, _ate_cons) if cons else more
     srows = [[stride, *_row(name, entry, *PAIRS, _failed, *more)]
              for stride, block in (doc.get('strides') or {}).items()
              for name, entry in block.items() if name != 'n_scans']  # fmt: skip
     if srows:
         head = ('stride | method | median e_R [deg] | median e_t [m] | failures '
                 '| RPE/m trans rmse [%] | ATE rmse [m] | ms/scan mean')  # fmt: skip
+        head += ' | ATE rmse [m], map-consistent reference' if cons else ''
         caption = 'Frame skipping: every N-th scan of the same input, one round per pipeline.'
         lines += ['', caption, '', *report.table(head, srows)]
     return '\n'.join(lines) + '\n'
@@ -147,24 +184,55 @@ OPTIONS: list[report.Option] = [
     ('--max-scans', {'type': int, 'metavar': 'N', 'help': 'use the first N scans only'}),
     ('--strides', {'type': int, 'nargs': '*', 'default': [2, 3, 4], 'metavar': 'N',
                    'help': 'also every N-th scan, one round (default 2 3 4; none: --strides)'}),
+    ('--consistent-voxels', {'type': float, 'nargs': '*', 'default': [0.1, 0.2],
+                             'metavar': 'M',
+                             'help': 'voxel sizes of the map-consistent reference (default 0.1 '
+                                     '0.2: built at the first, the second its precision; '
+                                     'none: --consistent-voxels)'}),
 ]  # fmt: skip
 
 
 def _entries(
     names: Sequence[str], scans: list[Any], T_gt: runner.FloatArray, options: dict[str, Any],
-    rounds: int, full: bool = True,
+    rounds: int, full: bool = True, T_consistent: runner.FloatArray | None = None,
 ) -> dict[str, dict[str, Any]]:  # fmt: skip
     """Every pipeline in ``rounds`` rotated rounds after a two-scan warm-up, evaluated (its error
-    when it crashed); ``full``: the rounds combined, with the settings and poses."""
+    when it crashed); ``full``: the rounds combined, with the settings and poses;
+    ``T_consistent``: also the ATE rmse against that reference (metrics' ``ate_consistent_m``)."""
     makers = {n: functools.partial(pipelines.make_pipeline, n, **options) for n in names}
     scored = runner.score_pipelines(makers, scans, T_gt, rounds=rounds, warmup=2, combine=full)
     for entry in scored.values():
         if 'run' in entry:
             run = entry.pop('run')
             entry['health'] = run.health
+            if T_consistent is not None:
+                entry['metrics']['ate_consistent_m'] = alignment.ate(run.poses, T_consistent)[
+                    'rmse'
+                ]
             if full:
                 entry |= {'settings': run.settings, 'poses_T_world_lidar': run.poses}
     return scored
+
+
+def _consistent(
+    doc: dict[str, Any], scans: list[Any], T_gt: runner.FloatArray, voxels: Sequence[float],
+    threads: int,
+) -> runner.FloatArray | None:  # fmt: skip
+    """The map-consistent reference at ``voxels[0]`` (None without voxels), recorded in ``doc``
+    with its rounds, and its precision: the ATE between it and the one at ``voxels[1]``."""
+    if not voxels:
+        return None
+    clouds = [np.asarray(s.points, float) for s in scans]
+    built = [map_consistent_poses(clouds, T_gt, v, threads=threads) for v in voxels[:2]]
+    doc['consistent_reference'] = {
+        'voxels_m': list(voxels[:2]), 'T_world_lidar': built[0].poses,
+        'moved_m_per_round': [b.moved_m for b in built],
+        'converged': [b.converged for b in built],
+        'ate_to_reference_m': alignment.ate(built[0].poses, T_gt)['rmse'],
+        'precision_ate_m': (alignment.ate(built[0].poses, built[1].poses)['rmse']
+                            if len(built) > 1 else None),
+    }  # fmt: skip
+    return built[0].poses
 
 
 def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
@@ -190,7 +258,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     options = {'config': cfg, 'voxel': voxel, 'threads': args.threads,
                'max_range': args.kiss_max_range}  # fmt: skip
     doc['reference_T_world_lidar'] = T_gt
-    doc['methods'] = _entries(args.methods, scans, T_gt, options, args.rounds)
+    T_cons = _consistent(doc, scans, T_gt, args.consistent_voxels, args.threads)
+    doc['methods'] = _entries(args.methods, scans, T_gt, options, args.rounds, True, T_cons)
     if 'settings' in doc['methods'].get('gicp', {}):
         choice = "kentreg's automatic voxel size for the first scan"
         doc['methods']['gicp']['settings']['voxel_choice'] = choice
@@ -198,7 +267,8 @@ def run(args: argparse.Namespace, argv: list[str]) -> dict[str, Any]:
     doc['strides'] = {}
     for n in args.strides:
         batch = perturb.stride(n)(scans)
-        block = _entries(alive, batch, T_gt[::n], options, 1, full=False)
+        T_sub = None if T_cons is None else T_cons[::n]
+        block = _entries(alive, batch, T_gt[::n], options, 1, False, T_sub)
         doc['strides'][str(n)] = {'n_scans': len(batch), **block}
     report.finish_machine(doc['machine'])
     return doc

@@ -95,7 +95,7 @@ def load_recording(path: Path, *, name: str | None = None, topic: str | None = N
 def load_balm(folder: Path = SHARED_DATA / 'balm') -> Sequence:
     """The 50 real BALM scans ``full0..49.pcd`` and ``alidarPose.csv``."""
     seq = load_recording(folder, name='balm')
-    seq.note = 'BALM 2.0 real sequence; reference = LiDAR-inertial bundle-adjusted poses'
+    seq.note = 'BALM 2.0 real sequence; reference = LiDAR-inertial poses (the input of its BA)'
     seq.paths = list_scans(folder, suffixes=['.pcd'])
     return seq
 
