@@ -112,6 +112,36 @@ def test_readmes_quote_the_committed_benchmark_results() -> None:
     assert render_readme.main(['--check']) == 0
 
 
+def test_the_models_block_compares_the_two_models_on_every_recording() -> None:
+    """The README's choice of model: a ratio per recording, the map-consistent columns only
+    where the run scored against it, and no block without any result."""
+    if str(REPO_ROOT) not in sys.path:
+        sys.path.insert(0, str(REPO_ROOT))
+    from benchmarks.render_readme import models_block
+
+    def m(ate: float, cons: float | None = None) -> dict[str, object]:
+        metrics: dict[str, object] = {'ate': {'rmse': ate}}
+        if cons is not None:
+            metrics['ate_consistent_m'] = cons
+        return {'metrics': metrics}
+
+    odometry = {'machine': {'git': 'abc1234'},
+                'methods': {'kentreg': m(0.010, 0.004), 'kentreg_local_map': m(0.008, 0.002)},
+                'strides': {'4': {'kentreg': m(0.02), 'kentreg_local_map': m(0.01)}}}  # fmt: skip
+    livox = {'machine': {'git': 'def5678'}, 'sequences': [
+        {'name': 'hku_2',
+         'methods': {'kentreg': {'ate_m': 0.2}, 'kentreg_local_map': {'ate_m': 0.05}}}
+    ]}  # fmt: skip
+    text = models_block(odometry, livox, None)
+    assert text is not None
+    assert (
+        '| BALM sample, every scan | 10.0 mm | 8.0 mm | 0.80× | 4.0 mm | 2.0 mm | 0.50× |' in text
+    )
+    assert '| Livox Avia hku_2, keyframes | 0.200 m | 0.050 m | 0.25× | – | – | – |' in text
+    assert 'every 4th' not in text and 'abc1234' in text and 'def5678' in text
+    assert models_block(None, None, None) is None
+
+
 def test_readme_is_a_page_a_user_reads() -> None:
     """The README keeps the two commands, the robot, the headline and the links; the rest is in
     docs/."""
