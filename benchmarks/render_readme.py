@@ -171,6 +171,14 @@ def models_block(
     head = ('| recording | ATE, previous scan | ATE, local map | local map / previous '
             '| against the map-consistent reference: previous | local map | ratio |')  # fmt: skip
     lines = [head, '|---|---|---|---|---|---|---|', *('| ' + ' | '.join(r) + ' |' for r in rows)]
+    cons = (odometry or {}).get('consistent_reference') or {}
+    if cons.get('precision_ate_m') is not None:
+        far, good = 1e3 * cons['ate_to_reference_m'], 1e3 * cons['precision_ate_m']
+        lines += ['', f'The BALM reference is a LiDAR-inertial estimate {far:.0f} mm (ATE) from '
+                  'the map-consistent one (every scan refined to fit the map of all the others; '
+                  '[benchmarks/README.md](benchmarks/README.md#3-odometry-and-speed-odometrypy-'
+                  f'speedpy)), which is itself good to about {good:.1f} mm (built at two voxel '
+                  'sizes): differences below that are not resolved.']  # fmt: skip
     if live is not None:
         sources.append(f'`live.json` ({_commit(live)})')
         costs = []
