@@ -41,7 +41,7 @@ from kentreg_ros.core import kernels
 from kentreg_ros.core.config import KentRegConfig, Model
 from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform, invert_transform
-from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep
+from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep, twist_of
 from kentreg_ros.core.odometry.localmap import LocalMap
 from kentreg_ros.core.odometry.models import (
     LocalMapModel,
@@ -241,7 +241,7 @@ class Odometry:
             n_prepared=len(scan) if scan is not None else 0,
             n_untimed=prep.sweep.n_untimed if prep.sweep is not None else 0,
             covariance=pose.covariance,
-            fit=outcome.fit if outcome.accepted else float('nan'),
+            fit=outcome.fit if outcome.health.accepted else float('nan'),
             searched=outcome.searched,
             points=scan.points if scan is not None else None,
         )
@@ -265,7 +265,7 @@ class Odometry:
             fits = list(self._fits)
             outcome = self._verifier.choose(prep.scan, model.scan, T_model_pred, gap, fits)
             sweep = prep.timed_sweep
-            if sweep is None or not outcome.accepted:
+            if sweep is None or not outcome.health.accepted:
                 return Deskewed(prep.scan, outcome)
             assert prep.twist is not None  # a sweep with times was deskewed with it
             return self._deskewer.iterate(sweep, prep.scan, outcome, prep.twist, model, gap)
@@ -283,8 +283,9 @@ class Odometry:
         its fit for the next steps' doubt; the prepared scan's voxel size, where the next
         search starts. Returns the motion since the last pose, ``T_prev_curr``."""
         self._log(index, prep.sweep, outcome)
-        if outcome.accepted:
-            self._motion = Motion(pose.T_model, stamp - self._model.stamp_ns)
+        if outcome.health.accepted:
+            gap = stamp - self._model.stamp_ns
+            self._motion = Motion(pose.T_model, gap, twist_of(pose.T_model, gap * 1e-9))
             if np.isfinite(outcome.fit):
                 self._fits.append(outcome.fit)
         if prep.scan is not None:
@@ -344,7 +345,7 @@ class Odometry:
     def next_inputs(self) -> PrepareInputs:
         """What the next scan is prepared with besides itself: the configuration, the twist of
         the last accepted motion (zero before one) and the last prepared scan's voxel size."""
-        twist = self._motion.twist() if self._motion is not None else np.zeros(6)
+        twist = self._motion.twist if self._motion is not None else np.zeros(6)
         return PrepareInputs(self._config, twist, self._voxel_size_hint)
 
     # ----------------------------------------------------------------------------------------
