@@ -421,18 +421,14 @@ class ProcessPreparer:
         self._send(Discard(job))
         self._results.pop(job, None)
 
-    def _keep(self, job: int, reply: Reply) -> None:
-        """Keep ``reply`` while waiting for ``job``: this job's, a later one's, or that of a
-        scan still to be stepped although its job is older (a scan handed over again after its
-        first job was discarded, by a caller more than :data:`MAX_OPEN_JOBS` behind; dropping
-        that reply left the scan's step waiting forever). The others are replies for
-        discarded jobs."""
-        with self._lock:
-            if reply.id >= job or any(item.id == reply.id for item in self._open):
-                self._results[reply.id] = reply
-
     def _wait(self, job: int) -> Reply | None:
-        """The worker's reply for ``job``; None when the worker died before answering."""
+        """The worker's reply for ``job``; None when the worker died before answering.
+
+        The replies that come meanwhile are kept when they are a later job's, or that of a scan
+        still to be stepped although its job is older (a scan handed over again after its first
+        job was discarded, by a caller more than :data:`MAX_OPEN_JOBS` behind; dropping that
+        reply left the scan's step waiting forever). The others are replies for discarded
+        jobs."""
         while job not in self._results:
             replies = self._replies
             if replies is None:
@@ -443,7 +439,9 @@ class ProcessPreparer:
             except (EOFError, OSError):
                 message, ready = None, False
             if isinstance(message, Prepared | Failed):
-                self._keep(job, message)
+                with self._lock:
+                    if message.id >= job or any(item.id == message.id for item in self._open):
+                        self._results[message.id] = message
             elif self._proc is None or self._proc.poll() is not None:
                 self._worker_died()
                 return None
