@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
 from benchmarks.harness import datasets, methods, perturb, pipelines, report, runner  # noqa: E402
 from kentreg_ros.core import prepare_scan  # noqa: E402
 from kentreg_ros.eval import metrics  # noqa: E402
-from kentreg_ros.io.params import effective_config  # noqa: E402
+from kentreg_ros.io.paramfile import effective_config  # noqa: E402
 
 METHODS = pipelines.ODOMETRY
 TIMING = (
