@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.config import KentRegConfig, Model
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform, invert_transform
 from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep, twist_of
@@ -65,6 +65,7 @@ from kentreg_ros.core.odometry.step import (
     ScanOrderError,
 )
 from kentreg_ros.core.odometry.verify import Outcome, Verifier
+from kentreg_ros.core.odometry_config import Model
 from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
