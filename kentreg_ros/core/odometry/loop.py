@@ -128,6 +128,7 @@ class Odometry:
     _counts: dict[Health, int]
     _n_searched: int
     _warned: set[str]
+    _next_inputs: PrepareInputs  # what the next scan is prepared with (set by _expect)
 
     def __init__(
         self,
@@ -211,7 +212,7 @@ class Odometry:
         T_world_pred = self._predict(stamp)
         T_model_pred = invert_transform(model.T_world) @ T_world_pred
         # prepare: the scan once, deskewed with that motion, by the preparer the caller chose.
-        prep = self._preparer.prepare(RawScan(points, point_times, stamp), self.next_inputs)
+        prep = self._preparer.prepare(RawScan(points, point_times, stamp), self._next_inputs)
         watch.add('preprocess', prep.ms)
         watch.merge(prep.timings, 'prepare.')
         # register from the prediction, verify (the one place a pose is chosen), deskew again.
@@ -220,7 +221,7 @@ class Odometry:
         # chain: the pose in the world with its covariance; what the next scans learn from it.
         pose = chain(model.T_world, model.cov, outcome, T_world_pred, T_model_pred)
         T_prev_curr = self._learn(index, stamp, frame_id, prep, outcome, pose)
-        self._preparer.expect(self.next_inputs)  # known now: a preparer ahead can go on
+        self._expect()  # known now: a preparer ahead can go on
         # model: the previous scan, or the local map of the accepted scans, moves on.
         posed = PosedScan(scan, outcome.health, pose, stamp, index, prep.timed_sweep, done.first)
         model.update(posed, watch)
@@ -342,12 +343,14 @@ class Odometry:
         elif health not in (Health.OK, Health.FIRST):
             logger.info('Scan %d: %s', index, outcome.message)
 
-    @property
-    def next_inputs(self) -> PrepareInputs:
-        """What the next scan is prepared with besides itself: the configuration, the twist of
-        the last accepted motion (zero before one) and the last prepared scan's voxel size."""
+    def _expect(self) -> None:
+        """Work out what the next scan is prepared with besides itself, once it is known (after
+        a step, a reset, a new configuration): the configuration, the twist of the last accepted
+        motion (zero before one) and the last prepared scan's voxel size; keep it for that
+        scan's step and tell the preparer (one working ahead can go on)."""
         twist = self._motion.twist if self._motion is not None else np.zeros(6)
-        return PrepareInputs(self._config, twist, self._voxel_size_hint)
+        self._next_inputs = PrepareInputs(self._config, twist, self._voxel_size_hint)
+        self._preparer.expect(self._next_inputs)
 
     # ----------------------------------------------------------------------------------------
     # State
@@ -372,7 +375,7 @@ class Odometry:
         self._fits = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
         self._warned = set()
-        self._preparer.expect(self.next_inputs)
+        self._expect()
 
     def _new_model(self, current: ModelStrategy) -> ModelStrategy:
         """The model strategy the configuration asks for, continuing from ``current``."""
@@ -402,7 +405,7 @@ class Odometry:
         if config.preprocess != previous:
             self._voxel_size_hint = 0.0  # the previous size was searched for other settings
         self._model = self._new_model(self._model)
-        self._preparer.expect(self.next_inputs)
+        self._expect()
 
     @property
     def poses(self) -> FloatArray:
