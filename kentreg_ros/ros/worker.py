@@ -65,7 +65,6 @@ class QueuedScan:
     stamp_ns: int
     frame_id: str
     received: float  # time.monotonic()
-    n_nonfinite: int
     point_times: PointTimes | None = None  # the driver's per-point times, for deskewing
 
 
