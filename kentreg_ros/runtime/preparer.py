@@ -361,7 +361,20 @@ class ProcessPreparer:
         item = self._take(scan)
         if item is not None and not item.went:
             self._go(item, inputs)
-        return self._receive(item, scan, inputs)
+        t0 = time.perf_counter()
+        reply = self._wait(item.id) if item is not None else None
+        if reply is None and item is not None:
+            unlink(item.path)  # the worker died before it read the scan
+        self.stats.wait_ms.append((time.perf_counter() - t0) * 1e3)
+        if isinstance(reply, Failed):
+            raise PipelineError(f'The scan preparation worker raised:\n{reply.traceback}')
+        if reply is not None:
+            if reply.generation == self._generation and reply.preparation.made_with(inputs):
+                self.stats.prepared_remote += 1
+                return reply.preparation
+            self.stats.redone += 1
+        self.stats.prepared_here += 1
+        return self._here.prepare(scan, inputs)
 
     def expect(self, inputs: PrepareInputs) -> None:
         """The next scan's inputs are known: tell the worker (it may be waiting for them)."""
@@ -397,24 +410,6 @@ class ProcessPreparer:
         with self._lock:
             item.went = True
             self._send(Go(item.id, inputs.twist, inputs.voxel_size_hint))
-
-    def _receive(self, item: _Open | None, scan: RawScan, inputs: PrepareInputs) -> Preparation:
-        """The worker's preparation of ``item`` if it was made with ``inputs``; else the scan
-        prepared here."""
-        t0 = time.perf_counter()
-        reply = self._wait(item.id) if item is not None else None
-        if reply is None and item is not None:
-            unlink(item.path)  # the worker died before it read the scan
-        self.stats.wait_ms.append((time.perf_counter() - t0) * 1e3)
-        if isinstance(reply, Failed):
-            raise PipelineError(f'The scan preparation worker raised:\n{reply.traceback}')
-        if reply is not None:
-            if reply.generation == self._generation and reply.preparation.made_with(inputs):
-                self.stats.prepared_remote += 1
-                return reply.preparation
-            self.stats.redone += 1
-        self.stats.prepared_here += 1
-        return self._here.prepare(scan, inputs)
 
     def _drop(self, job: int) -> None:
         """Tell the worker to skip ``job`` and forget its reply if it came (under the lock)."""
