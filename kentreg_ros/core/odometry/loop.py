@@ -281,9 +281,10 @@ class Odometry:
         outcome: Outcome,
         pose: Chained,
     ) -> FloatArray:
-        """Keep the step: its pose and stamp; an accepted motion for the next prediction and
-        its fit for the next steps' doubt; the prepared scan's voxel size, where the next
-        search starts. Returns the motion since the last pose, ``T_prev_curr``."""
+        """Keep the step: its pose and stamp; an accepted motion for the next prediction (with
+        its twist, which the next sweeps are deskewed with) and its fit for the next steps'
+        doubt; the prepared scan's voxel size, where the next search starts. Returns the motion
+        since the last pose, ``T_prev_curr``."""
         self._log(index, prep.sweep, outcome)
         if outcome.health.accepted:
             gap = stamp - self._model.stamp_ns
