@@ -28,7 +28,7 @@ from benchmarks.harness import datasets, methods, perturb, pipelines, report, ru
 from benchmarks.harness.consistent import map_consistent_poses  # noqa: E402
 from kentreg_ros.core import prepare_scan  # noqa: E402
 from kentreg_ros.eval import alignment, metrics  # noqa: E402
-from kentreg_ros.io.params import effective_config  # noqa: E402
+from kentreg_ros.io.paramfile import effective_config  # noqa: E402
 
 METHODS = pipelines.ODOMETRY
 TIMING = (

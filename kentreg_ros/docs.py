@@ -6,7 +6,7 @@ declares and ``config/kentreg.yaml`` holds) between :data:`BEGIN` and :data:`END
 research configuration (every :class:`~kentreg_ros.core.config.KentRegConfig` field, dotted
 names such as ``em.tolerance``, reached from Python and the command lines' ``--set``) between
 :data:`RESEARCH_BEGIN` and :data:`RESEARCH_END`. Tests keep the page equal to the rendering and
-the shipped parameter file equal to :func:`~kentreg_ros.io.params.dump_parameter_file`.
+the shipped parameter file equal to :func:`~kentreg_ros.io.paramfile.dump_parameter_file`.
 
 Command line::
 
@@ -26,7 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from kentreg_ros.core import KentRegConfig, iter_fields, plain_value
-from kentreg_ros.io.params import PARAMETERS, Parameter, dump_parameter_file
+from kentreg_ros.io.paramfile import dump_parameter_file
+from kentreg_ros.io.params import PARAMETERS, Parameter
 
 PROG = 'python3 -m kentreg_ros.docs'
 #: The page that holds the tables, relative to the repository root.

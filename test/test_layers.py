@@ -74,6 +74,7 @@ CORE_ROOMS = (
         'kernels',
         'stopwatch',
         'localization_config',
+        'odometry_config',
     ),
     ('scan',),
     ('registration',),

@@ -29,7 +29,7 @@ from typing import Any
 
 from kentreg_ros.core import KentRegConfig, KentRegError, kernels
 from kentreg_ros.eval.replay import ReplayOptions, ReplaySummary, replay
-from kentreg_ros.io.params import dump_config
+from kentreg_ros.io.paramfile import dump_config
 
 logger = logging.getLogger(__name__)
 

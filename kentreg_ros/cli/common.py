@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from kentreg_ros.core import KentRegConfig, KentRegError
-from kentreg_ros.io.params import effective_config
+from kentreg_ros.io.paramfile import effective_config
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2

@@ -272,7 +272,7 @@ def write_outputs(
 ) -> list[str]:
     """Write ``localization.json``, ``poses_tum.txt``, ``config.yaml`` and ``summary.json``
     into ``out``; return their names."""
-    from kentreg_ros.io.params import dump_config
+    from kentreg_ros.io.paramfile import dump_config
     from kentreg_ros.io.poses import write_tum
 
     out.mkdir(parents=True, exist_ok=True)

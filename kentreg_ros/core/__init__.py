@@ -5,7 +5,7 @@ importable from here; the modules behind these names may move.
 """
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.config import KentRegConfig, Mode, Model
+from kentreg_ros.core.config import KentRegConfig, Mode
 from kentreg_ros.core.errors import (
     ConfigError,
     DegenerateSceneError,
@@ -65,6 +65,7 @@ from kentreg_ros.core.odometry import (
     sweep_times,
     twist_covariance,
 )
+from kentreg_ros.core.odometry_config import Model, TimeReference, TimeUnit
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
 from kentreg_ros.core.scan.voxels import (
@@ -104,6 +105,8 @@ __all__ = [
     'Section',
     'Status',
     'Sweep',
+    'TimeReference',
+    'TimeUnit',
     'VoxelMap',
     'as_points',
     'check_transform',

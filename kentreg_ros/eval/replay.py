@@ -359,7 +359,7 @@ def write_outputs(
     """Write every output file into ``out`` (and the map to ``map_path``); return the names
     written into ``out``."""
     from kentreg_ros.io.bagwriter import write_odometry_mcap
-    from kentreg_ros.io.params import dump_config
+    from kentreg_ros.io.paramfile import dump_config
     from kentreg_ros.io.poses import write_kitti, write_tum
 
     out.mkdir(parents=True, exist_ok=True)

@@ -1,22 +1,21 @@
 """Point clouds in and out: PointCloud2 <-> numpy, scan files, pose files, bags, parameter files.
 
 Never imports rclpy. :mod:`kentreg_ros.io.pointcloud2`, :mod:`~kentreg_ros.io.scanfiles`,
-:mod:`~kentreg_ros.io.poses` and :mod:`~kentreg_ros.io.params` need only numpy/scipy/PyYAML; the
-bag names (``open_scan_source``, ``BagWriter``, ...) load rosbags on first use, so a ROS node
-without rosbags can still import this package.
+:mod:`~kentreg_ros.io.poses`, :mod:`~kentreg_ros.io.params` and :mod:`~kentreg_ros.io.paramfile`
+need only numpy/scipy/PyYAML; the bag names (``open_scan_source``, ``BagWriter``, ...) load
+rosbags on first use, so a ROS node without rosbags can still import this package.
 """
 
 from typing import TYPE_CHECKING, Any
 
 from kentreg_ros.io.errors import BagError, PoseFileError, ScanFileError
-from kentreg_ros.io.params import (
-    NODE_NAME,
+from kentreg_ros.io.paramfile import (
     dump_config,
     effective_config,
     load_config,
     parameters_from_yaml,
-    parse_overrides,
 )
+from kentreg_ros.io.params import NODE_NAME
 from kentreg_ros.io.pointcloud2 import (
     CloudArrays,
     MessageFactory,
@@ -33,6 +32,7 @@ from kentreg_ros.io.poses import (
     write_tum,
 )
 from kentreg_ros.io.scanfiles import list_scans, read_scan, write_pcd
+from kentreg_ros.io.yamlfile import parse_overrides
 
 if TYPE_CHECKING:
     from kentreg_ros.io.bags import BagScanSource, bag_topics, is_bag

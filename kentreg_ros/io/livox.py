@@ -335,13 +335,7 @@ def custom_msg_to_array(
     out_dtype = np.dtype(dtype)
     if out_dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
         raise ValueError(f'Expected `dtype` float64 or float32, got {out_dtype}.')
-    names = list(CUSTOM_POINT_FIELDS) if fields is None else [str(f) for f in fields]
-    unknown = [n for n in names if n not in (*CUSTOM_POINT_FIELDS, 'timestamp')]
-    if unknown:
-        raise InvalidPointCloudError(
-            f'CustomMsg has no field {unknown[0]!r}; its fields are x, y, z, '
-            f'{", ".join(CUSTOM_POINT_FIELDS)} (and timestamp, derived).'
-        )
+    names = _requested(fields)
     buf = memoryview(raw).cast('B') if not isinstance(raw, bytes) else raw
     head = _read_head(buf, ros1)
     _check_extent(head, len(buf), ros1)
@@ -367,15 +361,42 @@ def custom_msg_to_array(
         kept = np.flatnonzero(keep)
         n_dropped = n - len(kept)
         xyz = xyz.take(kept, axis=0)
-
-    def column(name: str) -> NDArray[Any]:
-        values = points_view[name]
-        values = values if kept is None else values.take(kept)
-        return np.array(values, dtype=values.dtype.newbyteorder('='))  # a copy, native
-
     base_ns = head.timebase_ns or stamp_ns  # what offset_time counts from
     if fields is None and abs(base_ns - stamp_ns) > STAMP_TOLERANCE_NS:
         names.append('timestamp')
+    extras = _extras(points_view, kept, names, base_ns)
+    return CloudArrays(xyz, extras, n_dropped, stamp_ns, head.frame_id)
+
+
+def _requested(fields: Sequence[str] | None) -> list[str]:
+    """The extra fields asked for (None: every field of a Livox point), after checking that a
+    CustomMsg has them.
+
+    Raises
+    ------
+    InvalidPointCloudError
+    """
+    names = list(CUSTOM_POINT_FIELDS) if fields is None else [str(f) for f in fields]
+    unknown = [n for n in names if n not in (*CUSTOM_POINT_FIELDS, 'timestamp')]
+    if unknown:
+        raise InvalidPointCloudError(
+            f'CustomMsg has no field {unknown[0]!r}; its fields are x, y, z, '
+            f'{", ".join(CUSTOM_POINT_FIELDS)} (and timestamp, derived).'
+        )
+    return names
+
+
+def _extras(
+    records: NDArray[Any], kept: NDArray[np.intp] | None, names: list[str], base_ns: int
+) -> dict[str, NDArray[Any]]:
+    """The fields ``names`` of the points ``kept`` (all when None), as native copies;
+    ``timestamp`` is ``base_ns + offset_time`` (float64 absolute ns)."""
+
+    def column(name: str) -> NDArray[Any]:
+        values = records[name]
+        values = values if kept is None else values.take(kept)
+        return np.array(values, dtype=values.dtype.newbyteorder('='))  # a copy, native
+
     extras: dict[str, NDArray[Any]] = {}
     for name in names:
         if name == 'timestamp':
@@ -385,4 +406,4 @@ def custom_msg_to_array(
             extras[name] = (np.int64(base_ns) + offsets).astype(np.float64)
         else:
             extras[name] = column(name)
-    return CloudArrays(xyz, extras, n_dropped, stamp_ns, head.frame_id)
+    return extras

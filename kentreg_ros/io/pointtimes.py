@@ -9,8 +9,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from kentreg_ros.core import ImplausibleTimesError, PointTimes, sweep_times
-from kentreg_ros.core.config import TimeReference, TimeUnit
+from kentreg_ros.core import (
+    ImplausibleTimesError,
+    PointTimes,
+    TimeReference,
+    TimeUnit,
+    sweep_times,
+)
 
 #: Names of per-point time fields written by common LiDAR drivers; kept like any other field.
 POINT_TIME_FIELDS = ('t', 'time', 'timestamp', 'offset_time', 'time_offset')

@@ -39,7 +39,6 @@ from __future__ import annotations
 import os
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
@@ -65,7 +64,6 @@ from kentreg_ros.core import (
     TrackingState,
     TrackStep,
     Window,
-    hat,
     invert_transform,
     rotation_angle,
 )
@@ -75,9 +73,11 @@ from kentreg_ros.io.params import NodeSettings
 from kentreg_ros.io.scanfiles import SCAN_SUFFIXES
 from kentreg_ros.ros.diagnostics import LocalizationSnapshot
 from kentreg_ros.ros.frames import Frames
+from kentreg_ros.ros.logbridge import UnexpectedErrors
 from kentreg_ros.ros.messages import (
     covariance_to_msg,
     pose_covariance_in_base,
+    pose_covariance_in_map,
     pose_to_msg,
     stamp_to_msg,
 )
@@ -123,22 +123,6 @@ def map_path(settings: NodeSettings) -> Path | None:
     if not os.access(path, os.R_OK):
         raise StartupError(f'map_file {text!r} cannot be read.', names=('map_file',))
     return path
-
-
-def pose_covariance_in_map(cov: FloatArray, T_map_scan: FloatArray) -> FloatArray:
-    """The covariance of a localization's ``T_map_scan`` as a pose covariance in the map.
-
-    The localization's (a registration's against the map,
-    :attr:`~kentreg_ros.core.RegistrationResult.covariance`) is of the left perturbation
-    ``T_true = exp(delta) T`` in the map frame, ``delta = (t_true - dR t, log dR)``; a
-    nav_msgs pose covariance is of the position error ``t_true - t`` and ``log dR``. To first
-    order ``t_true - t = delta_t - [t]x delta_R``, so ``J = [[I, -[t]x], [0, I]]``: the
-    rotation's uncertainty moves a pose far from the map's origin.
-    """
-    J = np.eye(6)
-    J[:3, 3:] = -hat(T_map_scan[:3, 3])
-    out = J @ cov @ J.T
-    return np.asarray(0.5 * (out + out.T), dtype=np.float64)
 
 
 class KeepingPreparer:
@@ -274,7 +258,7 @@ class LocalizationWorker:
             ('updates', 'searched', 'tracked', 'misses', 'relocalizations', 'skipped', 'errors'),
             0,
         )
-        self._error_kinds: set[tuple[str, str, int]] = set()  # only the thread's
+        self._errors = UnexpectedErrors(log, THROTTLE_S)  # only the thread's
         self._thread = threading.Thread(target=self._run, name='kentreg_localizer', daemon=True)
 
     # ----------------------------------------------------------------------------------------
@@ -544,16 +528,8 @@ class LocalizationWorker:
         """Count an unexpected error, skip the scan; the traceback once per kind."""
         with self._lock:
             self._counts['errors'] += 1
-        frames = traceback.extract_tb(exc.__traceback__)
-        where = (frames[-1].filename, frames[-1].lineno or 0) if frames else ('', 0)
-        kind = (type(exc).__qualname__, *where)
-        text = (
+        self._errors.log(
+            exc,
             f'Unexpected error localizing the scan stamped {item.stamp_ns * 1e-9:.3f} s '
-            f'({type(exc).__name__}: {exc}): skipped, the localization goes on.'
+            f'({type(exc).__name__}: {exc}): skipped, the localization goes on.',
         )
-        if kind not in self._error_kinds:
-            self._error_kinds.add(kind)
-            trace = ''.join(traceback.format_exception(exc)).rstrip()
-            self._log.error(f'{text}\n{trace}')
-        else:
-            self._log.error(text, throttle_duration_sec=THROTTLE_S)

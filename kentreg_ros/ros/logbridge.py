@@ -17,6 +17,9 @@ shows the core's debug records too); the level is restored when the last handler
 Several nodes in one process: a record logged on a thread a handler owns (the node's worker,
 see :meth:`RclpyLogHandler.own_thread`) goes to that node's logger only; records of other
 threads go to every node's.
+
+What the node's own threads log of an unexpected error (a bug they survive) is
+:class:`UnexpectedErrors`: the traceback once per kind of error, then one throttled line.
 """
 
 from __future__ import annotations
@@ -26,10 +29,11 @@ import logging
 import re
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-__all__ = ['PACKAGE_LOGGER', 'RclpyLogHandler']
+__all__ = ['PACKAGE_LOGGER', 'RclpyLogHandler', 'UnexpectedErrors']
 
 #: The logger every module of the package logs under.
 PACKAGE_LOGGER = 'kentreg_ros'
@@ -38,6 +42,9 @@ PACKAGE_LOGGER = 'kentreg_ros'
 MAX_KINDS = 256
 #: Digits in a message: masked to tell its kind (scan indices, counts, stamps vary).
 _NUMBER = re.compile(r'\d+')
+#: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
+#: one-line message only, so a node failing in ever new ways cannot fill its log.
+MAX_ERROR_KINDS = 32
 
 
 def _python_level(severity: int) -> int:
@@ -179,3 +186,34 @@ class RclpyLogHandler(logging.Handler):
             log.info(message)
         else:
             log.debug(message)
+
+
+class UnexpectedErrors:
+    """What a node's thread logs of an unexpected error (a bug: the thread skips what it had in
+    hand and goes on): its traceback once per kind of error (the exception's type and the line
+    that raised it, for the first :data:`MAX_ERROR_KINDS` kinds), the one-line text otherwise,
+    throttled. One instance per thread (the odometry's worker, the localization's).
+
+    Parameters
+    ----------
+    log : rclpy logger
+    throttle_s : float
+        Seconds between repeated one-line texts.
+    """
+
+    def __init__(self, log: Any, throttle_s: float) -> None:
+        self._log, self._throttle_s = log, throttle_s
+        self._kinds: set[tuple[str, str, int]] = set()  # (type, file, line) logged in full
+
+    def log(self, exc: BaseException, text: str) -> None:
+        """Log ``text`` (what the error cost) as an error, with ``exc``'s traceback when its
+        kind is new."""
+        frames = traceback.extract_tb(exc.__traceback__)
+        where = (frames[-1].filename, frames[-1].lineno or 0) if frames else ('', 0)
+        kind = (type(exc).__qualname__, *where)
+        if kind not in self._kinds and len(self._kinds) < MAX_ERROR_KINDS:
+            self._kinds.add(kind)
+            trace = ''.join(traceback.format_exception(exc)).rstrip()
+            self._log.error(f'{text} Its traceback (shown once for this kind of error):\n{trace}')
+        else:
+            self._log.error(text, throttle_duration_sec=self._throttle_s)

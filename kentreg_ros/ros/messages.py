@@ -7,6 +7,8 @@ The node and the player used to fill these fields by hand; each conversion now h
 ``transform_to_msg`` / ``transform_from_msg``   4x4 ``T_parent_child`` <-> geometry_msgs/Transform
 ``stamp_to_msg`` / ``stamp_from_msg``           integer nanoseconds <-> builtin_interfaces/Time
 ``covariance_to_msg`` / ``covariance_from_msg`` 6x6 <-> the 36 floats of a ``*WithCovariance``
+``pose_covariance_in_base``                     a pose covariance carried to the published frame
+``pose_covariance_in_map``                      a localization's covariance as one in the map
 =============================== ==================================================
 
 Quaternions are ``(x, y, z, w)`` as in geometry_msgs/Quaternion (and scipy's ``as_quat``). A
@@ -176,3 +178,19 @@ def pose_covariance_in_base(
     J[3:, 3:] = R_A
     J[:3, 3:] = hat(T_odom_base[:3, :3] @ T_base_lidar[:3, 3]) @ R_A
     return J @ cov_world_lidar @ J.T
+
+
+def pose_covariance_in_map(cov: FloatArray, T_map_scan: FloatArray) -> FloatArray:
+    """The covariance of a localization's ``T_map_scan`` as a pose covariance in the map.
+
+    The localization's (a registration's against the map,
+    :attr:`~kentreg_ros.core.RegistrationResult.covariance`) is of the left perturbation
+    ``T_true = exp(delta) T`` in the map frame, ``delta = (t_true - dR t, log dR)``; a
+    nav_msgs pose covariance is of the position error ``t_true - t`` and ``log dR``. To first
+    order ``t_true - t = delta_t - [t]x delta_R``, so ``J = [[I, -[t]x], [0, I]]``: the
+    rotation's uncertainty moves a pose far from the map's origin.
+    """
+    J = np.eye(6)
+    J[:3, 3:] = -hat(T_map_scan[:3, 3])
+    out = J @ cov @ J.T
+    return np.asarray(0.5 * (out + out.T), dtype=np.float64)

@@ -291,7 +291,6 @@ class KentRegNode(Node):
             stamp_ns=cloud.stamp_ns,  # type: ignore[arg-type]  # a PointCloud2 has a stamp
             frame_id=cloud.frame_id or '',
             received=received,
-            n_nonfinite=cloud.n_dropped,
             point_times=point_time_field(cloud.extras),
         )
         self._worker.put(scan)

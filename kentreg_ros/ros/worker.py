@@ -27,7 +27,6 @@ from __future__ import annotations
 import collections
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +38,7 @@ from kentreg_ros.io.params import NodeSettings
 from kentreg_ros.ros.diagnostics import Counters, Snapshot
 from kentreg_ros.ros.frames import Frames, moving_frame
 from kentreg_ros.ros.localization import LocalizationWorker
+from kentreg_ros.ros.logbridge import UnexpectedErrors
 from kentreg_ros.ros.outputs import Outputs
 from kentreg_ros.runtime import ScanPreparer, close_after
 
@@ -52,9 +52,6 @@ THROTTLE_S = 5.0
 #: velocity left broken), which only a restart clears; three in a row tells that apart from
 #: two unrelated odd scans, and costs a 10 Hz sensor 0.3 s of odometry.
 MAX_ERRORS_IN_A_ROW = 3
-#: Kinds of unexpected error whose traceback is logged in full (each once); later kinds get the
-#: one-line message only, so a node failing in ever new ways cannot fill its log.
-MAX_ERROR_KINDS = 32
 
 
 @dataclass
@@ -65,7 +62,6 @@ class QueuedScan:
     stamp_ns: int
     frame_id: str
     received: float  # time.monotonic()
-    n_nonfinite: int
     point_times: PointTimes | None = None  # the driver's per-point times, for deskewing
 
 
@@ -125,7 +121,7 @@ class ScanWorker:
         # lock).
         self._last_stepped_ns: int | None = None  # of the last scan the odometry stepped
         self._errors_in_a_row = 0
-        self._error_kinds: set[tuple[str, str, int]] = set()  # (type, file, line) logged
+        self._errors = UnexpectedErrors(log, THROTTLE_S)
         self._frame_id = ''
         self._last_health, self._last_message = '', ''
         self._latencies_ms: collections.deque[float] = collections.deque(maxlen=1000)
@@ -315,23 +311,12 @@ class ScanWorker:
         after :data:`MAX_ERRORS_IN_A_ROW` in a row."""
         self._counters.add('errors')
         self._errors_in_a_row += 1
-        text = f'{type(exc).__name__}: {exc}'
-        # The kind of an error: its type and the line that raised it.
-        frames = traceback.extract_tb(exc.__traceback__)
-        where = (frames[-1].filename, frames[-1].lineno or 0) if frames else ('', 0)
-        kind = (type(exc).__qualname__, *where)
-        skipped = (
-            f'Unexpected error on the scan stamped {scan.stamp_ns * 1e-9:.3f} s ({text}): the '
-            'scan is skipped (diagnostics count it in errors), the trajectory goes on.'
+        self._errors.log(
+            exc,
+            f'Unexpected error on the scan stamped {scan.stamp_ns * 1e-9:.3f} s '
+            f'({type(exc).__name__}: {exc}): the scan is skipped (diagnostics count it in '
+            'errors), the trajectory goes on.',
         )
-        if kind not in self._error_kinds and len(self._error_kinds) < MAX_ERROR_KINDS:
-            self._error_kinds.add(kind)
-            trace = ''.join(traceback.format_exception(exc)).rstrip()
-            self._log.error(
-                f'{skipped} Its traceback (shown once for this kind of error):\n{trace}'
-            )
-        else:
-            self._log.error(skipped, throttle_duration_sec=THROTTLE_S)
         if self._errors_in_a_row >= MAX_ERRORS_IN_A_ROW:
             self._log.error(
                 f'{self._errors_in_a_row} unexpected errors in a row: the odometry state is '

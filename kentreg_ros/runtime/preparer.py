@@ -361,7 +361,20 @@ class ProcessPreparer:
         item = self._take(scan)
         if item is not None and not item.went:
             self._go(item, inputs)
-        return self._receive(item, scan, inputs)
+        t0 = time.perf_counter()
+        reply = self._wait(item.id) if item is not None else None
+        if reply is None and item is not None:
+            unlink(item.path)  # the worker died before it read the scan
+        self.stats.wait_ms.append((time.perf_counter() - t0) * 1e3)
+        if isinstance(reply, Failed):
+            raise PipelineError(f'The scan preparation worker raised:\n{reply.traceback}')
+        if reply is not None:
+            if reply.generation == self._generation and reply.preparation.made_with(inputs):
+                self.stats.prepared_remote += 1
+                return reply.preparation
+            self.stats.redone += 1
+        self.stats.prepared_here += 1
+        return self._here.prepare(scan, inputs)
 
     def expect(self, inputs: PrepareInputs) -> None:
         """The next scan's inputs are known: tell the worker (it may be waiting for them)."""
@@ -398,41 +411,19 @@ class ProcessPreparer:
             item.went = True
             self._send(Go(item.id, inputs.twist, inputs.voxel_size_hint))
 
-    def _receive(self, item: _Open | None, scan: RawScan, inputs: PrepareInputs) -> Preparation:
-        """The worker's preparation of ``item`` if it was made with ``inputs``; else the scan
-        prepared here."""
-        t0 = time.perf_counter()
-        reply = self._wait(item.id) if item is not None else None
-        if reply is None and item is not None:
-            unlink(item.path)  # the worker died before it read the scan
-        self.stats.wait_ms.append((time.perf_counter() - t0) * 1e3)
-        if isinstance(reply, Failed):
-            raise PipelineError(f'The scan preparation worker raised:\n{reply.traceback}')
-        if reply is not None:
-            if reply.generation == self._generation and reply.preparation.made_with(inputs):
-                self.stats.prepared_remote += 1
-                return reply.preparation
-            self.stats.redone += 1
-        self.stats.prepared_here += 1
-        return self._here.prepare(scan, inputs)
-
     def _drop(self, job: int) -> None:
         """Tell the worker to skip ``job`` and forget its reply if it came (under the lock)."""
         self._send(Discard(job))
         self._results.pop(job, None)
 
-    def _keep(self, job: int, reply: Reply) -> None:
-        """Keep ``reply`` while waiting for ``job``: this job's, a later one's, or that of a
-        scan still to be stepped although its job is older (a scan handed over again after its
-        first job was discarded, by a caller more than :data:`MAX_OPEN_JOBS` behind; dropping
-        that reply left the scan's step waiting forever). The others are replies for
-        discarded jobs."""
-        with self._lock:
-            if reply.id >= job or any(item.id == reply.id for item in self._open):
-                self._results[reply.id] = reply
-
     def _wait(self, job: int) -> Reply | None:
-        """The worker's reply for ``job``; None when the worker died before answering."""
+        """The worker's reply for ``job``; None when the worker died before answering.
+
+        The replies that come meanwhile are kept when they are a later job's, or that of a scan
+        still to be stepped although its job is older (a scan handed over again after its first
+        job was discarded, by a caller more than :data:`MAX_OPEN_JOBS` behind; dropping that
+        reply left the scan's step waiting forever). The others are replies for discarded
+        jobs."""
         while job not in self._results:
             replies = self._replies
             if replies is None:
@@ -443,7 +434,9 @@ class ProcessPreparer:
             except (EOFError, OSError):
                 message, ready = None, False
             if isinstance(message, Prepared | Failed):
-                self._keep(job, message)
+                with self._lock:
+                    if message.id >= job or any(item.id == message.id for item in self._open):
+                        self._results[message.id] = message
             elif self._proc is None or self._proc.poll() is not None:
                 self._worker_died()
                 return None

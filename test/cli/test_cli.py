@@ -21,7 +21,7 @@ from kentreg_ros.cli import common
 from kentreg_ros.cli.__main__ import main as kentreg_main
 from kentreg_ros.cli.register import main as register_main
 from kentreg_ros.core import ConfigError, KentRegConfig
-from kentreg_ros.io.params import dump_config
+from kentreg_ros.io.paramfile import dump_config
 from kentreg_ros.io.scanfiles import write_pcd
 
 

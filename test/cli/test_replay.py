@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from kentreg_ros.cli.replay import main
 from kentreg_ros.core import KentRegConfig
 from kentreg_ros.eval.groundtruth import associate
-from kentreg_ros.io.params import dump_config, load_config
+from kentreg_ros.io.paramfile import dump_config, load_config
 
 pytest.importorskip('rosbags', reason='the replay CLI reads bags with rosbags')
 pytest.importorskip('mcap', reason='the output is checked with the mcap reader')

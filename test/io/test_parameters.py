@@ -8,15 +8,17 @@ import pytest
 
 from kentreg_ros.core import ConfigError, KentRegConfig
 from kentreg_ros.io.errors import ParameterError
+from kentreg_ros.io.paramfile import (
+    dump_parameter_file,
+    load_config,
+    load_settings,
+    parameters_from_yaml,
+)
 from kentreg_ros.io.params import (
     CORE_PARAMETERS,
     PARAMETERS,
     NodeSettings,
     apply_parameters,
-    dump_parameter_file,
-    load_config,
-    load_settings,
-    parameters_from_yaml,
     product_values,
 )
 

@@ -51,9 +51,10 @@ from kentreg_ros.io.pointcloud2 import array_to_pointcloud2, rclpy_factory  # no
 from kentreg_ros.io.poses import write_tum  # noqa: E402
 from kentreg_ros.io.recordings import open_recording  # noqa: E402
 from kentreg_ros.ros import node as node_module  # noqa: E402
-from kentreg_ros.ros.localization import KeepingPreparer, pose_covariance_in_map  # noqa: E402
+from kentreg_ros.ros.localization import KeepingPreparer  # noqa: E402
 from kentreg_ros.ros.messages import (  # noqa: E402
     covariance_from_msg,
+    pose_covariance_in_map,
     pose_from_msg,
     pose_to_msg,
     transform_from_msg,

@@ -45,10 +45,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from kentreg_ros.core.config import Deskew, KentRegConfig, TimeReference, TimeUnit
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
 from kentreg_ros.core.geometry import log_so3, row_norms
 from kentreg_ros.core.odometry.verify import Outcome, Verifier
+from kentreg_ros.core.odometry_config import Deskew, TimeReference, TimeUnit
 from kentreg_ros.core.registration import register
 from kentreg_ros.core.scan import PreparedScan, prepare_scan
 from kentreg_ros.core.scan.voxels import as_points

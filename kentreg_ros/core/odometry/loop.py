@@ -38,10 +38,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from kentreg_ros.core import kernels
-from kentreg_ros.core.config import KentRegConfig, Model
+from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidInputError
 from kentreg_ros.core.geometry import check_transform, invert_transform
-from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep
+from kentreg_ros.core.odometry.deskew import Deskewed, Deskewer, PointTimes, Sweep, twist_of
 from kentreg_ros.core.odometry.localmap import LocalMap
 from kentreg_ros.core.odometry.models import (
     LocalMapModel,
@@ -65,6 +65,7 @@ from kentreg_ros.core.odometry.step import (
     ScanOrderError,
 )
 from kentreg_ros.core.odometry.verify import Outcome, Verifier
+from kentreg_ros.core.odometry_config import Model
 from kentreg_ros.core.stopwatch import Stopwatch
 
 logger = logging.getLogger(__name__)
@@ -127,6 +128,7 @@ class Odometry:
     _counts: dict[Health, int]
     _n_searched: int
     _warned: set[str]
+    _next_inputs: PrepareInputs  # what the next scan is prepared with (set by _expect)
 
     def __init__(
         self,
@@ -210,7 +212,7 @@ class Odometry:
         T_world_pred = self._predict(stamp)
         T_model_pred = invert_transform(model.T_world) @ T_world_pred
         # prepare: the scan once, deskewed with that motion, by the preparer the caller chose.
-        prep = self._preparer.prepare(RawScan(points, point_times, stamp), self.next_inputs)
+        prep = self._preparer.prepare(RawScan(points, point_times, stamp), self._next_inputs)
         watch.add('preprocess', prep.ms)
         watch.merge(prep.timings, 'prepare.')
         # register from the prediction, verify (the one place a pose is chosen), deskew again.
@@ -219,7 +221,7 @@ class Odometry:
         # chain: the pose in the world with its covariance; what the next scans learn from it.
         pose = chain(model.T_world, model.cov, outcome, T_world_pred, T_model_pred)
         T_prev_curr = self._learn(index, stamp, frame_id, prep, outcome, pose)
-        self._preparer.expect(self.next_inputs)  # known now: a preparer ahead can go on
+        self._expect()  # known now: a preparer ahead can go on
         # model: the previous scan, or the local map of the accepted scans, moves on.
         posed = PosedScan(scan, outcome.health, pose, stamp, index, prep.timed_sweep, done.first)
         model.update(posed, watch)
@@ -241,7 +243,7 @@ class Odometry:
             n_prepared=len(scan) if scan is not None else 0,
             n_untimed=prep.sweep.n_untimed if prep.sweep is not None else 0,
             covariance=pose.covariance,
-            fit=outcome.fit if outcome.accepted else float('nan'),
+            fit=outcome.fit if outcome.health.accepted else float('nan'),
             searched=outcome.searched,
             points=scan.points if scan is not None else None,
         )
@@ -265,7 +267,7 @@ class Odometry:
             fits = list(self._fits)
             outcome = self._verifier.choose(prep.scan, model.scan, T_model_pred, gap, fits)
             sweep = prep.timed_sweep
-            if sweep is None or not outcome.accepted:
+            if sweep is None or not outcome.health.accepted:
                 return Deskewed(prep.scan, outcome)
             assert prep.twist is not None  # a sweep with times was deskewed with it
             return self._deskewer.iterate(sweep, prep.scan, outcome, prep.twist, model, gap)
@@ -279,12 +281,14 @@ class Odometry:
         outcome: Outcome,
         pose: Chained,
     ) -> FloatArray:
-        """Keep the step: its pose and stamp; an accepted motion for the next prediction and
-        its fit for the next steps' doubt; the prepared scan's voxel size, where the next
-        search starts. Returns the motion since the last pose, ``T_prev_curr``."""
+        """Keep the step: its pose and stamp; an accepted motion for the next prediction (with
+        its twist, which the next sweeps are deskewed with) and its fit for the next steps'
+        doubt; the prepared scan's voxel size, where the next search starts. Returns the motion
+        since the last pose, ``T_prev_curr``."""
         self._log(index, prep.sweep, outcome)
-        if outcome.accepted:
-            self._motion = Motion(pose.T_model, stamp - self._model.stamp_ns)
+        if outcome.health.accepted:
+            gap = stamp - self._model.stamp_ns
+            self._motion = Motion(pose.T_model, gap, twist_of(pose.T_model, gap * 1e-9))
             if np.isfinite(outcome.fit):
                 self._fits.append(outcome.fit)
         if prep.scan is not None:
@@ -340,12 +344,14 @@ class Odometry:
         elif health not in (Health.OK, Health.FIRST):
             logger.info('Scan %d: %s', index, outcome.message)
 
-    @property
-    def next_inputs(self) -> PrepareInputs:
-        """What the next scan is prepared with besides itself: the configuration, the twist of
-        the last accepted motion (zero before one) and the last prepared scan's voxel size."""
-        twist = self._motion.twist() if self._motion is not None else np.zeros(6)
-        return PrepareInputs(self._config, twist, self._voxel_size_hint)
+    def _expect(self) -> None:
+        """Work out what the next scan is prepared with besides itself, once it is known (after
+        a step, a reset, a new configuration): the configuration, the twist of the last accepted
+        motion (zero before one) and the last prepared scan's voxel size; keep it for that
+        scan's step and tell the preparer (one working ahead can go on)."""
+        twist = self._motion.twist if self._motion is not None else np.zeros(6)
+        self._next_inputs = PrepareInputs(self._config, twist, self._voxel_size_hint)
+        self._preparer.expect(self._next_inputs)
 
     # ----------------------------------------------------------------------------------------
     # State
@@ -370,7 +376,7 @@ class Odometry:
         self._fits = deque(maxlen=self._config.odometry.fit_window)
         self._n_searched = 0
         self._warned = set()
-        self._preparer.expect(self.next_inputs)
+        self._expect()
 
     def _new_model(self, current: ModelStrategy) -> ModelStrategy:
         """The model strategy the configuration asks for, continuing from ``current``."""
@@ -400,7 +406,7 @@ class Odometry:
         if config.preprocess != previous:
             self._voxel_size_hint = 0.0  # the previous size was searched for other settings
         self._model = self._new_model(self._model)
-        self._preparer.expect(self.next_inputs)
+        self._expect()
 
     @property
     def poses(self) -> FloatArray:

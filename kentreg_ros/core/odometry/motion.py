@@ -13,7 +13,6 @@ from numpy.typing import NDArray
 
 from kentreg_ros.core.geometry import exp_so3, invert_transform, log_so3, make_transform
 from kentreg_ros.core.odometry.covariance import prediction_covariance, propagate_covariance
-from kentreg_ros.core.odometry.deskew import twist_of
 from kentreg_ros.core.odometry.step import Health
 from kentreg_ros.core.odometry.verify import Outcome
 
@@ -25,21 +24,13 @@ MAX_VELOCITY_SCALE = 5.0
 
 @dataclass(frozen=True)
 class Motion:
-    """The last accepted motion ``T_prev_curr`` and the time it took (ns)."""
+    """The last accepted motion ``T_prev_curr``, the time it took (ns), and its constant twist
+    ``(omega, v)`` per second (:func:`~.deskew.twist_of`, worked out once when the motion is
+    learned: the next sweeps are deskewed with it)."""
 
     T_prev_curr: FloatArray
     gap_ns: int
-
-    def twist(self) -> FloatArray:
-        """The constant twist ``(omega, v)`` of this motion (per second)."""
-        return twist_of(self.T_prev_curr, self.gap_ns * 1e-9)
-
-
-def _scale_motion(T: FloatArray, factor: float) -> FloatArray:
-    """Rotation vector and translation of ``T`` scaled by ``factor`` (first-order screw)."""
-    if factor == 1.0:
-        return T.copy()
-    return make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
+    twist: FloatArray
 
 
 def predict(
@@ -54,7 +45,10 @@ def predict(
     factor = 1.0
     if motion.gap_ns > 0 and gap_now > 0:
         factor = min(gap_now / motion.gap_ns, MAX_VELOCITY_SCALE)
-    return T_world_last @ _scale_motion(motion.T_prev_curr, factor)
+    T = motion.T_prev_curr
+    if factor != 1.0:  # the rotation vector and the translation scaled alike (first-order screw)
+        T = make_transform(exp_so3(factor * log_so3(T[:3, :3])), factor * T[:3, 3])
+    return T_world_last @ T
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,11 +81,11 @@ def chain(
     """``T_world_curr = T_world_model @ T_model_curr`` for a registered step, the prediction
     otherwise; the covariances chained (a predicted step adds
     :func:`prediction_covariance`; the first scan is the origin, with the model's)."""
-    T_world = T_world_model @ outcome.T if outcome.accepted else T_world_pred
+    T_world = T_world_model @ outcome.T if outcome.health.accepted else T_world_pred
     T_model = invert_transform(T_world_model) @ T_world
     if outcome.health is Health.FIRST:
         return Chained(T_world, T_model, cov_world_model.copy())
-    if outcome.accepted and outcome.result is not None:
+    if outcome.health.accepted and outcome.result is not None:
         cov_step = np.asarray(outcome.result.covariance, dtype=np.float64)
     else:
         cov_step = prediction_covariance(T_model_pred)

@@ -60,10 +60,6 @@ class Outcome:
             None, np.eye(4), float('nan'), Health.FIRST, 'First scan: it becomes the model.'
         )
 
-    @property
-    def accepted(self) -> bool:
-        return self.health.accepted
-
     def stage_timings(self, stages: tuple[str, ...]) -> dict[str, float]:
         """Milliseconds of those ``stages`` of the registration used (none without one)."""
         timings = self.result.timings if self.result is not None else {}

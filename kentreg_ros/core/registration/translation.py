@@ -103,34 +103,11 @@ def plane_offset_translation(
         off_s = off_s[(off_s >= lo) & (off_s <= hi)]
         if len(off_s) < min_points:
             continue
-        step, n_lags = bin_size, half
-        max_bins = max(MIN_MAX_BINS, MAX_BINS_PER_POINT * (len(off_t) + len(off_s)))
-        if (hi - lo) / step + 2 * n_lags > max_bins:
-            step = max(step, (hi - lo + 2 * max_shift) / max_bins)
-            n_lags = max(int(np.ceil(max_shift / step)), 1)
-        edges_n = int(np.ceil((hi - lo) / step)) + 1
-        ht = np.bincount(((off_t - lo) / step).astype(np.intp), minlength=edges_n)
-        hs = np.bincount(((off_s - lo) / step).astype(np.intp), minlength=edges_n)
-        ht = ht.astype(np.float64)
-        hs = hs.astype(np.float64)
-        lags = np.arange(-n_lags, n_lags + 1)
-        size = 1 << int(np.ceil(np.log2(2 * edges_n + 2 * n_lags)))
-        corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
-        shifts = corr[lags % size]  # correlation at each lag (circular index, no wrap-around)
-        best = int(np.argmax(shifts))
-        peak = shifts[best]
-        if peak <= 0:
+        found = _offset_shift(off_t, off_s, lo, hi, bin_size, max_shift, half)
+        if found is None:
             continue
-        # Parabolic sub-bin interpolation.
-        frac = 0.0
-        if 0 < best < len(shifts) - 1:
-            a, b, c = shifts[best - 1], shifts[best], shifts[best + 1]
-            denom = a - 2 * b + c
-            if denom < 0:
-                frac = 0.5 * (a - c) / denom
-        shift = (lags[best] + frac) * step
-        # Confidence: peak over mean correlation, times the points involved.
-        contrast = peak / max(float(np.mean(np.abs(shifts))), 1e-12)
+        shift, contrast = found
+        # Confidence: the correlation's contrast times the points involved.
         rows.append(d)
         rhs.append(float(d @ t0) + shift)
         wts.append(contrast * min(ms.sum(), mt.sum()))
@@ -145,6 +122,54 @@ def plane_offset_translation(
     reg = 1e-6 * max(float(np.trace(H)), 1e-12)
     t = np.linalg.solve(H + reg * np.eye(3), g + reg * t0)
     return t, len(rows)
+
+
+def _offset_shift(
+    off_t: FloatArray,
+    off_s: FloatArray,
+    lo: float,
+    hi: float,
+    bin_size: float,
+    max_shift: float,
+    half: int,
+) -> tuple[float, float] | None:
+    """The shift along one direction that lines the source's plane offsets ``off_s`` up with
+    the target's ``off_t`` (both within ``[lo, hi]``), and its contrast (the correlation's
+    peak over its mean); None without a positive peak.
+
+    The offsets are binned (``bin_size``, widened when ``[lo, hi]`` would need more than
+    :data:`MAX_BINS_PER_POINT` bins a point), the histograms cross-correlated by FFT at the
+    lags within ``max_shift`` (``half`` of them on each side), and the peak placed between
+    bins by the parabola through it and its neighbours.
+    """
+    step, n_lags = bin_size, half
+    max_bins = max(MIN_MAX_BINS, MAX_BINS_PER_POINT * (len(off_t) + len(off_s)))
+    if (hi - lo) / step + 2 * n_lags > max_bins:
+        step = max(step, (hi - lo + 2 * max_shift) / max_bins)
+        n_lags = max(int(np.ceil(max_shift / step)), 1)
+    edges_n = int(np.ceil((hi - lo) / step)) + 1
+    ht = np.bincount(((off_t - lo) / step).astype(np.intp), minlength=edges_n)
+    hs = np.bincount(((off_s - lo) / step).astype(np.intp), minlength=edges_n)
+    ht = ht.astype(np.float64)
+    hs = hs.astype(np.float64)
+    lags = np.arange(-n_lags, n_lags + 1)
+    size = 1 << int(np.ceil(np.log2(2 * edges_n + 2 * n_lags)))
+    corr = np.fft.irfft(np.fft.rfft(ht, size) * np.conj(np.fft.rfft(hs, size)), size)
+    shifts = corr[lags % size]  # correlation at each lag (circular index, no wrap-around)
+    best = int(np.argmax(shifts))
+    peak = shifts[best]
+    if peak <= 0:
+        return None
+    # Parabolic sub-bin interpolation.
+    frac = 0.0
+    if 0 < best < len(shifts) - 1:
+        a, b, c = shifts[best - 1], shifts[best], shifts[best + 1]
+        denom = a - 2 * b + c
+        if denom < 0:
+            frac = 0.5 * (a - c) / denom
+    shift = (lags[best] + frac) * step
+    contrast = peak / max(float(np.mean(np.abs(shifts))), 1e-12)
+    return float(shift), float(contrast)
 
 
 @dataclass(frozen=True)

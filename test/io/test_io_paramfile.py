@@ -1,4 +1,4 @@
-"""Parameter files (kentreg_ros.io.params): the ROS 2 YAML form, round trip, overrides."""
+"""Parameter files (kentreg_ros.io.paramfile): the ROS 2 YAML form, round trip, overrides."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ from pathlib import Path
 import pytest
 
 from kentreg_ros.core import ConfigError, KentRegConfig
-from kentreg_ros.io.params import (
-    NodeSettings,
+from kentreg_ros.io.paramfile import (
     dump_config,
     effective_config,
     load_config,
     parameters_from_yaml,
-    parse_overrides,
 )
+from kentreg_ros.io.params import NodeSettings
+from kentreg_ros.io.yamlfile import parse_overrides
 
 REPO = Path(__file__).resolve().parents[2]
 
