@@ -28,6 +28,9 @@ from kentreg_ros.eval.groundtruth import associate
 from kentreg_ros.io.paramfile import dump_config, load_config
 
 pytest.importorskip('rosbags', reason='the replay CLI reads bags with rosbags')
+# The odometry tests' trajectory helpers (test/core/test_odometry.py), importable when this file
+# runs alone too (the full run has put test/core on the path by then).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
 pytest.importorskip('mcap', reason='the output is checked with the mcap reader')
 
 SAMPLE_SCANS = 8
