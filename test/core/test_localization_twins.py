@@ -113,3 +113,20 @@ def test_a_box_twin_of_a_narrow_scan_is_not_localized(
         assert result.T_map_scan is not None
         assert np.degrees(rotation_angle(result.T_map_scan[:3, :3].T @ truth[:3, :3])) < 2.0
         assert np.linalg.norm(result.T_map_scan[:3, 3] - truth[:3, 3]) < 0.5
+
+
+def test_the_scans_spectrum_is_the_padded_grids() -> None:
+    """scan_spectra transforms only the corner box a scan occupies: the same spectrum as
+    ``rfftn`` of its occupancy padded to the whole grid."""
+    import scipy.fft as sfft
+
+    from kentreg_ros.core.localization.search import scan_spectra
+
+    rng = np.random.default_rng(5)
+    shape = (24, 30, 18)
+    ijk = rng.integers(0, [9, 12, 7], size=(300, 3))
+    channel = rng.integers(0, 3, size=300)
+    padded = np.zeros((3, *shape), dtype=np.float32)
+    padded[channel, ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    expected = sfft.rfftn(padded, axes=(1, 2, 3))
+    assert np.allclose(scan_spectra(ijk, channel, 3, shape), expected, atol=1e-4)
