@@ -15,9 +15,9 @@ robust registration from the candidate) and judged on the points:
   result is ``ambiguous`` and no pose is given.
 
 The result is ``localized`` only when a candidate passes all three; otherwise ``ambiguous`` or
-``not_found``. A scan with a narrow view is localized only after the box twins of its answer
-(:mod:`~kentreg_ros.core.localization.twins`) have been searched and judged with the other
-candidates, and none of their translation peaks outscores the answer's own. A single scan
+``not_found``. The search of a scan with a narrow view takes the box twins of its best rotation
+as rotation hypotheses (:mod:`~kentreg_ros.core.localization.twins`), and the scan is
+localized only when none of their translation peaks outscores the answer's own. A single scan
 is all this function sees; agreement over consecutive scans is
 :class:`~kentreg_ros.core.localization.tracker.Localizer`'s.
 """
@@ -37,7 +37,7 @@ from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
 from kentreg_ros.core.geometry import check_transform, rotation_angle
 from kentreg_ros.core.localization.pointmap import PointMap
 from kentreg_ros.core.localization.search import Hypothesis, Window, rotations, translations
-from kentreg_ros.core.localization.twins import is_narrow, twin_starts
+from kentreg_ros.core.localization.twins import is_narrow, twin_rotations, twin_starts
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import FIT_DISTANCE_VOXELS, rms_displacement
 from kentreg_ros.core.registration.verify import free_space_violation as see_through
@@ -170,18 +170,19 @@ def localize(
     timings['prepare'] = _ms(t_start)
     t0 = time.perf_counter()
     window_search = start is None or window is not None
+    narrow = window_search and is_narrow(prepared)
     if start is not None and window is None:
-        starts = [Hypothesis(start, float('inf'))]
+        search = _Search([Hypothesis(start, float('inf'))], [], [])
     else:
-        starts = _search(prepared, pmap, cfg, start, window)
+        search = _search(prepared, pmap, cfg, start, window, twins=narrow)
     timings['search'] = _ms(t0)
     t0 = time.perf_counter()
-    candidates = _register_candidates(prepared, pmap, starts, cfg)
+    candidates = _register_candidates(prepared, pmap, search.starts, cfg)
     timings['register'] = _ms(t0)
     result = decide(candidates, prepared, pmap, cfg)
-    if result.status is LocalizationStatus.LOCALIZED and window_search and is_narrow(prepared):
+    if result.status is LocalizationStatus.LOCALIZED and narrow:
         t0 = time.perf_counter()
-        result = _check_twins(prepared, pmap, candidates, result, cfg, start, window)
+        result = _check_twins(prepared, pmap, candidates, result, search, cfg, start, window)
         timings['twins'] = _ms(t0)
     timings['total'] = _ms(t_start)
     return LocalizationResult(
@@ -199,13 +200,18 @@ def _check_twins(
     pmap: PointMap,
     candidates: list[Candidate],
     result: _Decision,
+    search: _Search,
     cfg: KentRegConfig,
     start: FloatArray | None,
     window: Window | None,
 ) -> _Decision:
-    """The decision again with the box twins of its answer among the candidates
-    (:mod:`~kentreg_ros.core.localization.twins`); ambiguous when a twin's correlation peak
-    outscores the answer's own though no registration from it fits as well.
+    """``result`` unless a box twin of its answer outscores it in the translation search:
+    then ambiguous, though no registration from the twin fits as well.
+
+    The twins of the answer are those of the search's best rotation (:func:`_search` searched
+    them all) when the answer's rotation is one of them; otherwise they are searched here
+    (:func:`~.twins.twin_starts`) and their best starts registered and judged with the other
+    candidates.
 
     The correlation is what the search ranks translations by: a twin whose peak outscores
     the answer's is a pose the scan's surfaces support at least as well, and a registration
@@ -214,16 +220,23 @@ def _check_twins(
     off, scored 80 cells and its registrations turned 12 deg away)."""
     assert result.T_map_scan is not None
     T = result.T_map_scan
-    twins = twin_starts(scan, pmap, T[:3, :3], cfg, start=start, window=window)
-    decision = decide(candidates + [judge(scan, pmap, h, cfg) for h in twins], scan, pmap, cfg)
-    if decision.status is not LocalizationStatus.LOCALIZED or not twins:
+    min_angle = np.radians(cfg.search.min_separation_deg)
+    decision = result
+    if any(rotation_angle(T[:3, :3].T @ R) < min_angle for R in search.orbit):
+        rivals = [h.score for h in search.peaks if _angle(h.T, T) >= min_angle]
+    else:
+        twins = twin_starts(scan, pmap, T[:3, :3], cfg, start=start, window=window)
+        judged = [judge(scan, pmap, h, cfg) for h in twins]
+        decision = decide(candidates + judged, scan, pmap, cfg)
+        rivals = [h.score for h in twins]
+    if decision.status is not LocalizationStatus.LOCALIZED or not rivals:
         return decision
     assert decision.T_map_scan is not None
     T = decision.T_map_scan
     near = Window(pmap.grid.cell, 0.0)
     own = translations(scan, T[:3, :3], pmap, 1, start=T, window=near)
     own_score = own[0].score if own else 0.0
-    best_twin = max(h.score for h in twins)
+    best_twin = max(rivals)
     if best_twin <= own_score:
         return decision
     message = (
@@ -234,34 +247,61 @@ def _check_twins(
                    covariance=None, message=message)  # fmt: skip
 
 
+def _angle(A: FloatArray, B: FloatArray) -> float:
+    """The angle between the rotations of two poses (rad)."""
+    return rotation_angle(A[:3, :3].T @ B[:3, :3])
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """What :func:`_search` found: the starts to register, every correlation peak of every
+    rotation searched, and the rotations of the box-twin orbit searched (empty when none)."""
+
+    starts: list[Hypothesis]
+    peaks: list[Hypothesis]
+    orbit: list[FloatArray]
+
+
 def _search(
     scan: PreparedScan,
     pmap: PointMap,
     cfg: KentRegConfig,
     start: FloatArray | None,
     window: Window | None,
-) -> list[Hypothesis]:
-    """The candidates' starts: the best correlation peaks of every rotation hypothesis, the
-    same start once, at most ``localization.refined`` of them."""
+    *,
+    twins: bool = False,
+) -> _Search:
+    """The candidates' starts: the best correlation peaks of every rotation hypothesis (and,
+    with ``twins``, of every box twin of the best of them: :func:`~.twins.twin_rotations`),
+    the same start once, at most ``localization.refined`` of them."""
     loc = cfg.localization
+    rots = rotations(scan, pmap, cfg, start=start, window=window)
+    orbit: list[FloatArray] = []
+    if twins and rots:
+        orbit = [rots[0], *twin_rotations(scan, pmap, rots[0], cfg, start=start, window=window)]
+    min_angle = np.radians(cfg.search.min_separation_deg)
+    searched = rots + [R for R in orbit[1:] if all(_rad(R, Q) >= min_angle for Q in rots)]
     hyps: list[Hypothesis] = []
-    for R in rotations(scan, pmap, cfg, start=start, window=window):
+    for R in searched:
         hyps += translations(scan, R, pmap, loc.peaks, start=start, window=window)
     hyps.sort(key=lambda h: -h.score)
     kept: list[Hypothesis] = []
     cell = pmap.grid.cell * SAME_START_CELLS
-    min_angle = np.radians(cfg.search.min_separation_deg)
     for h in hyps:
         same = any(
-            np.linalg.norm(h.T[:3, 3] - k.T[:3, 3]) < cell
-            and rotation_angle(h.T[:3, :3].T @ k.T[:3, :3]) < min_angle
+            np.linalg.norm(h.T[:3, 3] - k.T[:3, 3]) < cell and _angle(h.T, k.T) < min_angle
             for k in kept
         )
         if not same:
             kept.append(h)
         if len(kept) >= loc.refined:
             break
-    return kept
+    return _Search(kept, hyps, orbit)
+
+
+def _rad(A: FloatArray, B: FloatArray) -> float:
+    """The angle between two rotations (rad)."""
+    return rotation_angle(A.T @ B)
 
 
 def _register_candidates(
