@@ -130,3 +130,29 @@ def test_the_scans_spectrum_is_the_padded_grids() -> None:
     padded[channel, ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
     expected = sfft.rfftn(padded, axes=(1, 2, 3))
     assert np.allclose(scan_spectra(ijk, channel, 3, shape), expected, atol=1e-4)
+
+
+def test_the_twin_rotations_of_a_room_view_are_its_box_twins_within_the_window() -> None:
+    """twin_rotations: a view of a room with every wall, the floor and the ceiling overlaps the
+    room's mixture about as well turned by any box twin, so all 23 are searched; a window
+    keeps those within its angle of the start."""
+    from scenes import box_room
+
+    from kentreg_ros.core import make_transform
+    from kentreg_ros.core.localization.twins import twin_rotations
+
+    rng = np.random.default_rng(11)
+    world = box_room(rng, 40_000, size=(10.0, 10.0, 10.0), boxes=0)
+    cfg = KentRegConfig()
+    pmap = PointMap.from_points(world, config=cfg, viewpoints=np.zeros((1, 3)))
+    R = exp_so3([0.1, -0.2, 0.9])
+    scan = prepare_scan(world @ R, config=cfg)  # R_map_scan = R, at the room's centre
+    twins = twin_rotations(scan, pmap, R, cfg)
+    assert len(twins) == 23
+    turned = [Q @ R.T for Q in twins]  # each a box symmetry of the map
+    assert all(np.allclose(np.sort(np.abs(Q), axis=1), [[0, 0, 1]] * 3, atol=0.1) for Q in turned)
+    start = make_transform(R, [0.0, 0.0, 0.0])
+    near = twin_rotations(scan, pmap, R, cfg, start=start, window=Window(1.0, 100.0))
+    assert len(near) == 6  # the 90 deg turns about the room's three axes
+    for Q in near:
+        assert np.degrees(rotation_angle(Q.T @ R)) < 100.0

@@ -314,23 +314,53 @@ def _register_candidates(
     if len(starts) <= FULLY_REGISTERED:
         return [judge(scan, pmap, h, cfg) for h in starts]
     coarse_cfg = cfg.with_updates({'refine.method': 'none'})
-    coarse = [judge(scan, pmap, h, coarse_cfg) for h in starts]
+    targets = [map_around(scan, pmap, h.T[:3, 3], cfg) for h in starts]
+    coarse = [
+        judge(scan, pmap, h, coarse_cfg, target=target)
+        for h, target in zip(starts, targets, strict=True)
+    ]
     order = sorted(range(len(starts)), key=lambda i: -coarse[i].fit)
     full = set(order[:FULLY_REGISTERED])
-    return [
-        judge(scan, pmap, Hypothesis(coarse[i].T_map_scan, starts[i].score), cfg)
-        if i in full
-        else coarse[i]
-        for i in range(len(starts))
-    ]
+    out = list(coarse)
+    for i in full:
+        # The start's target serves a coarse pose within a cell of it (the target's margin is
+        # two); one that moved farther gets its own.
+        T = coarse[i].T_map_scan
+        moved = float(np.linalg.norm(T[:3, 3] - starts[i].T[:3, 3]))
+        target = targets[i] if moved <= pmap.grid.cell else None
+        out[i] = judge(scan, pmap, Hypothesis(T, starts[i].score), cfg, target=target)
+    return out
 
 
 def register_in_map(
-    scan: PreparedScan, pmap: PointMap, T0: FloatArray, config: KentRegConfig
+    scan: PreparedScan,
+    pmap: PointMap,
+    T0: FloatArray,
+    config: KentRegConfig,
+    *,
+    target: PreparedScan | None = None,
 ) -> RegistrationResult | None:
-    """The robust registration of ``scan`` against the map around ``T0`` (module docstring);
-    None when the map holds too little there."""
-    t = T0[:3, 3]
+    """The robust registration of ``scan`` against the map around ``T0`` (module docstring;
+    ``target``: :func:`map_around` a nearby position, made already); None when the map holds
+    too little there."""
+    if target is None:
+        target = map_around(scan, pmap, T0[:3, 3], config)
+    if target is None:
+        return None
+    try:
+        return register(scan, target, init=T0, config=config, global_search=False)
+    except (InvalidPointCloudError, np.linalg.LinAlgError) as exc:
+        logger.info('Registration in the map from a candidate failed: %s', exc)
+        return None
+
+
+def map_around(
+    scan: PreparedScan, pmap: PointMap, t: FloatArray, config: KentRegConfig
+) -> PreparedScan | None:
+    """The map's points within the scan's reach of ``t`` plus two search cells, their normal
+    axes oriented toward ``t``, clustered and indexed: the target of a registration from a
+    candidate there (and from any pose it moves to within those two cells). None when the map
+    holds too little there."""
     reach = float(np.sqrt(np.max(np.einsum('ij,ij->i', scan.points, scan.points))))
     d2 = np.einsum('ij,ij->i', pmap.points - t, pmap.points - t)
     rows = np.flatnonzero(d2 <= (reach + 2.0 * pmap.grid.cell) ** 2)
@@ -342,7 +372,7 @@ def register_in_map(
     away = np.einsum('ij,ij->i', normals, t - points) < 0.0
     normals[away] *= -1.0  # the surfaces the sensor sees face it
     labels, centers, clusters = cluster_normals(normals, config)
-    target = PreparedScan(
+    return PreparedScan(
         points=points,
         normals=normals,
         labels=labels,
@@ -356,19 +386,20 @@ def register_in_map(
         min_voxel_points=1,
         n_normal_outliers=0,
     )
-    try:
-        return register(scan, target, init=T0, config=config, global_search=False)
-    except (InvalidPointCloudError, np.linalg.LinAlgError) as exc:
-        logger.info('Registration in the map from a candidate failed: %s', exc)
-        return None
 
 
 def judge(
-    scan: PreparedScan, pmap: PointMap, start: Hypothesis, config: KentRegConfig
+    scan: PreparedScan,
+    pmap: PointMap,
+    start: Hypothesis,
+    config: KentRegConfig,
+    *,
+    target: PreparedScan | None = None,
 ) -> Candidate:
-    """Register from ``start``; the pose and its fit (its free space is judged later, by
-    :func:`decide`, for the few candidates that need it)."""
-    result = register_in_map(scan, pmap, start.T, config)
+    """Register from ``start`` (against ``target`` when given: :func:`register_in_map`); the
+    pose and its fit (its free space is judged later, by :func:`decide`, for the few
+    candidates that need it)."""
+    result = register_in_map(scan, pmap, start.T, config, target=target)
     if result is None or result.status == Status.FAILED:
         return Candidate(start.T, 0.0, 1.0, 0, start.score, False, result)
     fit = float(result.fit) if np.isfinite(result.fit) else 0.0

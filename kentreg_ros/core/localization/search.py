@@ -176,8 +176,10 @@ def translations(
     channel = pmap.channel_of(n)
     lo_scan = x.min(axis=0)
     ijk = np.floor((x - lo_scan) / grid.cell).astype(np.intp)
-    spectra = scan_spectra(ijk, channel, len(grid.spectra), grid.shape)
-    total = np.einsum('cijk,cijk->ijk', grid.spectra, np.conj(spectra))
+    product = scan_spectra(ijk, channel, len(grid.spectra), grid.shape)
+    np.conjugate(product, out=product)
+    product *= grid.spectra  # in place: the grid-sized products cost as much as a transform
+    total = product.sum(axis=0)
     corr = sfft.irfftn(total, grid.shape, workers=1)
     shape = np.array(grid.shape)
 
