@@ -156,3 +156,21 @@ def test_the_twin_rotations_of_a_room_view_are_its_box_twins_within_the_window()
     assert len(near) == 6  # the 90 deg turns about the room's three axes
     for Q in near:
         assert np.degrees(rotation_angle(Q.T @ R)) < 100.0
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not (LIVOX / 'quick_shack').is_dir(), reason='no Livox Avia keyframes')
+@pytest.mark.parametrize('index', [45, 93, 173])
+def test_a_narrow_scan_whose_rotations_missed_the_truth_is_localized(
+    quick_shack: tuple, index: int
+) -> None:
+    """quick_shack keyframes from no start whose search rotations held only box twins of the
+    truth (90 deg off; the truth's overlap ranked 10th-14th of its 24), not_found before the
+    twins became rotation hypotheses: the truth's correlation peak outscores its twins'."""
+    seq, pmap = quick_shack
+    truth = seq.T_world[index]
+    result = localize(seq.raw(index), pmap, config=KentRegConfig())
+    assert result.localized, result.message
+    assert result.T_map_scan is not None
+    assert np.degrees(rotation_angle(result.T_map_scan[:3, :3].T @ truth[:3, :3])) < 2.0
+    assert np.linalg.norm(result.T_map_scan[:3, 3] - truth[:3, 3]) < 0.5

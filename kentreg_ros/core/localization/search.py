@@ -247,3 +247,22 @@ def polish_pose(scan: PreparedScan, pmap: PointMap, T: FloatArray) -> FloatArray
         if np.linalg.norm(step) < 1e-3:
             break
     return make_transform(R, t)
+
+
+#: Points within this distance (m) of the map are on it, for :func:`closer_start`.
+CLOSE_M = 0.2
+
+
+def closer_start(scan: PreparedScan, pmap: PointMap, start: Hypothesis) -> Hypothesis:
+    """``start`` or its :func:`polish_pose`, whichever puts more of the scan's points
+    within :data:`CLOSE_M` of the map. The polish mostly helps (a correlation peak 0.9 m below
+    a floor came to 0.5 m, and the registration then converged), but not always: in a corner
+    seen from one side it can slide (0.7 to 0.8 m, 4 to 13 deg measured)."""
+    polished = polish_pose(scan, pmap, start.T)
+    x = scan.points[:: max(1, len(scan.points) // POLISH_POINTS)]
+    share = [
+        np.count_nonzero(np.isfinite(pmap.tree.query(x @ T[:3, :3].T + T[:3, 3], 1,
+                                                     distance_upper_bound=CLOSE_M)[0]))
+        for T in (start.T, polished)
+    ]  # fmt: skip
+    return Hypothesis(polished, start.score) if share[1] > share[0] else start

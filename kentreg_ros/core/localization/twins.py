@@ -32,13 +32,7 @@ from numpy.typing import NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.geometry import rotation_angle
 from kentreg_ros.core.localization.pointmap import PointMap
-from kentreg_ros.core.localization.search import (
-    POLISH_POINTS,
-    Hypothesis,
-    Window,
-    polish_pose,
-    translations,
-)
+from kentreg_ros.core.localization.search import Hypothesis, Window, closer_start, translations
 from kentreg_ros.core.registration.search import mixture_overlap
 from kentreg_ros.core.scan import PreparedScan
 from kentreg_ros.core.scan.clusters import ModelClusters
@@ -55,8 +49,6 @@ NARROW_VIEW = 0.5
 #: Twins whose mixtures' overlap is farther below the answer's than this (log) are not searched
 #: (:func:`twin_starts`).
 TWIN_OVERLAP_MARGIN = 0.4
-#: Points within this distance (m) of the map are on it, for :func:`_closer`.
-CLOSE_M = 0.2
 #: Twin starts registered, best correlation first: the truth's peak was the second highest of
 #: the 23 twins' on the quick_shack keyframe measured.
 TWINS_REGISTERED = 3
@@ -181,19 +173,4 @@ def twin_starts(
                 continue
         out += translations(scan, R0, pmap, 1, start=start, window=window)
     out.sort(key=lambda h: -h.score)
-    return [_closer(scan, pmap, h) for h in out[:TWINS_REGISTERED]]
-
-
-def _closer(scan: PreparedScan, pmap: PointMap, start: Hypothesis) -> Hypothesis:
-    """``start`` or its :func:`~.search.polish_pose`, whichever puts more of the scan's points
-    within :data:`CLOSE_M` of the map. The polish mostly helps (a correlation peak 0.9 m below
-    a floor came to 0.5 m, and the registration then converged), but not always: in a corner
-    seen from one side it can slide (0.7 to 0.8 m, 4 to 13 deg measured)."""
-    polished = polish_pose(scan, pmap, start.T)
-    x = scan.points[:: max(1, len(scan.points) // POLISH_POINTS)]
-    share = [
-        np.count_nonzero(np.isfinite(pmap.tree.query(x @ T[:3, :3].T + T[:3, 3], 1,
-                                                     distance_upper_bound=CLOSE_M)[0]))
-        for T in (start.T, polished)
-    ]  # fmt: skip
-    return Hypothesis(polished, start.score) if share[1] > share[0] else start
+    return [closer_start(scan, pmap, h) for h in out[:TWINS_REGISTERED]]
