@@ -113,3 +113,64 @@ def test_a_box_twin_of_a_narrow_scan_is_not_localized(
         assert result.T_map_scan is not None
         assert np.degrees(rotation_angle(result.T_map_scan[:3, :3].T @ truth[:3, :3])) < 2.0
         assert np.linalg.norm(result.T_map_scan[:3, 3] - truth[:3, 3]) < 0.5
+
+
+def test_the_scans_spectrum_is_the_padded_grids() -> None:
+    """scan_spectra transforms only the corner box a scan occupies: the same spectrum as
+    ``rfftn`` of its occupancy padded to the whole grid."""
+    import scipy.fft as sfft
+
+    from kentreg_ros.core.localization.search import scan_spectra
+
+    rng = np.random.default_rng(5)
+    shape = (24, 30, 18)
+    ijk = rng.integers(0, [9, 12, 7], size=(300, 3))
+    channel = rng.integers(0, 3, size=300)
+    padded = np.zeros((3, *shape), dtype=np.float32)
+    padded[channel, ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    expected = sfft.rfftn(padded, axes=(1, 2, 3))
+    assert np.allclose(scan_spectra(ijk, channel, 3, shape), expected, atol=1e-4)
+
+
+def test_the_twin_rotations_of_a_room_view_are_its_box_twins_within_the_window() -> None:
+    """twin_rotations: a view of a room with every wall, the floor and the ceiling overlaps the
+    room's mixture about as well turned by any box twin, so all 23 are searched; a window
+    keeps those within its angle of the start."""
+    from scenes import box_room
+
+    from kentreg_ros.core import make_transform
+    from kentreg_ros.core.localization.twins import twin_rotations
+
+    rng = np.random.default_rng(11)
+    world = box_room(rng, 40_000, size=(10.0, 10.0, 10.0), boxes=0)
+    cfg = KentRegConfig()
+    pmap = PointMap.from_points(world, config=cfg, viewpoints=np.zeros((1, 3)))
+    R = exp_so3([0.1, -0.2, 0.9])
+    scan = prepare_scan(world @ R, config=cfg)  # R_map_scan = R, at the room's centre
+    twins = twin_rotations(scan, pmap, R, cfg)
+    assert len(twins) == 23
+    turned = [Q @ R.T for Q in twins]  # each a box symmetry of the map
+    assert all(np.allclose(np.sort(np.abs(Q), axis=1), [[0, 0, 1]] * 3, atol=0.1) for Q in turned)
+    start = make_transform(R, [0.0, 0.0, 0.0])
+    near = twin_rotations(scan, pmap, R, cfg, start=start, window=Window(1.0, 100.0))
+    assert len(near) == 6  # the 90 deg turns about the room's three axes
+    for Q in near:
+        assert np.degrees(rotation_angle(Q.T @ R)) < 100.0
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not (LIVOX / 'quick_shack').is_dir(), reason='no Livox Avia keyframes')
+@pytest.mark.parametrize('index', [45, 93, 173])
+def test_a_narrow_scan_whose_rotations_missed_the_truth_is_localized(
+    quick_shack: tuple, index: int
+) -> None:
+    """quick_shack keyframes from no start whose search rotations held only box twins of the
+    truth (90 deg off; the truth's overlap ranked 10th-14th of its 24), not_found before the
+    twins became rotation hypotheses: the truth's correlation peak outscores its twins'."""
+    seq, pmap = quick_shack
+    truth = seq.T_world[index]
+    result = localize(seq.raw(index), pmap, config=KentRegConfig())
+    assert result.localized, result.message
+    assert result.T_map_scan is not None
+    assert np.degrees(rotation_angle(result.T_map_scan[:3, :3].T @ truth[:3, :3])) < 2.0
+    assert np.linalg.norm(result.T_map_scan[:3, 3] - truth[:3, 3]) < 0.5

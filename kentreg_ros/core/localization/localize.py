@@ -15,9 +15,9 @@ robust registration from the candidate) and judged on the points:
   result is ``ambiguous`` and no pose is given.
 
 The result is ``localized`` only when a candidate passes all three; otherwise ``ambiguous`` or
-``not_found``. A scan with a narrow view is localized only after the box twins of its answer
-(:mod:`~kentreg_ros.core.localization.twins`) have been searched and judged with the other
-candidates, and none of their translation peaks outscores the answer's own. A single scan
+``not_found``. The search of a scan with a narrow view takes the box twins of its best rotation
+as rotation hypotheses (:mod:`~kentreg_ros.core.localization.twins`), and the scan is
+localized only when none of their translation peaks outscores the answer's own. A single scan
 is all this function sees; agreement over consecutive scans is
 :class:`~kentreg_ros.core.localization.tracker.Localizer`'s.
 """
@@ -36,8 +36,14 @@ from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError, KentRegError
 from kentreg_ros.core.geometry import check_transform, rotation_angle
 from kentreg_ros.core.localization.pointmap import PointMap
-from kentreg_ros.core.localization.search import Hypothesis, Window, rotations, translations
-from kentreg_ros.core.localization.twins import is_narrow, twin_starts
+from kentreg_ros.core.localization.search import (
+    Hypothesis,
+    Window,
+    closer_start,
+    rotations,
+    translations,
+)
+from kentreg_ros.core.localization.twins import is_narrow, twin_rotations, twin_starts
 from kentreg_ros.core.registration import RegistrationResult, Status, register
 from kentreg_ros.core.registration.verify import FIT_DISTANCE_VOXELS, rms_displacement
 from kentreg_ros.core.registration.verify import free_space_violation as see_through
@@ -170,18 +176,19 @@ def localize(
     timings['prepare'] = _ms(t_start)
     t0 = time.perf_counter()
     window_search = start is None or window is not None
+    narrow = window_search and is_narrow(prepared)
     if start is not None and window is None:
-        starts = [Hypothesis(start, float('inf'))]
+        search = _Search([Hypothesis(start, float('inf'))], [], [])
     else:
-        starts = _search(prepared, pmap, cfg, start, window)
+        search = _search(prepared, pmap, cfg, start, window, twins=narrow)
     timings['search'] = _ms(t0)
     t0 = time.perf_counter()
-    candidates = _register_candidates(prepared, pmap, starts, cfg)
+    candidates = _register_candidates(prepared, pmap, search.starts, cfg)
     timings['register'] = _ms(t0)
     result = decide(candidates, prepared, pmap, cfg)
-    if result.status is LocalizationStatus.LOCALIZED and window_search and is_narrow(prepared):
+    if result.status is LocalizationStatus.LOCALIZED and narrow:
         t0 = time.perf_counter()
-        result = _check_twins(prepared, pmap, candidates, result, cfg, start, window)
+        result = _check_twins(prepared, pmap, candidates, result, search, cfg, start, window)
         timings['twins'] = _ms(t0)
     timings['total'] = _ms(t_start)
     return LocalizationResult(
@@ -199,13 +206,18 @@ def _check_twins(
     pmap: PointMap,
     candidates: list[Candidate],
     result: _Decision,
+    search: _Search,
     cfg: KentRegConfig,
     start: FloatArray | None,
     window: Window | None,
 ) -> _Decision:
-    """The decision again with the box twins of its answer among the candidates
-    (:mod:`~kentreg_ros.core.localization.twins`); ambiguous when a twin's correlation peak
-    outscores the answer's own though no registration from it fits as well.
+    """``result`` unless a box twin of its answer outscores it in the translation search:
+    then ambiguous, though no registration from the twin fits as well.
+
+    The twins of the answer are those of the search's best rotation (:func:`_search` searched
+    them all) when the answer's rotation is one of them; otherwise they are searched here
+    (:func:`~.twins.twin_starts`) and their best starts registered and judged with the other
+    candidates.
 
     The correlation is what the search ranks translations by: a twin whose peak outscores
     the answer's is a pose the scan's surfaces support at least as well, and a registration
@@ -214,16 +226,23 @@ def _check_twins(
     off, scored 80 cells and its registrations turned 12 deg away)."""
     assert result.T_map_scan is not None
     T = result.T_map_scan
-    twins = twin_starts(scan, pmap, T[:3, :3], cfg, start=start, window=window)
-    decision = decide(candidates + [judge(scan, pmap, h, cfg) for h in twins], scan, pmap, cfg)
-    if decision.status is not LocalizationStatus.LOCALIZED or not twins:
+    min_angle = np.radians(cfg.search.min_separation_deg)
+    decision = result
+    if any(rotation_angle(T[:3, :3].T @ R) < min_angle for R in search.orbit):
+        rivals = [h.score for h in search.peaks if _angle(h.T, T) >= min_angle]
+    else:
+        twins = twin_starts(scan, pmap, T[:3, :3], cfg, start=start, window=window)
+        judged = [judge(scan, pmap, h, cfg) for h in twins]
+        decision = decide(candidates + judged, scan, pmap, cfg)
+        rivals = [h.score for h in twins]
+    if decision.status is not LocalizationStatus.LOCALIZED or not rivals:
         return decision
     assert decision.T_map_scan is not None
     T = decision.T_map_scan
     near = Window(pmap.grid.cell, 0.0)
     own = translations(scan, T[:3, :3], pmap, 1, start=T, window=near)
     own_score = own[0].score if own else 0.0
-    best_twin = max(h.score for h in twins)
+    best_twin = max(rivals)
     if best_twin <= own_score:
         return decision
     message = (
@@ -234,63 +253,127 @@ def _check_twins(
                    covariance=None, message=message)  # fmt: skip
 
 
+def _angle(A: FloatArray, B: FloatArray) -> float:
+    """The angle between the rotations of two poses (rad)."""
+    return rotation_angle(A[:3, :3].T @ B[:3, :3])
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """What :func:`_search` found: the starts to register, every correlation peak of every
+    rotation searched, and the rotations of the box-twin orbit searched (empty when none)."""
+
+    starts: list[Hypothesis]
+    peaks: list[Hypothesis]
+    orbit: list[FloatArray]
+
+
 def _search(
     scan: PreparedScan,
     pmap: PointMap,
     cfg: KentRegConfig,
     start: FloatArray | None,
     window: Window | None,
-) -> list[Hypothesis]:
-    """The candidates' starts: the best correlation peaks of every rotation hypothesis, the
-    same start once, at most ``localization.refined`` of them."""
+    *,
+    twins: bool = False,
+) -> _Search:
+    """The candidates' starts: the best correlation peaks of every rotation hypothesis (and,
+    with ``twins``, of every box twin of the best of them: :func:`~.twins.twin_rotations`),
+    the same start once, at most ``localization.refined`` of them, each polished onto the map
+    when that brings more of the scan onto it (:func:`~.search.closer_start`): a peak is
+    placed to a search cell, and from a start a metre off along a weakly held direction the
+    registration settles in the wrong place (hku_2 keyframes 85, 113 and 117 from no start:
+    0.9-1.5 m off at fits 0.39-0.40 from their peaks, at the truth with 0.52-0.58 from the
+    polished ones), and from one turned 8 deg it can stay turned (keyframe 193: its best peaks
+    8 deg off, its registration 8.3 deg and 1.5 m off at a fit of 0.40 with 29 % seen through,
+    localized; polished, its best start lay 0.05 deg and 1 cm off)."""
     loc = cfg.localization
+    rots = rotations(scan, pmap, cfg, start=start, window=window)
+    orbit: list[FloatArray] = []
+    if twins and rots:
+        orbit = [rots[0], *twin_rotations(scan, pmap, rots[0], cfg, start=start, window=window)]
+    min_angle = np.radians(cfg.search.min_separation_deg)
+    searched = rots + [R for R in orbit[1:] if all(_rad(R, Q) >= min_angle for Q in rots)]
     hyps: list[Hypothesis] = []
-    for R in rotations(scan, pmap, cfg, start=start, window=window):
+    for R in searched:
         hyps += translations(scan, R, pmap, loc.peaks, start=start, window=window)
     hyps.sort(key=lambda h: -h.score)
     kept: list[Hypothesis] = []
     cell = pmap.grid.cell * SAME_START_CELLS
-    min_angle = np.radians(cfg.search.min_separation_deg)
     for h in hyps:
         same = any(
-            np.linalg.norm(h.T[:3, 3] - k.T[:3, 3]) < cell
-            and rotation_angle(h.T[:3, :3].T @ k.T[:3, :3]) < min_angle
+            np.linalg.norm(h.T[:3, 3] - k.T[:3, 3]) < cell and _angle(h.T, k.T) < min_angle
             for k in kept
         )
         if not same:
             kept.append(h)
         if len(kept) >= loc.refined:
             break
-    return kept
+    return _Search([closer_start(scan, pmap, h) for h in kept], hyps, orbit)
+
+
+def _rad(A: FloatArray, B: FloatArray) -> float:
+    """The angle between two rotations (rad)."""
+    return rotation_angle(A.T @ B)
 
 
 def _register_candidates(
     scan: PreparedScan, pmap: PointMap, starts: list[Hypothesis], cfg: KentRegConfig
 ) -> list[Candidate]:
     """Every start registered without the joint refinement (rotation EM, translation, fit), then
-    the :data:`FULLY_REGISTERED` best of those in full: the refinement is most of a
-    registration's cost, and a start whose coarse pose fits poorly does not turn into the best
-    by refining."""
+    the :data:`FULLY_REGISTERED` best of those in full, from their starts, each against the
+    map around its start made once for both: the refinement is most of a registration's cost,
+    and a start whose coarse pose fits poorly does not turn into the best by refining.
+
+    The full registration starts from the start, not from the coarse pose: without the
+    refinement's joint step the coarse registration can slide along a weakly held direction
+    (hku_2 keyframe 113: from a polished start 0.8 m off to 2.7 m off; from the start itself
+    the full registration reached the truth)."""
     if len(starts) <= FULLY_REGISTERED:
         return [judge(scan, pmap, h, cfg) for h in starts]
     coarse_cfg = cfg.with_updates({'refine.method': 'none'})
-    coarse = [judge(scan, pmap, h, coarse_cfg) for h in starts]
+    targets = [map_around(scan, pmap, h.T[:3, 3], cfg) for h in starts]
+    coarse = [
+        judge(scan, pmap, h, coarse_cfg, target=target)
+        for h, target in zip(starts, targets, strict=True)
+    ]
     order = sorted(range(len(starts)), key=lambda i: -coarse[i].fit)
     full = set(order[:FULLY_REGISTERED])
-    return [
-        judge(scan, pmap, Hypothesis(coarse[i].T_map_scan, starts[i].score), cfg)
-        if i in full
-        else coarse[i]
-        for i in range(len(starts))
-    ]
+    out = list(coarse)
+    for i in full:
+        out[i] = judge(scan, pmap, starts[i], cfg, target=targets[i])
+    return out
 
 
 def register_in_map(
-    scan: PreparedScan, pmap: PointMap, T0: FloatArray, config: KentRegConfig
+    scan: PreparedScan,
+    pmap: PointMap,
+    T0: FloatArray,
+    config: KentRegConfig,
+    *,
+    target: PreparedScan | None = None,
 ) -> RegistrationResult | None:
-    """The robust registration of ``scan`` against the map around ``T0`` (module docstring);
-    None when the map holds too little there."""
-    t = T0[:3, 3]
+    """The robust registration of ``scan`` against the map around ``T0`` (module docstring;
+    ``target``: :func:`map_around` a nearby position, made already); None when the map holds
+    too little there."""
+    if target is None:
+        target = map_around(scan, pmap, T0[:3, 3], config)
+    if target is None:
+        return None
+    try:
+        return register(scan, target, init=T0, config=config, global_search=False)
+    except (InvalidPointCloudError, np.linalg.LinAlgError) as exc:
+        logger.info('Registration in the map from a candidate failed: %s', exc)
+        return None
+
+
+def map_around(
+    scan: PreparedScan, pmap: PointMap, t: FloatArray, config: KentRegConfig
+) -> PreparedScan | None:
+    """The map's points within the scan's reach of ``t`` plus two search cells, their normal
+    axes oriented toward ``t``, clustered and indexed: the target of a registration from a
+    candidate there (and from any pose it moves to within those two cells). None when the map
+    holds too little there."""
     reach = float(np.sqrt(np.max(np.einsum('ij,ij->i', scan.points, scan.points))))
     d2 = np.einsum('ij,ij->i', pmap.points - t, pmap.points - t)
     rows = np.flatnonzero(d2 <= (reach + 2.0 * pmap.grid.cell) ** 2)
@@ -302,7 +385,7 @@ def register_in_map(
     away = np.einsum('ij,ij->i', normals, t - points) < 0.0
     normals[away] *= -1.0  # the surfaces the sensor sees face it
     labels, centers, clusters = cluster_normals(normals, config)
-    target = PreparedScan(
+    return PreparedScan(
         points=points,
         normals=normals,
         labels=labels,
@@ -316,19 +399,20 @@ def register_in_map(
         min_voxel_points=1,
         n_normal_outliers=0,
     )
-    try:
-        return register(scan, target, init=T0, config=config, global_search=False)
-    except (InvalidPointCloudError, np.linalg.LinAlgError) as exc:
-        logger.info('Registration in the map from a candidate failed: %s', exc)
-        return None
 
 
 def judge(
-    scan: PreparedScan, pmap: PointMap, start: Hypothesis, config: KentRegConfig
+    scan: PreparedScan,
+    pmap: PointMap,
+    start: Hypothesis,
+    config: KentRegConfig,
+    *,
+    target: PreparedScan | None = None,
 ) -> Candidate:
-    """Register from ``start``; the pose and its fit (its free space is judged later, by
-    :func:`decide`, for the few candidates that need it)."""
-    result = register_in_map(scan, pmap, start.T, config)
+    """Register from ``start`` (against ``target`` when given: :func:`register_in_map`); the
+    pose and its fit (its free space is judged later, by :func:`decide`, for the few
+    candidates that need it)."""
+    result = register_in_map(scan, pmap, start.T, config, target=target)
     if result is None or result.status == Status.FAILED:
         return Candidate(start.T, 0.0, 1.0, 0, start.score, False, result)
     fit = float(result.fit) if np.isfinite(result.fit) else 0.0

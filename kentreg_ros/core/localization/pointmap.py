@@ -81,15 +81,15 @@ class SearchGrid:
         Cells per axis.
     map_cells : ndarray of int, shape (3,)
         Cells the map occupies: a correlation index at or past it is a negative shift.
-    spectra : list of ndarray
-        ``rfftn`` of the map's occupancy of each axis channel (complex64).
+    spectra : ndarray, shape (C, shape[0], shape[1], shape[2] // 2 + 1)
+        ``rfftn`` of the map's occupancy of each axis channel (complex64), stacked.
     """
 
     lo: FloatArray
     cell: float
     shape: tuple[int, int, int]
     map_cells: NDArray[np.intp]
-    spectra: list[NDArray[np.complex64]]
+    spectra: NDArray[np.complex64]
 
     @property
     def n_cells(self) -> int:
@@ -329,9 +329,12 @@ def _search_grid(
     shape = tuple(int(sfft.next_fast_len(int(np.ceil(s / cell)) + 2, real=True)) for s in span)
     inside = np.all((points >= lo_map) & (points <= hi_map), axis=1)
     ijk = np.floor((points[inside] - lo_map) / cell).astype(np.intp)
-    spectra = []
-    for c in range(n_channels):
-        spectra.append(sfft.rfftn(_occupancy(ijk[channels[inside] == c], shape), workers=1))
+    spectra = np.stack(
+        [
+            sfft.rfftn(_occupancy(ijk[channels[inside] == c], shape), workers=1)
+            for c in range(n_channels)
+        ]
+    )
     map_cells = np.floor((hi_map - lo_map) / cell).astype(np.intp) + 1
     return SearchGrid(lo_map, cell, (shape[0], shape[1], shape[2]), map_cells, spectra)
 

@@ -134,6 +134,29 @@ def _angles(rotations: FloatArray, R: FloatArray) -> FloatArray:
     return out
 
 
+def scan_spectra(
+    ijk: NDArray[np.intp], channel: NDArray[np.intp], n_channels: int, shape: tuple[int, ...]
+) -> NDArray[np.complex64]:
+    """``rfftn`` over ``shape`` of each channel's occupancy of cells ``ijk`` (N, 3), all at or
+    above 0: shape (C, shape[0], shape[1], shape[2] // 2 + 1).
+
+    The scan occupies only the corner box of the cells it reaches (a few tens of cells a side
+    in a grid of about a hundred), and a transform of zeros is zeros: the transform runs
+    along the last axis over the box's lines only, then along the middle axis over the
+    box's rows only, then along the first over everything, each padding with zeros as the
+    full grid would. The same spectrum as ``rfftn`` of the padded grid, at about a third of
+    its cost on the Avia keyframes' grids."""
+    ok = np.all(ijk < np.array(shape), axis=1)
+    ijk, channel = ijk[ok], channel[ok]
+    box = ijk.max(axis=0) + 1 if len(ijk) else np.ones(3, dtype=np.intp)
+    occupied = np.zeros((n_channels, *box), dtype=np.float32)
+    occupied[channel, ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    out = sfft.rfft(occupied, n=shape[2], axis=3, workers=1)
+    out = sfft.fft(out, n=shape[1], axis=2, workers=1)
+    spectra: NDArray[np.complex64] = sfft.fft(out, n=shape[0], axis=1, workers=1)
+    return spectra
+
+
 def translations(
     scan: PreparedScan,
     R: FloatArray,
@@ -153,15 +176,10 @@ def translations(
     channel = pmap.channel_of(n)
     lo_scan = x.min(axis=0)
     ijk = np.floor((x - lo_scan) / grid.cell).astype(np.intp)
-    total: NDArray[np.complex64] | None = None
-    for c, spectrum in enumerate(grid.spectra):
-        occupied = np.zeros(grid.shape, dtype=np.float32)
-        mine = ijk[channel == c]
-        ok = np.all(mine < np.array(grid.shape), axis=1)
-        occupied[tuple(mine[ok].T)] = 1.0
-        term = spectrum * np.conj(sfft.rfftn(occupied, workers=1))
-        total = term if total is None else total + term
-    assert total is not None
+    product = scan_spectra(ijk, channel, len(grid.spectra), grid.shape)
+    np.conjugate(product, out=product)
+    product *= grid.spectra  # in place: the grid-sized products cost as much as a transform
+    total = product.sum(axis=0)
     corr = sfft.irfftn(total, grid.shape, workers=1)
     shape = np.array(grid.shape)
 
@@ -229,3 +247,22 @@ def polish_pose(scan: PreparedScan, pmap: PointMap, T: FloatArray) -> FloatArray
         if np.linalg.norm(step) < 1e-3:
             break
     return make_transform(R, t)
+
+
+#: Points within this distance (m) of the map are on it, for :func:`closer_start`.
+CLOSE_M = 0.2
+
+
+def closer_start(scan: PreparedScan, pmap: PointMap, start: Hypothesis) -> Hypothesis:
+    """``start`` or its :func:`polish_pose`, whichever puts more of the scan's points
+    within :data:`CLOSE_M` of the map. The polish mostly helps (a correlation peak 0.9 m below
+    a floor came to 0.5 m, and the registration then converged), but not always: in a corner
+    seen from one side it can slide (0.7 to 0.8 m, 4 to 13 deg measured)."""
+    polished = polish_pose(scan, pmap, start.T)
+    x = scan.points[:: max(1, len(scan.points) // POLISH_POINTS)]
+    share = [
+        np.count_nonzero(np.isfinite(pmap.tree.query(x @ T[:3, :3].T + T[:3, 3], 1,
+                                                     distance_upper_bound=CLOSE_M)[0]))
+        for T in (start.T, polished)
+    ]  # fmt: skip
+    return Hypothesis(polished, start.score) if share[1] > share[0] else start
