@@ -120,7 +120,9 @@ def markdown(doc: dict[str, Any]) -> str:
         body = [[n, _ate(e['metrics']), _ate_cons(e['metrics'])]
                 for n, e in rows.items() if 'metrics' in e]  # fmt: skip
         lines += ['', _consistent_caption(cons), '', *report.table(head, body)]
-    more = ('rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f', 'speed.ms_per_scan.mean:.1f')
+    more: tuple[str | Callable[[Any], str], ...] = (
+        'rpe_per_metre.translation_pct.rmse:.2f', 'ate.rmse:.4f', 'speed.ms_per_scan.mean:.1f',
+    )  # fmt: skip
     more = (*more, _ate_cons) if cons else more
     srows = [[stride, *_row(name, entry, *PAIRS, _failed, *more)]
              for stride, block in (doc.get('strides') or {}).items()
