@@ -114,6 +114,29 @@ def test_the_compiled_tree_is_exact_on_degenerate_clouds(cloud: str) -> None:
 
 
 @COMPILED
+def test_the_compiled_tree_holds_more_nodes_than_half_full_leaves_need() -> None:
+    """Clouds whose splits leave one point on a side (a node of 17-31 points may give its 1/16
+    away): points doubling their distance along a line, and a trajectory that stands still and
+    then walks (the viewpoints of a saved map, where this was found). The tree needs more
+    nodes than leaves half full would; it grows its arrays for them (it once wrote past their
+    end and crashed the process) and answers as cKDTree does."""
+    rng = np.random.default_rng(5)
+    clouds = [np.outer(2.0 ** np.arange(n), [1.0, 0.5, 0.25]) for n in (17, 24, 31, 47, 64)]
+    still = rng.normal(scale=0.005, size=(23, 3))
+    walk = np.outer(np.linspace(0.05, 9.0, 27), [0.4, 0.9, 0.05])
+    clouds.append(np.concatenate([still, walk + rng.normal(scale=0.01, size=walk.shape)]))
+    grew = 0
+    for points in clouds:
+        n = len(points)
+        grew += len(kernels.kdtree_build(points)[2]) > 2 * (n // (kernels.KDTREE_LEAF // 2)) + 3
+        queries = np.concatenate([points, rng.normal(scale=3.0, size=(300, 3))])
+        dist, _ = NeighborIndex(points, backend='compiled').query(queries, 3)
+        ref_d, _ = cKDTree(points).query(queries, k=3)
+        np.testing.assert_allclose(dist, ref_d, rtol=1e-12, atol=0.0)
+    assert grew >= 3
+
+
+@COMPILED
 @pytest.mark.skipif(not HAVE_SMALL_GICP, reason=NO_SMALL_GICP)
 def test_the_compiled_tree_gives_small_gicps_distances_bit_for_bit() -> None:
     """The squared distances are summed in small_gicp's order, so a registration gets the same

@@ -139,6 +139,22 @@ def _split(tp, perm, s, e):  # type: ignore[no-untyped-def]
 
 
 @_jit
+def _grown_int(a, cap, fill):  # type: ignore[no-untyped-def]
+    """``a`` copied into an integer array of ``cap`` entries, the new ones ``fill``."""
+    out = np.full(cap, fill, dtype=np.intp)
+    out[: a.shape[0]] = a
+    return out
+
+
+@_jit
+def _grown_float(a, cap):  # type: ignore[no-untyped-def]
+    """``a`` copied into a float array of ``cap`` entries, the new ones 0."""
+    out = np.zeros(cap)
+    out[: a.shape[0]] = a
+    return out
+
+
+@_jit
 def kdtree_build(points, leaf):  # type: ignore[no-untyped-def]
     """The tree on ``points`` (N, 3): ``(perm, tree_points, child, axis, low, high, start,
     end, depth)``. ``tree_points = points[perm]``; node 0 is the root; an internal node's
@@ -148,6 +164,10 @@ def kdtree_build(points, leaf):  # type: ignore[no-untyped-def]
     n = points.shape[0]
     perm = np.arange(n)
     tp = points.copy()
+    # A first guess of the node count (leaves about half full); a split may leave one point on
+    # a side (a node of 17-31 points may give its 1/16 away), so the arrays grow when a split
+    # needs more room: numba does not check bounds, and writing past them crashed the process
+    # (a trajectory that stands still, its positions clustered, as map viewpoints).
     cap = 2 * (n // max(leaf // 2, 1)) + 3
     child = np.full(cap, -1, dtype=np.intp)
     axis = np.zeros(cap, dtype=np.intp)
@@ -171,6 +191,15 @@ def kdtree_build(points, leaf):  # type: ignore[no-untyped-def]
         if e - s <= leaf:
             continue
         m, d, left_max, right_min = _split(tp, perm, s, e)
+        if count + 2 > child.shape[0]:
+            cap = 2 * child.shape[0]
+            child = _grown_int(child, cap, -1)
+            axis = _grown_int(axis, cap, 0)
+            start = _grown_int(start, cap, 0)
+            end = _grown_int(end, cap, 0)
+            level = _grown_int(level, cap, 0)
+            low = _grown_float(low, cap)
+            high = _grown_float(high, cap)
         c = count
         count += 2
         child[node] = c
