@@ -23,7 +23,9 @@ cells.
 
 Memory, stated for a 5M-point map at 0.2 m (about 3M points kept): points and normals
 float64 (144 MB), the channel of every point (3 MB), the neighbour index (~70 MB), the spectra
-(at most 3 x 2^20 / 2 complex64: 12 MB): ~230 MB, bounded by the grid cap, not the site's size.
+(one per search channel, each at most 2^20 / 2 complex64, 4.2 MB: the 6 cluster directions
+with viewpoints, up to 12 axes without; 6 and 7 on the sample's map, 20 and 27 MB): ~250 MB,
+bounded by the grid cap, not the site's size.
 """
 
 from __future__ import annotations
