@@ -472,6 +472,35 @@ def _unresolved(
     return np.array(kept).reshape(-1, 3)
 
 
+def _held_to_prior(
+    best: _Local,
+    dirs: FloatArray,
+    T_init: FloatArray,
+    tgt: PreparedScan,
+    gates: _Gates,
+    ratio: float,
+) -> _Local:
+    """``best`` with its translation along the unresolved ``dirs`` (orthonormal rows, target
+    frame) put back to the prior's, when that pose fits at least ``ratio`` times as well.
+
+    Along such a direction no residual tells one pose from another, so where the estimate ends
+    is noise (the cross-correlation's start or the refinement's drift, chosen by a fit that
+    cannot tell): against a local map in a featureless corridor it walked the step up to 2 m
+    either way and the map slid with it (issue #40). The prior (the odometry's prediction) is
+    the better estimate where the data say nothing, as in the solution remapping of Zhang,
+    Kaess & Singh (ICRA 2016); a step whose data hold every direction is untouched."""
+    R, t = best.T[:3, :3], best.T[:3, 3]
+    T = make_transform(R, t + dirs.T @ (dirs @ (T_init[:3, 3] - t)))
+    if not len(dirs) or np.array_equal(T, best.T):
+        return best
+    src = best.source
+    fit = balanced_fit(T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit,
+                       neighbors=best.neighbors)  # fmt: skip
+    if not fit.score >= ratio * best.fit.score:
+        return best
+    return replace(best, T=T, fit=fit, stages={**best.stages, 'held_to_prior': T})
+
+
 def _inflated(
     best: _Local,
     covariance: FloatArray,
@@ -542,6 +571,7 @@ def register_robust(
     deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
     if len(deg_dirs) and np.isfinite(best.fit.score):
         deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
+        best = _held_to_prior(best, deg_dirs, T_init, tgt, gates, cfg.search.ambiguity_ratio)
     rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
     with watch('covariance'):
         covariance, resolution = _covariance(best, gates.spacing)
