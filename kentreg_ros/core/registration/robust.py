@@ -472,44 +472,6 @@ def _unresolved(
     return np.array(kept).reshape(-1, 3)
 
 
-def _resolved(
-    c: _Local, T_init: FloatArray, tgt: PreparedScan, gates: _Gates, cfg: KentRegConfig
-) -> tuple[_Local, FloatArray]:
-    """``c`` held to the prior along the directions it leaves unresolved, and those."""
-    dirs = degenerate_directions(c.H_trans, cfg.translation.degeneracy_ratio)
-    if len(dirs) and np.isfinite(c.fit.score):
-        ratio = cfg.search.ambiguity_ratio
-        dirs = _unresolved(dirs, c, tgt, gates, ratio)
-        c = _held_to_prior(c, dirs, T_init, tgt, gates, ratio)
-    return c, dirs
-
-
-def _held_to_prior(
-    best: _Local,
-    dirs: FloatArray,
-    T_init: FloatArray,
-    tgt: PreparedScan,
-    gates: _Gates,
-    ratio: float,
-) -> _Local:
-    """``best`` with its translation along the unresolved ``dirs`` (orthonormal rows, target
-    frame) put back to the prior's, when that pose fits at least ``ratio`` times as well: no
-    residual tells poses apart along them, so the estimate ended there by noise (against a
-    local map in a featureless corridor it walked up to 2 m either way and the map slid with
-    it, issue #40). The prior is the better estimate where the data say nothing (the solution
-    remapping of Zhang, Kaess & Singh, ICRA 2016); a pose held in every direction is kept."""
-    R, t = best.T[:3, :3], best.T[:3, 3]
-    T = make_transform(R, t + dirs.T @ (dirs @ (T_init[:3, 3] - t)))
-    if not len(dirs) or np.array_equal(T, best.T):
-        return best
-    src = best.source
-    fit = balanced_fit(T, src.points, src.normals, tgt.normals, tgt.centers, gates.fit,
-                       neighbors=best.neighbors)  # fmt: skip
-    if not fit.score >= ratio * best.fit.score:
-        return best
-    return replace(best, T=T, fit=fit, stages={**best.stages, 'held_to_prior': T})
-
-
 def _inflated(
     best: _Local,
     covariance: FloatArray,
@@ -529,7 +491,11 @@ def _inflated(
         radius = float(np.sqrt(np.mean(row_norms(best.source.points) ** 2)))
         sigma_rotation = gates.distinct / max(radius, gates.distinct)
     return inflate_degenerate(
-        covariance, directions, gates.distinct, rotation_axis=axis, sigma_rotation=sigma_rotation
+        covariance,
+        directions,
+        gates.distinct,
+        rotation_axis=axis,
+        sigma_rotation=sigma_rotation,
     )
 
 
@@ -571,10 +537,11 @@ def register_robust(
         gate=gates.distinct,
         ratio=cfg.search.ambiguity_ratio,
     )
+    best = choice.chosen.origin
     tr_cfg = cfg.translation
-    best, deg_dirs = _resolved(choice.chosen.origin, T_init, tgt, gates, cfg)
-    # The alternatives too: a caller may choose one (the odometry's verify stage does).
-    others = [_resolved(c.origin, T_init, tgt, gates, cfg)[0] for c in choice.distinct]
+    deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
+    if len(deg_dirs) and np.isfinite(best.fit.score):
+        deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
     rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
     with watch('covariance'):
         covariance, resolution = _covariance(best, gates.spacing)
@@ -594,6 +561,6 @@ def register_robust(
         fit=best.fit.score,
         hypotheses=n_hypotheses,
         ambiguous=bool(choice.rivals),
-        alternatives=tuple((c.T, c.fit.score) for c in others),
+        alternatives=tuple((c.T, c.fit) for c in choice.distinct),
         resolution=resolution,
     )
