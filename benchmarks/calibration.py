@@ -113,7 +113,12 @@ def step_error(T_true: FloatArray, T_est: FloatArray) -> FloatArray:
 
 
 def run_odometry(seq: Sequence, model: str) -> list[dict[str, Any]]:
-    """Per registered step: its error, covariance, degenerate directions and timings."""
+    """Per registered step: its error, covariance, degenerate directions and timings.
+
+    The step's estimate is the pose the odometry chose, in the model's frame: on a step the
+    verify stage recovered with the search, that can be one of the search's alternatives
+    rather than its best (``result.T_target_source``, which the speed limits may have refused:
+    in the simulated corridor its 180 degree twin); ``alternative`` marks those steps."""
     odo = Odometry(KentRegConfig.from_dict({'odometry': {'model': model}}))
     records = []
     for index, scan in enumerate(seq.scans):
@@ -123,10 +128,12 @@ def run_odometry(seq: Sequence, model: str) -> list[dict[str, Any]]:
         if result is None or not step.ok or index == 0 or step.model_index < 0:
             continue
         T_true = np.linalg.inv(seq.T_world[step.model_index]) @ seq.T_world[index]
+        T_est = np.linalg.inv(odo.poses[step.model_index]) @ step.T_world_lidar
+        alternative = not np.allclose(T_est, result.T_target_source, rtol=0.0, atol=1e-6)
         records.append({
             'index': index, 'model_index': step.model_index, 'health': str(step.health),
-            'd': step_error(T_true, result.T_target_source), 'S': np.array(result.covariance),
-            'T': result.T_target_source, 'degenerate': np.array(result.degenerate_directions),
+            'd': step_error(T_true, T_est), 'S': np.array(result.covariance), 'T': T_est,
+            'alternative': alternative, 'degenerate': np.array(result.degenerate_directions),
             'covariance_ms': result.timings.get('covariance', float('nan')),
             'step_ms': step.timings['total'],
         })  # fmt: skip
@@ -157,6 +164,7 @@ def summarize(records: list[dict[str, Any]], ref: FloatArray | None = None) -> d
         'error_median': [float(v) for v in np.median(np.abs(d), axis=0) * UNITS],
         'covariance_ms_median': float(np.nanmedian([r['covariance_ms'] for r in records])),
         'step_ms_median': float(np.median([r['step_ms'] for r in records])),
+        'alternatives': int(sum(bool(r.get('alternative')) for r in records)),
     }  # fmt: skip
     flagged = [(r['d'][:3], r['S'][:3, :3], r['degenerate'][0]) for r in records
                if len(r['degenerate'])]  # fmt: skip
@@ -330,6 +338,12 @@ def markdown(doc: dict[str, Any]) -> str:
         label = f'{e["name"]} ({e["note"]})'
         rows += [_row(label, m, s) for m, s in e['models'].items()]
     lines += report.table(HEAD, rows)
+    alt = [f'{e["name"]} ({e["note"]}) {m}: {s["alternatives"]}' for e in doc['simulated']
+           for m, s in e['models'].items() if s.get('alternatives')]  # fmt: skip
+    if alt:
+        lines += ['', 'Steps whose pose is an alternative of their registration (the search '
+                  "recovered them; the covariance is the result's, its best pose's): "
+                  + '; '.join(alt) + '.']  # fmt: skip
     if 'fitted_calibration' in doc:
         lines += [
             '',

@@ -20,7 +20,7 @@ from kentreg_ros.core import (
     ScanOrderError,
     rotation_angle,
 )
-from kentreg_ros.core.odometry.covariance import propagate_covariance
+from kentreg_ros.core.odometry.covariance import moved_into_pose, propagate_covariance
 from kentreg_ros.eval.metrics import rpe
 
 N_POINTS = 8000
@@ -427,6 +427,48 @@ def test_propagate_covariance_matches_monte_carlo() -> None:
     errors = np.concatenate([p_c - T_wc[:3, 3], w], axis=1)
     expected = propagate_covariance(cov_m, T_wm, T_mc, cov_s)
     np.testing.assert_allclose(np.cov(errors.T), expected, atol=0.05 * np.abs(expected).max())
+
+
+def test_moved_into_pose_matches_monte_carlo() -> None:
+    """A step's error ``T_true = D C`` seen from the frame of ``C``: ``C^-1 D C``."""
+    rng = np.random.default_rng(4)
+    C = np.eye(4)
+    C[:3, :3] = Rotation.from_rotvec([0.1, -0.3, 0.8]).as_matrix()
+    C[:3, 3] = [2.0, -1.0, 0.4]
+    B = rng.normal(size=(6, 6))
+    cov = 1e-4 * B @ B.T
+    e = rng.multivariate_normal(np.zeros(6), cov, 20000)
+    D = np.tile(np.eye(4), (len(e), 1, 1))
+    D[:, :3, :3] = Rotation.from_rotvec(e[:, 3:]).as_matrix()
+    D[:, :3, 3] = e[:, :3]
+    E = np.linalg.inv(C) @ D @ C
+    seen = np.concatenate([E[:, :3, 3], Rotation.from_matrix(E[:, :3, :3]).as_rotvec()], axis=1)
+    expected = moved_into_pose(cov, C)
+    np.testing.assert_allclose(np.cov(seen.T), expected, atol=0.05 * np.abs(expected).max())
+
+
+def test_a_local_map_step_carries_the_model_poses_own_error(
+    scans: tuple[np.ndarray, list[np.ndarray]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Against a local map the step's covariance is its registration's plus the last accepted
+    pose's own against the map (moved into that pose's frame); against the previous scan,
+    the registration's alone. Poses are the same either way."""
+    _, clouds = scans
+    config = KentRegConfig.from_dict({'odometry': {'model': 'local_map'}})
+    odo = Odometry(config)
+    steps, anchors = [], []
+    for k, cloud in enumerate(clouds[:4]):
+        anchors.append(odo._model.anchor.copy())
+        steps.append(odo.step(cloud, k * STEP_NS, frame_id='lidar'))
+    assert healths(steps) == ['first', 'ok', 'ok', 'ok']
+    np.testing.assert_array_equal(anchors[1], np.zeros((6, 6)))  # the map is the first scan
+    own_1 = steps[1].result.covariance  # type: ignore[union-attr]
+    np.testing.assert_allclose(anchors[2], moved_into_pose(own_1, steps[1].T_prev_curr))
+    assert np.all(np.diag(anchors[3]) > 0)
+    monkeypatch.setattr(verify_stage.Outcome, 'with_anchor', lambda self, anchor: self)
+    plain = run(Odometry(config), list(clouds[:4]))  # without the anchor: the same poses
+    for a, b in zip(plain, steps, strict=True):
+        np.testing.assert_array_equal(a.T_world_lidar, b.T_world_lidar)
 
 
 def test_odometry_covariance_grows_and_inflates_on_fall_back(

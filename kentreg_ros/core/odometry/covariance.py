@@ -69,6 +69,36 @@ def propagate_covariance(
     return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
 
 
+def moved_into_pose(cov_step: ArrayLike, T_model_curr: ArrayLike) -> FloatArray:
+    """A step's covariance (left perturbation in the model frame) moved into the frame of the
+    pose it found, to first order: the error of that pose against the model, seen from the pose.
+
+    With ``C = T_model_curr`` and a step error ``D = (v, w)`` (``T_true = D C``), the pose's
+    frame sees ``C^-1 D C``: ``(R^T (v - [t]x w), R^T w)``, ``(R, t)`` of ``C`` (the sign, which a
+    covariance does not see, aside).
+
+    Parameters
+    ----------
+    cov_step : array_like, shape (6, 6)
+        In the convention of
+        :attr:`~kentreg_ros.core.registration.result.RegistrationResult.covariance`.
+    T_model_curr : array_like, shape (4, 4)
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        The same error in the frame of ``T_model_curr``, in that convention.
+    """
+    C = np.asarray(T_model_curr, dtype=np.float64)
+    Rt = C[:3, :3].T
+    J = np.zeros((6, 6))
+    J[:3, :3] = Rt
+    J[:3, 3:] = -Rt @ hat(C[:3, 3])
+    J[3:, 3:] = Rt
+    cov = J @ np.asarray(cov_step, dtype=np.float64) @ J.T
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
 def twist_covariance(
     cov_step: ArrayLike,
     T_prev_curr: ArrayLike,

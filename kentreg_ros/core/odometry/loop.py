@@ -218,12 +218,16 @@ class Odometry:
         # register from the prediction, verify (the one place a pose is chosen), deskew again.
         done = self._register(prep, model, T_model_pred, stamp, watch)
         outcome, scan = done.outcome, done.scan
+        own = outcome.result.covariance if outcome.health.accepted and outcome.result else None
+        outcome = outcome.with_anchor(model.anchor)  # the model pose's error is the step's too
         # chain: the pose in the world with its covariance; what the next scans learn from it.
         pose = chain(model.T_world, model.cov, outcome, T_world_pred, T_model_pred)
         T_prev_curr = self._learn(index, stamp, frame_id, prep, outcome, pose)
         self._expect()  # known now: a preparer ahead can go on
         # model: the previous scan, or the local map of the accepted scans, moves on.
-        posed = PosedScan(scan, outcome.health, pose, stamp, index, prep.timed_sweep, done.first)
+        posed = PosedScan(
+            scan, outcome.health, pose, stamp, index, prep.timed_sweep, done.first, own
+        )
         model.update(posed, watch)
         watch.merge(outcome.stage_timings(STAGE_TIMINGS))
         watch.add('total', watch.elapsed_ms())

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from kentreg_ros.core.config import KentRegConfig
 from kentreg_ros.core.errors import InvalidPointCloudError
 from kentreg_ros.core.geometry import row_norms
+from kentreg_ros.core.odometry.covariance import moved_into_pose
 from kentreg_ros.core.odometry.deskew import Sweep
 from kentreg_ros.core.odometry.localmap import LocalMap, nearest_spacing
 from kentreg_ros.core.odometry.motion import Chained
@@ -47,6 +48,9 @@ class PosedScan:
         motion is known).
     first : FirstAgain or None
         The model's first scan, deskewed again during this step: taken before the scan.
+    own_covariance : ndarray, shape (6, 6), or None
+        The registration's own covariance of the step (without the model's
+        :attr:`ModelStrategy.anchor`); None when nothing was registered.
     """
 
     scan: PreparedScan | None
@@ -56,6 +60,7 @@ class PosedScan:
     index: int
     sweep: Sweep | None = None
     first: FirstAgain | None = None
+    own_covariance: FloatArray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,6 +80,9 @@ class ModelStrategy(Protocol):
     taken at ``stamp_ns`` from scan number ``index``; None before the first scan.
     ``first_sweep`` is the sweep of the first scan while the model is that scan alone and it
     has per-point times (it was prepared before any motion was known, so not deskewed).
+    ``anchor`` is the error of the model's pose against the model itself, in its frame: zero
+    for a scan (a step against it is one pair's), the registration of the last accepted pose
+    against a local map (a step against the map has that error and its own; issue #40).
     """
 
     scan: PreparedScan | None
@@ -83,6 +91,7 @@ class ModelStrategy(Protocol):
     stamp_ns: int
     index: int
     first_sweep: Sweep | None
+    anchor: FloatArray
 
     def update(self, posed: PosedScan, watch: Stopwatch) -> None:
         """Take the step's scan with its pose and health (its upkeep timed in ``watch`` as
@@ -104,6 +113,7 @@ class PreviousScanModel:
         self.stamp_ns = 0
         self.index = -1
         self.first_sweep: Sweep | None = None
+        self.anchor = np.zeros((6, 6))
 
     @classmethod
     def like(cls, other: ModelStrategy, config: KentRegConfig) -> PreviousScanModel:
@@ -167,7 +177,17 @@ class LocalMapModel(PreviousScanModel):
             return  # a fall-back stays out of the map
         self.map = self._map_for(posed.scan, self.map)
         # The map's index is built by LocalMap.target, with the rest of the upkeep.
-        self._move(posed, self._insert(self.map, posed.scan, posed.pose.T_world, watch))
+        target = self._insert(self.map, posed.scan, posed.pose.T_world, watch)
+        self._move(posed, target)
+        # The pose's error against the map, which the next step against the map shares: the
+        # step errors are differences of these (lag-one correlation -0.5 in issue #40's
+        # simulated sequences, corridor and the sample's scene alike).
+        own = posed.own_covariance
+        self.anchor = (
+            moved_into_pose(own, posed.pose.T_model)
+            if own is not None and target is not posed.scan
+            else np.zeros((6, 6))
+        )
 
     def with_first(self, first: PreparedScan) -> FirstAgain:
         assert self.map is not None  # the first scan is in it

@@ -9,7 +9,7 @@ the prediction among those fitting about equally), or a fall-back to the predict
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +59,15 @@ class Outcome:
         return cls(
             None, np.eye(4), float('nan'), Health.FIRST, 'First scan: it becomes the model.'
         )
+
+    def with_anchor(self, anchor: FloatArray) -> Outcome:
+        """This outcome with ``anchor`` (the model pose's own error against the model,
+        :attr:`~kentreg_ros.core.odometry.models.ModelStrategy.anchor`) added to its result's
+        covariance: the step's error is its registration's and the model pose's together."""
+        if self.result is None or not self.health.accepted or not np.any(anchor):
+            return self
+        covariance = np.asarray(self.result.covariance, dtype=np.float64) + anchor
+        return replace(self, result=replace(self.result, covariance=covariance))
 
     def stage_timings(self, stages: tuple[str, ...]) -> dict[str, float]:
         """Milliseconds of those ``stages`` of the registration used (none without one)."""
