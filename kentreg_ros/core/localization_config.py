@@ -60,9 +60,9 @@ class LocalizationConfig(Section, prefix='localization.'):
         "A pose is refused when the scan's rays pass through more than this share of the map "
         'points they reach (by more than 5 % of the range): the scan saw empty space where '
         'the map has a surface. At the reference poses 0.06 (BALM), 0.12 (Avia outdoors) and '
-        'up to 0.27 (a small room with fast hand-held turns: moving people, a smeared map); '
-        'wrong poses mostly 0.3-0.8. A pose that passes still needs no distinct rival within '
-        'search.ambiguity_ratio of its fit.',
+        'up to 0.27 (a small room with fast hand-held turns: moving people, a smeared map; one '
+        'keyframe there 0.31, refused); wrong poses mostly 0.3-0.8. A pose that passes still '
+        'needs no distinct rival within search.ambiguity_ratio of its fit.',
         range=(0.0, 1.0),
     )
     min_visible: int = setting(
