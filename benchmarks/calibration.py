@@ -342,8 +342,8 @@ def markdown(doc: dict[str, Any]) -> str:
            for m, s in e['models'].items() if s.get('alternatives')]  # fmt: skip
     if alt:
         lines += ['', 'Steps whose pose is an alternative of their registration (the search '
-                  "recovered them; the covariance is the result's, its best pose's): "
-                  + '; '.join(alt) + '.']  # fmt: skip
+                  "recovered them; the covariance is that pose's own since 2026-12-08, the "
+                  "search's best pose's before): " + '; '.join(alt) + '.']  # fmt: skip
     if 'fitted_calibration' in doc:
         lines += [
             '',

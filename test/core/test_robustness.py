@@ -124,6 +124,34 @@ def test_symmetric_room_is_reported_ambiguous_with_its_twin() -> None:
     for T_alt, fit in result.alternatives:
         assert fit >= 0.9 * result.fit
         assert rotation_angle(T_alt[:3, :3].T @ result.T_target_source[:3, :3]) > np.radians(10)
+    # Each alternative has its own covariance, made as the chosen pose's is: a caller taking
+    # one reports that pose's uncertainty (a twin in a bare box is as well held as the best).
+    assert len(result.alternative_covariances) == len(result.alternatives)
+    for cov in result.alternative_covariances:
+        assert cov.shape == (6, 6) and np.allclose(cov, cov.T)
+        assert np.linalg.eigvalsh(cov).min() > 0.0
+        ratio = np.diag(cov) / np.diag(result.covariance)
+        assert np.all((ratio > 0.1) & (ratio < 10.0)), ratio
+
+
+def test_a_step_taking_a_searched_alternative_carries_that_poses_covariance() -> None:
+    """The odometry's search hands each plausible pose on with its own covariance: a step that
+    takes an alternative (a twin nearer the prediction) must not report the best pose's."""
+    from kentreg_ros.core.odometry.verify import Verifier
+
+    rng = np.random.default_rng(11)
+    room = box_room(rng, 15000, boxes=0)
+    T = make_transform(exp_so3(np.radians([0.0, 0.0, 30.0])), [0.2, 0.1, 0.0])
+    source = move(np.linalg.inv(T), box_room(rng, 15000, boxes=0))
+    cfg = KentRegConfig()
+    found = register(source, room)
+    candidates = Verifier(cfg)._search(prepare_scan(source), prepare_scan(room), gap_ns=0)
+    assert len(candidates) == 1 + len(found.alternatives) >= 2
+    best, *others = candidates
+    np.testing.assert_array_equal(best.origin.covariance, found.covariance)
+    for c, cov in zip(others, found.alternative_covariances, strict=True):
+        np.testing.assert_array_equal(c.origin.covariance, cov)
+        assert not np.array_equal(c.origin.covariance, found.covariance)
 
 
 # --------------------------------------------------------------------------------------------

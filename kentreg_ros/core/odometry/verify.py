@@ -216,9 +216,12 @@ class Verifier:
             return []
         if found.status == Status.FAILED:
             return []
+        # An alternative's result is the search's with that pose's own covariance (the step
+        # reports the uncertainty of the pose it takes; the pose itself is the candidate's).
+        own = [found] + [replace(found, covariance=cov) for cov in found.alternative_covariances]
         return [
-            Candidate(T, fit, found, searched=True)
-            for T, fit in [(found.T_target_source, found.fit), *found.alternatives]
+            Candidate(T, fit, own[i] if i < len(own) else found, searched=True)
+            for i, (T, fit) in enumerate([(found.T_target_source, found.fit), *found.alternatives])
             if not self.implausible(T, gap_ns)
         ]
 

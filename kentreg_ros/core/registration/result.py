@@ -100,6 +100,9 @@ class RegistrationResult:
         symmetric scenes (rooms, corridors) have such twins.
     alternatives : tuple of (ndarray (4, 4), float)
         The distinct other poses the search refined, with their fits.
+    alternative_covariances : tuple of ndarray (6, 6)
+        The covariance of each of ``alternatives``, made as ``covariance`` is for this pose
+        (a caller that takes an alternative reports that pose's uncertainty, not this one's).
     resolution : ndarray, shape (6, 6) or None
         How finely the fit locates its minimum: the first-order least-squares covariance
         ``sigma^2 H^-1`` of the final iteration (independent residuals of one variance, the
@@ -128,6 +131,7 @@ class RegistrationResult:
     hypotheses: int = 0
     ambiguous: bool = False
     alternatives: tuple[tuple[FloatArray, float], ...] = ()
+    alternative_covariances: tuple[FloatArray, ...] = ()
     resolution: FloatArray | None = None
 
     @property
@@ -178,7 +182,7 @@ class PoseEvidence:
         The rotation information has a near-null direction.
     stages : dict of str to ndarray (4, 4)
         ``T_target_source`` after each stage.
-    fit, hypotheses, ambiguous, alternatives, resolution
+    fit, hypotheses, ambiguous, alternatives, alternative_covariances, resolution
         As in :class:`RegistrationResult` (robust mode; the defaults in paper mode).
     """
 
@@ -197,6 +201,7 @@ class PoseEvidence:
     hypotheses: int = 0
     ambiguous: bool = False
     alternatives: tuple[tuple[FloatArray, float], ...] = ()
+    alternative_covariances: tuple[FloatArray, ...] = ()
     resolution: FloatArray | None = None
 
     @property
@@ -267,5 +272,6 @@ def finish_result(
         hypotheses=ev.hypotheses,
         ambiguous=ev.ambiguous,
         alternatives=ev.alternatives,
+        alternative_covariances=ev.alternative_covariances,
         resolution=ev.resolution,
     )

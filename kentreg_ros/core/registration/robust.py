@@ -472,6 +472,18 @@ def _unresolved(
     return np.array(kept).reshape(-1, 3)
 
 
+def _degeneracy(
+    local: _Local, tgt: PreparedScan, gates: _Gates, cfg: KentRegConfig
+) -> tuple[FloatArray, bool]:
+    """``local``'s translation directions the fit cannot resolve (:func:`_unresolved`) and
+    whether its rotation is degenerate."""
+    ratio = cfg.translation.degeneracy_ratio
+    dirs = degenerate_directions(local.H_trans, ratio)
+    if len(dirs) and np.isfinite(local.fit.score):
+        dirs = _unresolved(dirs, local, tgt, gates, cfg.search.ambiguity_ratio)
+    return dirs, rotation_degenerate(local.em.hessian, ratio)
+
+
 def _inflated(
     best: _Local,
     covariance: FloatArray,
@@ -538,14 +550,16 @@ def register_robust(
         ratio=cfg.search.ambiguity_ratio,
     )
     best = choice.chosen.origin
-    tr_cfg = cfg.translation
-    deg_dirs = degenerate_directions(best.H_trans, tr_cfg.degeneracy_ratio)
-    if len(deg_dirs) and np.isfinite(best.fit.score):
-        deg_dirs = _unresolved(deg_dirs, best, tgt, gates, cfg.search.ambiguity_ratio)
-    rot_degenerate = rotation_degenerate(best.em.hessian, tr_cfg.degeneracy_ratio)
+    deg_dirs, rot_degenerate = _degeneracy(best, tgt, gates, cfg)
     with watch('covariance'):
         covariance, resolution = _covariance(best, gates.spacing)
         covariance = _inflated(best, covariance, deg_dirs, rot_degenerate, gates)
+    others = []
+    for c in choice.distinct:  # the search's other poses, only when it ran and found some
+        dirs, rot = _degeneracy(c.origin, tgt, gates, cfg)
+        with watch('covariance'):
+            own, _ = _covariance(c.origin, gates.spacing)
+            others.append(_inflated(c.origin, own, dirs, rot, gates))
     return PoseEvidence(
         T_target_source=best.T,
         converged=best.converged,
@@ -562,5 +576,6 @@ def register_robust(
         hypotheses=n_hypotheses,
         ambiguous=bool(choice.rivals),
         alternatives=tuple((c.T, c.fit) for c in choice.distinct),
+        alternative_covariances=tuple(others),
         resolution=resolution,
     )
