@@ -113,6 +113,22 @@ def twin_rotations(
     scans (tied in 2, 4 % below in 2); the twins kept by the margin came within 9 deg of the
     truth in 59 of the 60 (the other's best rotation lay 7 deg off the room's box frame, and
     its twin nearest the truth 0.41 below the best overlap)."""
+    return _kept_twins(scan, pmap, R_map_scan, config, start, window, of_best=True)
+
+
+def _kept_twins(
+    scan: PreparedScan,
+    pmap: PointMap,
+    R_map_scan: FloatArray,
+    config: KentRegConfig,
+    start: FloatArray | None,
+    window: Window | None,
+    *,
+    of_best: bool,
+) -> list[FloatArray]:
+    """The box twins of ``R_map_scan`` within the window (if any) whose overlap with the map's
+    mixture lies within :data:`TWIN_OVERLAP_MARGIN` of the best of the 24 (``of_best``) or of
+    ``R_map_scan``'s own."""
     twins = box_twins(pmap.clusters)
     if not twins:
         return []
@@ -121,9 +137,10 @@ def twin_rotations(
     overlap = mixture_overlap(
         np.concatenate([R_map_scan[None], turned]), scan.clusters, pmap.clusters, cap
     )
+    floor = (overlap.max() if of_best else overlap[0]) - TWIN_OVERLAP_MARGIN
     out: list[FloatArray] = []
     for R0, score in zip(turned, overlap[1:], strict=True):
-        if score < overlap.max() - TWIN_OVERLAP_MARGIN:
+        if score < floor:
             continue
         if start is not None and window is not None:
             if rotation_angle(start[:3, :3].T @ R0) > np.radians(window.angle_deg):
@@ -156,21 +173,8 @@ def twin_starts(
     The twin of a registered rotation is kept as it is: refined by the EM against the whole
     map's mixture it drifts (3 deg from the truth before, 4.2 after), and the registration
     corrects the rest."""
-    twins = box_twins(pmap.clusters)
-    if not twins:
-        return []
-    cap = 1.0 / np.radians(config.search.twist_step_deg) ** 2
-    turned = np.stack([Q @ R_map_scan for Q in twins])
-    overlap = mixture_overlap(
-        np.concatenate([R_map_scan[None], turned]), scan.clusters, pmap.clusters, cap
-    )
     out: list[Hypothesis] = []
-    for R0, score in zip(turned, overlap[1:], strict=True):
-        if score < overlap[0] - TWIN_OVERLAP_MARGIN:
-            continue
-        if start is not None and window is not None:
-            if rotation_angle(start[:3, :3].T @ R0) > np.radians(window.angle_deg):
-                continue
+    for R0 in _kept_twins(scan, pmap, R_map_scan, config, start, window, of_best=False):
         out += translations(scan, R0, pmap, 1, start=start, window=window)
     out.sort(key=lambda h: -h.score)
     return [closer_start(scan, pmap, h) for h in out[:TWINS_REGISTERED]]
