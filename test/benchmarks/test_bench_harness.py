@@ -118,6 +118,6 @@ def test_map_consistent_poses_pull_a_noisy_reference_onto_the_scenes_truth() -> 
     assert before.min() > 0.014
     assert after.max() < 0.004, after
     np.testing.assert_allclose(out.poses[0], truth[0], atol=1e-12)
-    assert out.moved_m and out.converged == (out.moved_m[-1][1] <= out.tol)
+    assert out.converged and len(out.moved_m) < 12  # stopped because nothing moved
     with pytest.raises(ValueError, match='one pose per cloud'):
         map_consistent_poses(clouds[:2], noisy[:2])
